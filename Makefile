@@ -1,0 +1,42 @@
+# Two commands for users: `make demo` and `make test` (see README). Everything else is a building block.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+CSRC := $(shell find csrc -name '*.cpp' -o -name '*.h')
+DEPS_STAMP := $(VENV)/.deps-stamp
+BUILD_STAMP := .build-stamp
+PYTEST_ARGS ?=
+
+.PHONY: demo test build bench clean venv
+
+$(PY):
+	python3 -m venv $(VENV)
+	$(PIP) install --quiet --upgrade pip setuptools wheel
+
+# torch first (setup.py needs it), then the package's own dependencies from setup.cfg.
+$(DEPS_STAMP): setup.cfg setup.py | $(PY)
+	$(PIP) install --quiet torch numpy ninja
+	TA_SKIP_EXT=1 $(PIP) install --quiet --no-build-isolation -e '.[test]'
+	touch $@
+
+venv: $(DEPS_STAMP)
+
+# Ahead-of-time build of torch_appearance._C; rebuilt whenever a C++ source changes.
+$(BUILD_STAMP): $(DEPS_STAMP) $(CSRC) setup.py torch_appearance/_buildinfo.py
+	$(PY) setup.py --quiet build_ext --inplace
+	touch $@
+
+build: $(BUILD_STAMP)
+
+demo: build
+	$(PY) scripts/demo.py --out results/demo
+
+test: build
+	$(PY) -m pytest -n 2 $(PYTEST_ARGS)
+
+bench: build
+	$(PY) scripts/bench_volpath.py
+
+clean:
+	rm -rf build $(BUILD_STAMP) torch_appearance/_C*.so results

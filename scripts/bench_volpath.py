@@ -1,0 +1,306 @@
+#!/usr/bin/env python
+"""Benchmark the C++ volume path tracer: forward and backward (path replay) time, throughput and memory.
+
+For each scene and thread count: one warm-up run (forward + backward), then ``--reps`` timed repetitions;
+the medians are reported. The backward pass is that of ``loss = (image * w).sum()`` with fixed random
+weights ``w``, with ``sigma_t`` and ``albedo`` both requiring grad. Scenes (all 64 x 64 texels, 0.085 mm
+voxels, smooth dielectric boundary with IOR 1.5, HG g = 0.4, top face):
+
+    ink-slab     1 mm (D = 12); sigma_t ~ U(2, 24) mm^-1 and albedo ~ U(0.05, 0.9997), independently per
+                 channel and voxel (chromatic: one walk per channel); 16 spp
+    achromatic   as ink-slab, but sigma_t grey (the same for R, G, B; albedo still per channel), so one
+                 walk serves all three channels: compare its forward_s with ink-slab's
+    white-dense  2.5 mm (D = 29) of Vero white: sigma_t = (6, 9, 24) mm^-1, albedo (0.9991, 0.9997, 0.999):
+                 long random walks; 4 spp
+    thin         D = 12 of almost vacuum (sigma_t = 1e-4 mm^-1, albedo 1) with ~5 % of the voxels dense
+                 white ink; 16 spp
+
+One JSON line per scene and thread count is printed (and all of them written atomically to ``--out``),
+with the fields
+
+    scene, texels, grid_dhw, spp, threads, forward_s, backward_s, backward_over_forward,
+    scatter_events, events_per_s, backward_scatter_events, backward_events_per_s,
+    forward_tracer_s, backward_tracer_s (the tracer's own timers from ``stats``),
+    peak_rss_mb (peak resident memory while the scene ran: VmHWM after resetting it, else getrusage maxrss),
+    rss_growth_mb (that peak minus the resident memory just before the scene was built), maxrss_mb
+    (getrusage maxrss of the whole process so far), grid_mb (sigma_t + albedo), reps, seed
+
+and a bar chart of forward/backward seconds per scene is saved beside ``--out`` (``volpath.png``).
+
+Usage::
+
+    python scripts/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
+"""
+import argparse
+import json
+import os
+import resource
+import statistics
+import sys
+import time
+import zlib
+
+import numpy as np
+import torch
+
+try:
+    import torch_appearance
+except ImportError:  # running from a checkout that is not installed
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import torch_appearance
+from torch_appearance import io as ta_io
+
+VOXEL_SIZE = 0.085  # mm
+TEXELS = 64  # per side
+WHITE_SIGMA_T = (6.0, 9.0, 24.0)
+WHITE_ALBEDO = (0.9991, 0.9997, 0.999)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# scenes
+# --------------------------------------------------------------------------------------------------------------
+def _uniform(generator, shape, low, high):
+    return low + (high - low) * torch.rand(shape, generator=generator, dtype=torch.float64)
+
+
+def _per_channel(values, shape):
+    return torch.tensor(values, dtype=torch.float64).view(3, 1, 1, 1).expand(3, *shape).clone()
+
+
+def scene_ink_slab(generator):
+    shape = (12, TEXELS, TEXELS)
+    sigma_t = _uniform(generator, (3, *shape), 2.0, 24.0)
+    albedo = _uniform(generator, (3, *shape), 0.05, 0.9997)
+    return sigma_t, albedo, 16
+
+
+def scene_achromatic(generator):
+    shape = (12, TEXELS, TEXELS)
+    sigma_t = _uniform(generator, (1, *shape), 2.0, 24.0).expand(3, *shape).clone()
+    albedo = _uniform(generator, (3, *shape), 0.05, 0.9997)
+    return sigma_t, albedo, 16
+
+
+def scene_white_dense(generator):
+    shape = (int(round(2.5 / VOXEL_SIZE)), TEXELS, TEXELS)  # D = 29
+    return _per_channel(WHITE_SIGMA_T, shape), _per_channel(WHITE_ALBEDO, shape), 4
+
+
+def scene_thin(generator):
+    shape = (12, TEXELS, TEXELS)
+    dense = (torch.rand(shape, generator=generator, dtype=torch.float64) < 0.05).expand(3, *shape)
+    sigma_t = torch.where(dense, _per_channel(WHITE_SIGMA_T, shape), torch.full((3, *shape), 1e-4, dtype=torch.float64))
+    albedo = torch.where(dense, _per_channel(WHITE_ALBEDO, shape), torch.ones((3, *shape), dtype=torch.float64))
+    return sigma_t, albedo, 16
+
+
+SCENES = {
+    "ink-slab": scene_ink_slab,
+    "achromatic": scene_achromatic,
+    "white-dense": scene_white_dense,
+    "thin": scene_thin,
+}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# memory
+# --------------------------------------------------------------------------------------------------------------
+def _status_kb(field):
+    """A ``kB`` field of /proc/self/status (Linux), or None."""
+    try:
+        with open("/proc/self/status") as handle:
+            for line in handle:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak_rss():
+    """Reset the kernel's peak-RSS mark (VmHWM) of this process; True when that worked."""
+    try:
+        with open("/proc/self/clear_refs", "w") as handle:
+            handle.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _maxrss_mb():
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1024.0 if sys.platform != "darwin" else rss / 2**20  # kB on Linux, bytes on macOS
+
+
+# --------------------------------------------------------------------------------------------------------------
+# timing
+# --------------------------------------------------------------------------------------------------------------
+def _run_once(sigma_t, albedo, weights, spp, seed, ior, g):
+    """One forward + backward; returns wall seconds and the tracer's stats."""
+    st = sigma_t.detach().clone().requires_grad_()
+    al = albedo.detach().clone().requires_grad_()
+    stats = {}
+    start = time.perf_counter()
+    image = torch_appearance.render_texels(
+        st, al, voxel_size=VOXEL_SIZE, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats
+    )
+    forward_s = time.perf_counter() - start
+    loss = (image * weights).sum()
+    start = time.perf_counter()
+    loss.backward()
+    backward_s = time.perf_counter() - start
+    if st.grad is None or al.grad is None:
+        raise RuntimeError("render_texels produced no gradient for sigma_t/albedo")
+    return forward_s, backward_s, stats
+
+
+def bench_scene(name, threads, args):
+    torch.set_num_threads(threads)
+    peak_reset = _reset_peak_rss() and _status_kb("VmHWM") is not None
+    baseline_kb = _status_kb("VmRSS")  # after the reset, so that VmHWM >= baseline
+    generator = torch.Generator().manual_seed(args.seed + zlib.crc32(name.encode()))
+    sigma_t, albedo, default_spp = SCENES[name](generator)
+    sigma_t = sigma_t.to(torch.float32).contiguous()
+    albedo = albedo.to(torch.float32).contiguous()
+    spp = args.spp if args.spp is not None else default_spp
+    _, depth, height, width = sigma_t.shape
+    weights = torch.rand((height, width, 3), generator=generator, dtype=torch.float64).to(torch.float32)
+
+    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g)  # warm-up
+    runs = [_run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g) for _ in range(args.reps)]
+    forward_s = statistics.median(r[0] for r in runs)
+    backward_s = statistics.median(r[1] for r in runs)
+    stats = runs[-1][2]
+
+    def _median_stat(key):
+        values = [r[2][key] for r in runs if r[2].get(key) is not None]
+        return statistics.median(values) if values else None
+
+    events = stats.get("scatter_events")
+    backward_events = stats.get("backward_scatter_events")
+    if peak_reset:
+        peak_mb = _status_kb("VmHWM") / 1024.0
+    else:
+        peak_mb = _maxrss_mb()
+    return {
+        "scene": name,
+        "texels": height * width,
+        "grid_dhw": [depth, height, width],
+        "spp": spp,
+        "threads": torch.get_num_threads(),
+        "forward_s": round(forward_s, 6),
+        "backward_s": round(backward_s, 6),
+        "backward_over_forward": round(backward_s / forward_s, 4),
+        "scatter_events": events,
+        "events_per_s": round(events / forward_s) if events is not None else None,
+        "backward_scatter_events": backward_events,
+        "backward_events_per_s": round(backward_events / backward_s) if backward_events is not None else None,
+        "forward_tracer_s": _median_stat("forward_s"),
+        "backward_tracer_s": _median_stat("backward_s"),
+        "peak_rss_mb": round(peak_mb, 1),
+        "peak_rss_source": "VmHWM" if peak_reset else "ru_maxrss",
+        "rss_growth_mb": round(peak_mb - baseline_kb / 1024.0, 1) if baseline_kb is not None else None,
+        "maxrss_mb": round(_maxrss_mb(), 1),
+        "grid_mb": round((sigma_t.numel() + albedo.numel()) * sigma_t.element_size() / 2**20, 3),
+        "reps": args.reps,
+        "seed": args.seed,
+    }
+
+
+# --------------------------------------------------------------------------------------------------------------
+# output
+# --------------------------------------------------------------------------------------------------------------
+def plot(rows, path):
+    """Grouped bars of forward and backward seconds per scene (and thread count)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [f"{r['scene']}\n{r['threads']} thr, {r['spp']} spp" for r in rows]
+    x = np.arange(len(rows))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(rows)), 4.0))
+    ax.bar(x - 0.2, [r["forward_s"] for r in rows], 0.4, label="forward")
+    ax.bar(x + 0.2, [r["backward_s"] for r in rows], 0.4, label="backward (path replay)")
+    ax.set_xticks(x)
+    ax.set_xticklabels(labels, fontsize=8)
+    ax.set_ylabel("seconds (median)")
+    ax.set_title(f"torch_appearance volume path tracer, {rows[0]['texels']} texels")
+    ax.legend()
+    fig.tight_layout()
+    directory, name = os.path.split(path)
+    tmp = os.path.join(directory, f".{name}.partial.png")
+    try:  # atomic: render to a temporary file in the same folder, then rename
+        fig.savefig(tmp, dpi=120)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _int_list(text):
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected integers >= 1, got {text!r}")
+    return values
+
+
+def _scene_list(text):
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [n for n in names if n not in SCENES]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown scene(s) {unknown or text!r}; choose from {', '.join(SCENES)}")
+    return names
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", type=_scene_list, default=list(SCENES),
+                        help=f"comma-separated scenes (default: {','.join(SCENES)})")
+    parser.add_argument("--threads", type=_int_list, default=[torch.get_num_threads()],
+                        help="comma-separated torch thread counts (default: %(default)s)")
+    parser.add_argument("--spp", type=int, default=None, help="samples per texel for every scene (default: per scene)")
+    parser.add_argument("--reps", type=int, default=3, help="timed repetitions after the warm-up (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scenes and the tracer (default: %(default)s)")
+    parser.add_argument("--ior", type=float, default=1.5, help="index of refraction (default: %(default)s)")
+    parser.add_argument("--g", type=float, default=0.4, help="Henyey-Greenstein parameter (default: %(default)s)")
+    parser.add_argument("--out", default="results/bench/volpath.jsonl",
+                        help="JSON-lines result file; the plot goes beside it (default: %(default)s)")
+    parser.add_argument("--no-plot", action="store_true", help="do not draw the bar chart")
+    args = parser.parse_args(argv)
+    if args.spp is not None and args.spp < 1:
+        parser.error(f"--spp must be >= 1, got {args.spp}")
+    if args.reps < 1:
+        parser.error(f"--reps must be >= 1, got {args.reps}")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    directory = os.path.dirname(os.path.abspath(args.out))
+    os.makedirs(directory, exist_ok=True)
+    rows = []
+    for threads in args.threads:
+        for name in args.scenes:
+            row = bench_scene(name, threads, args)
+            if name == "achromatic":
+                chromatic = [r for r in rows if r["scene"] == "ink-slab" and r["threads"] == row["threads"]
+                             and r["spp"] == row["spp"]]
+                if chromatic:
+                    row["forward_speedup_vs_ink_slab"] = round(chromatic[0]["forward_s"] / row["forward_s"], 3)
+                    row["backward_speedup_vs_ink_slab"] = round(chromatic[0]["backward_s"] / row["backward_s"], 3)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    ta_io.atomic_write_bytes(args.out, "".join(json.dumps(r) + "\n" for r in rows).encode())
+    if not args.no_plot:
+        plot(rows, os.path.join(directory, os.path.splitext(os.path.basename(args.out))[0] + ".png"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

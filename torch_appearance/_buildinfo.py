@@ -1,0 +1,18 @@
+"""Build fingerprint shared by setup.py (at build time) and the import-time check (no torch import here)."""
+import hashlib
+import os
+
+_SOURCE_SUFFIXES = (".cpp", ".h", ".hpp", ".cu", ".cuh")
+
+
+def source_hash(csrc_dir):
+    """SHA-256 (first 16 hex digits) over the relative paths and contents of the C++ sources in ``csrc_dir``."""
+    digest = hashlib.sha256()
+    for root, _, files in sorted(os.walk(csrc_dir)):
+        for name in sorted(files):
+            if name.endswith(_SOURCE_SUFFIXES):
+                path = os.path.join(root, name)
+                digest.update(os.path.relpath(path, csrc_dir).replace(os.sep, "/").encode())
+                with open(path, "rb") as handle:
+                    digest.update(handle.read())
+    return digest.hexdigest()[:16]

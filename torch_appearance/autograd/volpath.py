@@ -1,0 +1,98 @@
+"""``VolumePathTrace``: the C++ volume path tracer as a ``torch.autograd.Function``.
+
+Forward renders texel radiance; backward is radiative backpropagation by path replay (csrc/volpath/tracer.h):
+each path is regenerated from its counter-based random numbers and ∂(path contribution)/∂θ is deposited into the
+voxels it touched. Linear time, no tape, memory independent of path length; gradient work only for inputs
+with ``requires_grad``.
+"""
+import time
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from .._ext import _C
+
+__all__ = ["VolumePathTrace", "reference_medium", "sampling_lanes"]
+
+
+def sampling_lanes(ref_sigma_t):
+    """3 if the sampling density is the same in all channels (one walk serves all three), else 1."""
+    r = ref_sigma_t.detach()
+    return 3 if torch.equal(r[0], r[1]) and torch.equal(r[0], r[2]) else 1
+
+
+def reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo, sigma_t_floor=0.0, albedo_floor=0.0):
+    """The detached sampling medium: explicit references as given, defaults = detached parameters with floors.
+
+    Returns:
+        (ref_sigma_t, ref_albedo, ratio): contiguous (3, D, H, W) tensors and whether they may differ from the
+        parameters (then the walk carries ratio weights f(θ)/p_ref).
+    """
+    ratio = False
+    if sampling_sigma_t is None:
+        ref_s = sigma_t.detach()
+        if sigma_t_floor > 0:
+            ref_s = ref_s.clamp_min(sigma_t_floor)
+            ratio = True
+    else:
+        ref_s, ratio = sampling_sigma_t.detach(), True
+    if sampling_albedo is None:
+        ref_a = albedo.detach()
+        if albedo_floor > 0:
+            ref_a = ref_a.clamp_min(albedo_floor)
+            ratio = True
+    else:
+        ref_a, ratio = sampling_albedo.detach(), True
+    return ref_s.contiguous(), ref_a.contiguous(), ratio
+
+
+class VolumePathTrace(torch.autograd.Function):
+    """Texel radiance of a voxel slab; differentiable in ``sigma_t`` and ``albedo``.
+
+    Inputs are validated by :func:`torch_appearance.render_texels`, which is the function to call.
+    ``scene`` is a :class:`torch_appearance.render.SlabScene`; ``stats`` an optional dict that receives
+    ``forward_s``, ``scatter_events`` and, after backward, ``backward_s``, ``backward_scatter_events``.
+    """
+
+    @staticmethod
+    def forward(ctx, sigma_t, albedo, sampling_sigma_t, sampling_albedo, scene, stats):
+        sigma_t = sigma_t.contiguous()
+        albedo = albedo.contiguous()
+        ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
+        options = scene.trace_options(sampling_lanes(ref_s))
+        start = time.perf_counter()
+        image, events = _C.volpath_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
+        if stats is not None:
+            stats["forward_s"] = time.perf_counter() - start
+            stats["scatter_events"] = int(events)
+            stats["lanes"] = options.lanes
+        ctx.scene, ctx.stats = scene, stats
+        ctx.explicit = (sampling_sigma_t is not None, sampling_albedo is not None)
+        ctx.save_for_backward(sigma_t, albedo,
+                              sampling_sigma_t if sampling_sigma_t is not None else None,
+                              sampling_albedo if sampling_albedo is not None else None)
+        return image
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_image):
+        need_s, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if not (need_s or need_a):
+            return None, None, None, None, None, None
+        sigma_t, albedo, samp_s, samp_a = ctx.saved_tensors
+        scene = ctx.scene
+        ref_s, ref_a, _ = reference_medium(sigma_t, albedo, samp_s, samp_a,
+                                           sigma_t_floor=scene.sigma_t_floor, albedo_floor=scene.settings.albedo_floor)
+        options = scene.trace_options(sampling_lanes(ref_s))
+        start = time.perf_counter()
+        grad_s, grad_a, events = _C.volpath_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),
+                                                     albedo.detach(), ref_s, ref_a, need_s, need_a, options)
+        if ctx.stats is not None:
+            ctx.stats["backward_s"] = time.perf_counter() - start
+            ctx.stats["backward_scatter_events"] = int(events)
+        return (grad_s if need_s else None,
+                grad_a if need_a else None,
+                None,  # sampling_sigma_t: detached by definition
+                None,  # sampling_albedo
+                None,  # scene
+                None)  # stats
