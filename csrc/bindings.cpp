@@ -31,10 +31,14 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("rr_depth", &TraceOptions::rr_depth)
       .def_readwrite("lanes", &TraceOptions::lanes);
 
+  py::class_<ta::volpath::ForwardCounts>(m, "ForwardCounts")
+      .def_readonly("scatter_events", &ta::volpath::ForwardCounts::scatter_events)
+      .def_readonly("truncated_paths", &ta::volpath::ForwardCounts::truncated_paths);
+
   m.def("volpath_forward", &ta::volpath::forward_cpu, py::arg("sigma_t"), py::arg("albedo"),
         py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("ratio"), py::arg("options"),
         py::call_guard<py::gil_scoped_release>(),
-        "Texel radiance (F, H, W, 3) (or (H, W, 3) for one face) and the number of scatter events.");
+        "Texel radiance (F, H, W, 3) (or (H, W, 3) for one face) and ForwardCounts.");
   m.def("volpath_backward", &ta::volpath::backward_cpu, py::arg("grad_output"), py::arg("sigma_t"),
         py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
         py::arg("need_albedo"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),

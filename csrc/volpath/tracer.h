@@ -161,6 +161,7 @@ inline T fresnel_dielectric(T cos_i, T eta) {
 template <typename T, int LANES>
 struct PathResult {
   bool escaped = false;
+  bool truncated = false;  // cut by max_depth (a bias the caller reports)
   T value[LANES];         // V_c / L_env,c  (the path weight; 0 if not escaped)
   T prod_nonzero[LANES];  // product of all non-zero factors
   int zeros[LANES];       // number of exactly-zero factors (σ_c = 0 or α_c = 0 at a collision)
@@ -296,7 +297,10 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
     if (collided) {
       // keep the point inside the voxel the DDA found (no drift into a neighbour through rounding)
       for (int k = 0; k < 3; ++k) p[k] = std::min(T(idx[k] + 1), std::max(T(idx[k]), p[k]));
-      if (++depth > P.max_depth) return res;  // truncated: contributes 0
+      if (++depth > P.max_depth) {  // truncated: contributes 0
+        res.truncated = true;
+        return res;
+      }
       ++res.scatter_events;
       // continuation probability: reference albedo (max over lanes), times roulette on the reference weight
       T ps, aref[LANES];
@@ -348,7 +352,10 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
     if (DIELECTRIC) {
       const T r = fresnel_dielectric(std::abs(d[exit_axis]), P.ior);
       if (u[1] < r) {  // internal reflection (total when r == 1)
-        if (++depth > P.max_depth) return res;
+        if (++depth > P.max_depth) {
+          res.truncated = true;
+          return res;
+        }
         d[exit_axis] = -d[exit_axis];
         continue;
       }

@@ -37,8 +37,13 @@ struct TraceOptions {
   int64_t lanes = 1;
 };
 
-// Returns (image (F, H, W, 3) or (H, W, 3) for one face, scatter events).
-std::tuple<torch::Tensor, int64_t> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+struct ForwardCounts {
+  int64_t scatter_events = 0;
+  int64_t truncated_paths = 0;  // walks cut by max_depth (each channel's walk counts once)
+};
+
+// Returns (image (F, H, W, 3) or (H, W, 3) for one face, counts).
+std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                                                const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
                                                bool ratio, const TraceOptions& opt);
 

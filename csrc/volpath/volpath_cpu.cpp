@@ -99,34 +99,39 @@ int64_t num_chunks(int64_t ntexels) {
 }
 
 template <typename T, int LANES, bool DIEL, bool RATIO>
-int64_t forward_kernel(const Params<T>& P, const Grids<T>& G, T* out) {
+ForwardCounts forward_kernel(const Params<T>& P, const Grids<T>& G, T* out) {
   const int64_t ntex = P.faces() * P.texels_per_face();
   const int64_t nchunks = num_chunks(ntex);
-  std::vector<int64_t> events(nchunks, 0);
+  std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
   for_each_chunk(ntex, nchunks, [&](int64_t c) {
-    int64_t ev = 0;
+    int64_t ev = 0, cut = 0;
     for_texels_of_chunk(c, nchunks, ntex, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
       for (int64_t s = 0; s < P.spp; ++s) {
         if (LANES == 3) {
           const auto r = trace_path<T, 3, DIEL, RATIO, false>(P, G, t, s, 0, nullptr, nullptr, none);
           ev += r.scatter_events;
+          cut += r.truncated;
           for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]);
         } else {
           for (int ch = 0; ch < 3; ++ch) {
             const auto r = trace_path<T, 1, DIEL, RATIO, false>(P, G, t, s, ch, nullptr, nullptr, none);
             ev += r.scatter_events;
+            cut += r.truncated;
             acc[ch] += double(r.value[0]);
           }
         }
       }
       for (int ch = 0; ch < 3; ++ch) out[t * 3 + ch] = T(acc[ch] * double(P.env[ch]) / double(P.spp));
     });
-    events[c] = ev;
+    counts[c] = {ev, cut};
   });
-  int64_t total = 0;
-  for (int64_t e : events) total += e;
+  ForwardCounts total;
+  for (const auto& k : counts) {
+    total.scatter_events += k.scatter_events;
+    total.truncated_paths += k.truncated_paths;
+  }
   return total;
 }
 
@@ -230,13 +235,13 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
 
 }  // namespace
 
-std::tuple<torch::Tensor, int64_t> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                                                const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
                                                bool ratio, const TraceOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
   const int64_t F = opt.face == Face::Both ? 2 : 1;
   auto out = torch::empty({F, sigma_t.size(2), sigma_t.size(3), 3}, sigma_t.options());
-  int64_t events = 0;
+  ForwardCounts counts;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
     const Params<T> P = make_params<T>(opt, sigma_t);
@@ -245,12 +250,12 @@ std::tuple<torch::Tensor, int64_t> forward_cpu(const torch::Tensor& sigma_t, con
     dispatch_scene(opt.lanes, opt.ior > 0, [&](auto lanes_c, auto diel_c) {
       constexpr int L = decltype(lanes_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
-      events = ratio ? forward_kernel<T, L, DIEL, true>(P, G, out.data_ptr<T>())
+      counts = ratio ? forward_kernel<T, L, DIEL, true>(P, G, out.data_ptr<T>())
                      : forward_kernel<T, L, DIEL, false>(P, G, out.data_ptr<T>());
     });
   });
   if (F == 1) out = out.squeeze(0);
-  return {out, events};
+  return {out, counts};
 }
 
 std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(

@@ -6,6 +6,7 @@ voxels it touched. Linear time, no tape, memory independent of path length; grad
 with ``requires_grad``.
 """
 import time
+import warnings
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -13,6 +14,8 @@ from torch.autograd.function import once_differentiable
 from .._ext import _C
 
 __all__ = ["VolumePathTrace", "reference_medium", "sampling_lanes"]
+
+_TRUNCATION_WARN = 1e-3  # warn when more than this fraction of paths was cut by max_depth
 
 
 def sampling_lanes(ref_sigma_t):
@@ -61,11 +64,18 @@ class VolumePathTrace(torch.autograd.Function):
         ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
         options = scene.trace_options(sampling_lanes(ref_s))
         start = time.perf_counter()
-        image, events = _C.volpath_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
+        image, counts = _C.volpath_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
         if stats is not None:
             stats["forward_s"] = time.perf_counter() - start
-            stats["scatter_events"] = int(events)
+            stats["scatter_events"] = counts.scatter_events
+            stats["truncated_paths"] = counts.truncated_paths
             stats["lanes"] = options.lanes
+        walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
+        if counts.truncated_paths > _TRUNCATION_WARN * walks:
+            warnings.warn(f"render_texels: {counts.truncated_paths} of {walks} paths were cut at max_depth="
+                          f"{options.max_depth} interactions; the image is biased dark by up to that fraction. "
+                          f"Raise max_depth (optically very thick, bright media have heavy-tailed path lengths).",
+                          RuntimeWarning, stacklevel=3)
         ctx.scene, ctx.stats = scene, stats
         ctx.explicit = (sampling_sigma_t is not None, sampling_albedo is not None)
         ctx.save_for_backward(sigma_t, albedo,

@@ -22,8 +22,8 @@ __all__ = [
 FACES = {"top": 0, "bottom": 1, "both": 2}
 
 #: Default interaction limit (scatterings + internal reflections). Path lengths in a dense white slab have a
-#: heavy tail; measured with scripts/bench_volpath.py --depth-study: a white-furnace slab 2.5 mm thick at
-#: σ_t = 24 mm⁻¹ (60 mean free paths), ior 1.5, loses < 0.1 % of its energy at this limit (see README).
+#: heavy tail. Measured on a white-furnace slab 2.5 mm thick at σ_t = 24 mm⁻¹ (60 mean free paths), ior 1.5,
+#: 6.4 mm wide, centre texels: energy lost 7.7e-2 at 1024, 7.0e-4 at 4096, 0 (of 65536 paths) at 16384.
 default_max_depth = 65536
 #: Russian roulette starts after this many interactions; it acts on the reference throughput only.
 default_rr_depth = 32
