@@ -18,7 +18,8 @@ voxels, smooth dielectric boundary with IOR 1.5, HG g = 0.4, top face):
 One JSON line per scene and thread count is printed (and all of them written atomically to ``--out``),
 with the fields
 
-    scene, texels, grid_dhw, spp, threads, forward_s, backward_s, backward_over_forward,
+    scene, texels, grid_dhw, spp, threads, forward_s, backward_s (medians of the wall-clock times),
+    backward_over_forward, forward_min_s, backward_min_s (the fastest repetitions: robust to a busy machine),
     scatter_events, events_per_s, backward_scatter_events, backward_events_per_s,
     forward_tracer_s, backward_tracer_s (the tracer's own timers from ``stats``),
     peak_rss_mb (peak resident memory while the scene ran: VmHWM after resetting it, else getrusage maxrss),
@@ -45,7 +46,9 @@ import torch
 
 try:
     import torch_appearance
-except ImportError:  # running from a checkout that is not installed
+except ModuleNotFoundError as error:  # running from a checkout that is not installed
+    if error.name != "torch_appearance":
+        raise
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import torch_appearance
 from torch_appearance import io as ta_io
@@ -191,6 +194,8 @@ def bench_scene(name, threads, args):
         "forward_s": round(forward_s, 6),
         "backward_s": round(backward_s, 6),
         "backward_over_forward": round(backward_s / forward_s, 4),
+        "forward_min_s": round(min(r[0] for r in runs), 6),
+        "backward_min_s": round(min(r[1] for r in runs), 6),
         "scatter_events": events,
         "events_per_s": round(events / forward_s) if events is not None else None,
         "backward_scatter_events": backward_events,
@@ -199,7 +204,8 @@ def bench_scene(name, threads, args):
         "backward_tracer_s": _median_stat("backward_s"),
         "peak_rss_mb": round(peak_mb, 1),
         "peak_rss_source": "VmHWM" if peak_reset else "ru_maxrss",
-        "rss_growth_mb": round(peak_mb - baseline_kb / 1024.0, 1) if baseline_kb is not None else None,
+        # (clamped at 0: the kernel's RSS counters are synchronised lazily, so tiny negative differences occur)
+        "rss_growth_mb": round(max(0.0, peak_mb - baseline_kb / 1024.0), 1) if baseline_kb is not None else None,
         "maxrss_mb": round(_maxrss_mb(), 1),
         "grid_mb": round((sigma_t.numel() + albedo.numel()) * sigma_t.element_size() / 2**20, 3),
         "reps": args.reps,
@@ -263,7 +269,7 @@ def parse_args(argv=None):
     parser.add_argument("--scenes", type=_scene_list, default=list(SCENES),
                         help=f"comma-separated scenes (default: {','.join(SCENES)})")
     parser.add_argument("--threads", type=_int_list, default=[torch.get_num_threads()],
-                        help="comma-separated torch thread counts (default: %(default)s)")
+                        help=f"comma-separated torch thread counts (default: {torch.get_num_threads()}, torch's own)")
     parser.add_argument("--spp", type=int, default=None, help="samples per texel for every scene (default: per scene)")
     parser.add_argument("--reps", type=int, default=3, help="timed repetitions after the warm-up (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scenes and the tracer (default: %(default)s)")

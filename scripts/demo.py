@@ -32,7 +32,9 @@ import torch
 
 try:
     import torch_appearance
-except ImportError:  # running from a checkout that is not installed
+except ModuleNotFoundError as error:  # running from a checkout that is not installed
+    if error.name != "torch_appearance":
+        raise
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import torch_appearance
 from torch_appearance import io as ta_io
@@ -209,7 +211,8 @@ def main(argv=None):
         "spp": args.spp,
         "texels": texels,
         "faces": 2,
-        "paths": texels * args.spp,
+        "texel_samples": texels * args.spp,
+        "lanes": stats.get("lanes"),
         "grid_dhw": [depth, args.size, args.size],
         "torch_threads": torch.get_num_threads(),
         "versions": _versions(),
