@@ -92,7 +92,7 @@ class VolumePathTrace(torch.autograd.Function):
         sigma_t, albedo, samp_s, samp_a = ctx.saved_tensors
         scene = ctx.scene
         ref_s, ref_a, _ = reference_medium(sigma_t, albedo, samp_s, samp_a,
-                                           sigma_t_floor=scene.sigma_t_floor, albedo_floor=scene.settings.albedo_floor)
+                                           sigma_t_floor=scene.sigma_t_floor(sigma_t.shape), albedo_floor=scene.settings.albedo_floor)
         options = scene.trace_options(sampling_lanes(ref_s))
         start = time.perf_counter()
         grad_s, grad_a, events = _C.volpath_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),

@@ -40,7 +40,8 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
             :data:`torch_appearance.render.scene.default_rr_depth`.
         sampling_sigma_t: optional detached (3, D, H, W) sampling density, > 0 wherever ``sigma_t`` > 0.
         sampling_albedo: optional detached (3, D, H, W) sampling albedo, > 0 wherever ``albedo`` > 0.
-        sigma_t_floor: density floor (mm⁻¹) of the default gradient sampling (default 0.05 / voxel_size).
+        sigma_t_floor: density floor (mm⁻¹) of the default gradient sampling (default: 0.5 optical depths
+            along the grid diagonal, see :meth:`SlabScene.sigma_t_floor`).
         albedo_floor: albedo floor of the default gradient sampling, in [0, 1] (default 0.05).
         stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes`` and, after backward,
             ``backward_s`` and ``backward_scatter_events``.
