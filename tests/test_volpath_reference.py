@@ -145,6 +145,47 @@ def test_z_test_has_power():
     assert np.abs(z).max() > bonferroni_threshold(z.size), "z-test failed to detect sigma_t scaled by 1.1"
 
 
+def _fast_vs_reference(sigma_t, albedo, *, g, ior, seed, shape_hw, expect_lanes):
+    kw = dict(voxel_size=VOXEL_SIZE, face="top", g=g, ior=ior, environment=ENVIRONMENT)
+    renders, stats = [], {}
+    with torch.no_grad():
+        for k in range(FAST_SEEDS):
+            renders.append(torch_appearance.render_texels(torch.from_numpy(sigma_t), torch.from_numpy(albedo),
+                                                          spp=FAST_SPP, seed=seed * 1000 + k, stats=stats,
+                                                          **kw).numpy())
+    assert stats["lanes"] == expect_lanes
+    renders = np.stack(renders)
+    f = renders.mean(axis=0), renders.std(axis=0, ddof=1) / np.sqrt(FAST_SEEDS)
+    r = reference_render_texels(sigma_t, albedo, spp=REFERENCE_SPP, seed=seed, **kw)
+    assert f[0].shape == (*shape_hw, 3)
+    z = z_scores(f, r)
+    threshold = bonferroni_threshold(z.size)
+    assert np.abs(z).max() < threshold, describe(z, f, r, threshold)
+
+
+def test_vero_yellow_over_white_ink_slab():
+    """Measured printer inks: yellow (σ_t = (2.25, 3.75, 19) mm⁻¹, albedo (0.997, 0.995, 0.15)) over white.
+
+    Extinction differs ~8× between channels; an estimator that samples one channel's distances without the
+    correct weights is biased by tens of percent on such a slab. Each channel must match the reference.
+    """
+    shape = (3, 4, 3, 3)
+    sigma_t, albedo = np.empty(shape), np.empty(shape)
+    sigma_t[:, :2] = np.array([6.0, 9.0, 24.0])[:, None, None, None]  # white base (bottom two layers)
+    albedo[:, :2] = np.array([0.9991, 0.9997, 0.999])[:, None, None, None]
+    sigma_t[:, 2:] = np.array([2.25, 3.75, 19.0])[:, None, None, None]  # yellow on top
+    albedo[:, 2:] = np.array([0.997, 0.995, 0.15])[:, None, None, None]
+    _fast_vs_reference(sigma_t, albedo, g=0.4, ior=1.5, seed=31, shape_hw=(3, 3), expect_lanes=1)
+
+
+@pytest.mark.parametrize("ior", [None, 1.5])
+def test_one_shared_walk_with_chromatic_albedo(ior):
+    """Grey σ_t, chromatic albedo: one walk serves all channels with albedo weights α_c / max α; unbiased."""
+    sigma_t, albedo = make_scene(seed=7)
+    sigma_t = np.repeat(sigma_t[1:2], 3, axis=0)
+    _fast_vs_reference(sigma_t, albedo, g=0.4, ior=ior, seed=41 if ior else 43, shape_hw=(4, 4), expect_lanes=3)
+
+
 if __name__ == "__main__":  # print the z statistics of every configuration
     for config in CONFIGS:
         z = z_scores(fast(*config), reference(*config))
