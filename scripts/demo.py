@@ -18,7 +18,7 @@ then a backward pass of ``loss = image.mean()`` is timed. The run folder receive
 
 Usage::
 
-    python scripts/demo.py --out results/demo --spp 16 --seed 0
+    python scripts/demo.py --out results/demo --spp 256 --seed 0
 """
 import argparse
 import importlib.metadata
@@ -128,7 +128,7 @@ def parse_args(argv=None):
     parser.add_argument("--size", type=int, default=64, help="texels per side (default: %(default)s)")
     parser.add_argument("--thickness", type=float, default=1.0, help="slab thickness in mm (default: %(default)s)")
     parser.add_argument("--voxel-size", type=float, default=0.085, help="voxel edge in mm (default: %(default)s)")
-    parser.add_argument("--spp", type=int, default=16, help="samples per texel and face (default: %(default)s)")
+    parser.add_argument("--spp", type=int, default=256, help="samples per texel and face (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the tracer (default: %(default)s)")
     parser.add_argument("--g", type=float, default=0.4, help="Henyey-Greenstein parameter (default: %(default)s)")
     parser.add_argument("--ior", type=float, default=1.5, help="index of refraction of the slab (default: %(default)s)")
