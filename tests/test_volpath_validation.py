@@ -42,6 +42,8 @@ def render(**overrides):
     (dict(spp=2.5), TypeError, "spp: expected an int"),
     (dict(voxel_size=0.0), ValueError, "voxel_size: expected"),
     (dict(voxel_size=-1.0), ValueError, "voxel_size: expected"),
+    (dict(voxel_size=(0.1, 0.1)), ValueError, "voxel_size: expected one edge or three edges"),
+    (dict(voxel_size=(0.1, 0.0, 0.1)), ValueError, "voxel_size: expected"),
     (dict(face="side"), ValueError, "face: expected one of"),
     (dict(environment=(1.0, 2.0)), ValueError, "environment: expected"),
     (dict(environment=-1.0), ValueError, "environment: expected"),
@@ -84,7 +86,7 @@ def test_non_contiguous_input_is_fine():
 
 def options(**kw):
     opt = _C.TraceOptions()
-    opt.voxel_size, opt.spp, opt.max_depth = 0.1, 1, 16
+    opt.voxel_size, opt.spp, opt.max_depth = [0.1, 0.1, 0.1], 1, 16
     for k, v in kw.items():
         setattr(opt, k, v)
     return opt
@@ -98,7 +100,8 @@ def options(**kw):
     (dict(ref_albedo=torch.ones(3, 2, 2, 2)[:, :, :, :1].expand(3, 2, 2, 2)), "sampling_albedo: expected a contiguous"),
     (dict(options=options(g=1.0)), "g: expected"),
     (dict(options=options(spp=0)), "spp: expected"),
-    (dict(options=options(voxel_size=-1.0)), "voxel_size: expected"),
+    (dict(options=options(voxel_size=[0.1, -1.0, 0.1])), "voxel_size: expected finite edges > 0"),
+    (dict(options=options(voxel_size=[0.1, 0.1])), "voxel_size: expected 3 edges"),
     (dict(options=options(face=7)), "face: expected"),
     (dict(options=options(ior=0.5)), "ior: expected"),
     (dict(options=options(max_depth=0)), "max_depth: expected"),

@@ -87,7 +87,7 @@ struct Face {
 template <typename T>
 struct Params {
   int64_t D = 0, H = 0, W = 0;  // grid size (z, y, x)
-  T voxel_size = 1;             // mm
+  T voxel[3] = {1, 1, 1};       // voxel edges along x, y, z in mm (anisotropic printers: 600×300×940 DPI)
   T g = 0;                      // Henyey–Greenstein parameter, |g| < 1
   T ior = 1;                    // only used with DIELECTRIC
   T env[3] = {1, 1, 1};         // environment radiance, linear RGB
@@ -193,7 +193,7 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
   const int face = P.face == Face::Both ? int(texel / HW) : P.face;
   const int64_t ti = texel % HW;
   const int64_t tj = ti / P.W, tx = ti % P.W;
-  const T s = P.voxel_size;
+  const T* vs = P.voxel;
   const int ch0 = LANES == 1 ? chan : 0;  // the channel whose reference density drives the walk
 
   const PathRng<T> rng{P.seed, uint32_t(texel), uint32_t(sample), uint32_t(LANES == 1 ? chan : 3)};
@@ -201,8 +201,8 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
   T u[4];
   rng.draw(event++, u);
 
-  // Start on the face, inside the texel's footprint, pointing along the inward normal (voxel units).
-  T p[3] = {T(tx) + u[0], T(tj) + u[1], face == Face::Top ? T(P.D) : T(0)};
+  // Start on the face, inside the texel's footprint, pointing along the inward normal (positions in mm).
+  T p[3] = {(T(tx) + u[0]) * vs[0], (T(tj) + u[1]) * vs[1], face == Face::Top ? T(P.D) * vs[2] : T(0)};
   T d[3] = {0, 0, face == Face::Top ? T(-1) : T(1)};
   int64_t idx[3] = {tx, tj, face == Face::Top ? P.D - 1 : 0};
   const int64_t dims[3] = {P.W, P.H, P.D};
@@ -230,12 +230,12 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
     for (int a = 0; a < 3; ++a) {
       if (d[a] > T(0)) {
         step[a] = 1;
-        tdelta[a] = T(1) / d[a];
-        tnext[a] = std::max(T(0), (T(idx[a] + 1) - p[a]) * tdelta[a]);
+        tdelta[a] = vs[a] / d[a];
+        tnext[a] = std::max(T(0), (T(idx[a] + 1) * vs[a] - p[a]) / d[a]);
       } else if (d[a] < T(0)) {
         step[a] = -1;
-        tdelta[a] = T(-1) / d[a];
-        tnext[a] = std::max(T(0), (p[a] - T(idx[a])) * tdelta[a]);
+        tdelta[a] = -vs[a] / d[a];
+        tnext[a] = std::max(T(0), (T(idx[a]) * vs[a] - p[a]) / d[a]);
       } else {
         step[a] = 0;
         tdelta[a] = std::numeric_limits<T>::infinity();
@@ -252,7 +252,7 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
       v = (idx[2] * P.H + idx[1]) * P.W + idx[0];
       const int a = tnext[0] < tnext[1] ? (tnext[0] < tnext[2] ? 0 : 2) : (tnext[1] < tnext[2] ? 1 : 2);
       const T seg = std::max(T(0), tnext[a] - t);
-      const T sref = G.ref_sigma_t[ch0 * N + v] * s;  // reference density in voxel units
+      const T sref = G.ref_sigma_t[ch0 * N + v];  // reference density, mm⁻¹ (t is in mm)
       const T od = sref * seg;
       T len = seg;
       if (acc + od >= tau) {  // collision inside this voxel
@@ -262,13 +262,13 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
       if (RATIO) {
         for (int l = 0; l < LANES; ++l) {
           const int c = LANES == 1 ? chan : l;
-          excess[l] += (G.sigma_t[c * N + v] - G.ref_sigma_t[ch0 * N + v]) * s * len;
+          excess[l] += (G.sigma_t[c * N + v] - G.ref_sigma_t[ch0 * N + v]) * len;
         }
       }
       if (ADJOINT && A.grad_sigma_t && len > T(0)) {
         for (int l = 0; l < LANES; ++l) {
           const int c = LANES == 1 ? chan : l;
-          A.grad_sigma_t[c * N + v] -= adj[l] * pass1->value[l] * s * len;
+          A.grad_sigma_t[c * N + v] -= adj[l] * pass1->value[l] * len;
         }
       }
       if (collided) {
@@ -296,7 +296,7 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
 
     if (collided) {
       // keep the point inside the voxel the DDA found (no drift into a neighbour through rounding)
-      for (int k = 0; k < 3; ++k) p[k] = std::min(T(idx[k] + 1), std::max(T(idx[k]), p[k]));
+      for (int k = 0; k < 3; ++k) p[k] = std::min(T(idx[k] + 1) * vs[k], std::max(T(idx[k]) * vs[k], p[k]));
       if (++depth > P.max_depth) {  // truncated: contributes 0
         res.truncated = true;
         return res;
@@ -348,7 +348,7 @@ inline PathResult<T, LANES> trace_path(const Params<T>& P, const Grids<T>& G, in
     }
 
     // ---- reached the box boundary on axis exit_axis
-    p[exit_axis] = d[exit_axis] > T(0) ? T(dims[exit_axis]) : T(0);
+    p[exit_axis] = d[exit_axis] > T(0) ? T(dims[exit_axis]) * vs[exit_axis] : T(0);
     if (DIELECTRIC) {
       const T r = fresnel_dielectric(std::abs(d[exit_axis]), P.ior);
       if (u[1] < r) {  // internal reflection (total when r == 1)

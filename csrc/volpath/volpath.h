@@ -1,7 +1,7 @@
 // Differentiable heterogeneous-volume path tracer (slab scenes, texel sensor): forward + radiative backpropagation.
 //
-// Scene: a grid of D×H×W voxels of edge `voxel_size` mm occupying [0, W·s]×[0, H·s]×[0, D·s] (x ↔ W, y ↔ H,
-// z ↔ D). Piecewise-constant σ_t (mm⁻¹) and single-scattering albedo per voxel and RGB channel, Henyey–Greenstein
+// Scene: a grid of D×H×W voxels with edges voxel_size = (sx, sy, sz) mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz]
+// (x ↔ W, y ↔ H, z ↔ D). Piecewise-constant σ_t (mm⁻¹) and single-scattering albedo per voxel and RGB channel, Henyey–Greenstein
 // phase g, index-matched (ior <= 0) or smooth-dielectric (ior >= 1) box boundary, uniform environment radiance.
 // Texel sensor on face 0 = top (z = D·s), 1 = bottom (z = 0), 2 = both; texel [j, i] is voxel column (j, i).
 //
@@ -25,7 +25,7 @@ namespace ta {
 namespace volpath {
 
 struct TraceOptions {
-  double voxel_size = 1.0;
+  std::vector<double> voxel_size{1.0, 1.0, 1.0};  // voxel edges (x, y, z), mm
   int face = 0;
   double g = 0.0;
   double ior = -1.0;  // <= 0: index matched

@@ -44,7 +44,9 @@ void check_options(const TraceOptions& o, int64_t D, int64_t H, int64_t W) {
   TORCH_CHECK(D >= 1 && H >= 1 && W >= 1, "sigma_t: expected a non-empty grid, got (3, ", D, ", ", H, ", ", W, ")");
   TORCH_CHECK(D * H * W < (int64_t(1) << 40) && 2 * H * W < (int64_t(1) << 32),
               "sigma_t: grid too large for 32-bit texel counters");
-  TORCH_CHECK(std::isfinite(o.voxel_size) && o.voxel_size > 0, "voxel_size: expected > 0, got ", o.voxel_size);
+  TORCH_CHECK(o.voxel_size.size() == 3, "voxel_size: expected 3 edges (x, y, z), got ", o.voxel_size.size());
+  for (double s : o.voxel_size)
+    TORCH_CHECK(std::isfinite(s) && s > 0, "voxel_size: expected finite edges > 0, got ", s);
   TORCH_CHECK(o.face >= 0 && o.face <= 2, "face: expected 0 (top), 1 (bottom) or 2 (both), got ", o.face);
   TORCH_CHECK(std::isfinite(o.g) && std::abs(o.g) < 1, "g: expected -1 < g < 1, got ", o.g);
   TORCH_CHECK(o.ior <= 0 || (std::isfinite(o.ior) && o.ior >= 1), "ior: expected >= 1 (or <= 0 for index matched), got ",
@@ -64,7 +66,7 @@ Params<T> make_params(const TraceOptions& o, const torch::Tensor& sigma_t) {
   P.D = sigma_t.size(1);
   P.H = sigma_t.size(2);
   P.W = sigma_t.size(3);
-  P.voxel_size = T(o.voxel_size);
+  for (int a = 0; a < 3; ++a) P.voxel[a] = T(o.voxel_size[a]);
   P.g = T(o.g);
   P.ior = T(o.ior > 0 ? o.ior : 1.0);
   for (int c = 0; c < 3; ++c) P.env[c] = T(o.environment[c]);

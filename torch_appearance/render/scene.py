@@ -4,8 +4,9 @@ Each piece is a small frozen dataclass that validates itself, so later scene kin
 majorant, SDF boundaries, cameras, other emitters) are new pieces rather than new flags on one big struct.
 :func:`SlabScene.trace_options` turns a slab scene into the options struct of the C++ core.
 
-Conventions (DESIGN.md): lengths in mm, σ in mm⁻¹, linear RGB. A grid of D×H×W voxels of edge ``voxel_size``
-occupies [0, W·s]×[0, H·s]×[0, D·s]; D is the printing (z) axis, "top" is z = D·s, "bottom" is z = 0.
+Conventions (DESIGN.md): lengths in mm, σ in mm⁻¹, linear RGB. A grid of D×H×W voxels with edges
+``voxel_size`` = (sx, sy, sz) occupies [0, W·sx]×[0, H·sy]×[0, D·sz]; D is the printing (z) axis, "top" is
+z = D·sz, "bottom" is z = 0.
 """
 from dataclasses import dataclass, field
 import math
@@ -16,7 +17,7 @@ import torch
 
 __all__ = [
     "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment", "TexelSensor", "PathSettings",
-    "SlabScene", "check_grid", "check_medium", "default_max_depth", "default_rr_depth", "FACES",
+    "SlabScene", "voxel_edges", "check_grid", "check_medium", "default_max_depth", "default_rr_depth", "FACES",
 ]
 
 FACES = {"top": 0, "bottom": 1, "both": 2}
@@ -150,8 +151,12 @@ class PathSettings:
 
 @dataclass(frozen=True)
 class SlabScene:
-    """A voxel slab seen by a texel sensor: everything but the medium grids (those are the differentiable inputs)."""
-    voxel_size: float
+    """A voxel slab seen by a texel sensor: everything but the medium grids (those are the differentiable inputs).
+
+    ``voxel_size`` is one edge length in mm (cubic voxels) or the three edges (x, y, z) in mm, e.g. a printer's
+    native 600 × 300 × 940 DPI; it is stored as the (x, y, z) tuple.
+    """
+    voxel_size: Tuple[float, float, float]
     phase: HenyeyGreenstein = field(default_factory=HenyeyGreenstein)
     boundary: object = field(default_factory=Dielectric)
     emitter: ConstantEnvironment = field(default_factory=ConstantEnvironment)
@@ -159,7 +164,7 @@ class SlabScene:
     settings: PathSettings = field(default_factory=PathSettings)
 
     def __post_init__(self):
-        object.__setattr__(self, "voxel_size", _real("voxel_size", self.voxel_size, lo=0.0, lo_open=True))
+        object.__setattr__(self, "voxel_size", voxel_edges(self.voxel_size))
         if not isinstance(self.boundary, (Dielectric, IndexMatched)):
             raise TypeError(f"boundary: expected Dielectric or IndexMatched, got {type(self.boundary).__name__}")
 
@@ -191,13 +196,14 @@ class SlabScene:
         if floor is not None:
             return floor
         d, h, w = grid_shape[-3:]
-        return 0.5 / (self.voxel_size * math.sqrt(d * d + h * h + w * w))
+        sx, sy, sz = self.voxel_size
+        return 0.5 / math.sqrt((w * sx) ** 2 + (h * sy) ** 2 + (d * sz) ** 2)
 
     def trace_options(self, lanes, seed=None):
         """The C++ ``TraceOptions`` for this scene (``lanes`` = 3 when one walk serves all channels)."""
         from .._ext import _C
         opt = _C.TraceOptions()
-        opt.voxel_size = self.voxel_size
+        opt.voxel_size = list(self.voxel_size)
         opt.face = FACES[self.sensor.face]
         opt.g = self.phase.g
         opt.ior = self.boundary.ior if isinstance(self.boundary, Dielectric) else -1.0
@@ -209,6 +215,19 @@ class SlabScene:
         opt.rr_depth = self.settings.rr_depth
         opt.lanes = lanes
         return opt
+
+
+def voxel_edges(voxel_size):
+    """``voxel_size`` (mm) as the (x, y, z) edge tuple: a positive number, or a sequence of three."""
+    if isinstance(voxel_size, torch.Tensor):
+        voxel_size = voxel_size.detach().flatten().tolist()
+        voxel_size = voxel_size[0] if len(voxel_size) == 1 else voxel_size
+    if isinstance(voxel_size, (tuple, list)):
+        if len(voxel_size) != 3:
+            raise ValueError(f"voxel_size: expected one edge or three edges (x, y, z) in mm, got {voxel_size!r}")
+        return tuple(_real("voxel_size", v, lo=0.0, lo_open=True) for v in voxel_size)
+    edge = _real("voxel_size", voxel_size, lo=0.0, lo_open=True)
+    return (edge, edge, edge)
 
 
 def check_grid(name, x, *, like=None, lo=0.0, hi=math.inf):

@@ -11,8 +11,8 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
                   sigma_t_floor=None, albedo_floor=0.05, stats=None):
     """Render the radiance leaving a voxel slab along the face normal, one texel per voxel column.
 
-    The slab is D×H×W voxels of edge ``voxel_size`` mm occupying [0, W·s]×[0, H·s]×[0, D·s] (x ↔ W, y ↔ H,
-    z ↔ D, the printing axis), lit by a uniform environment. Light transport: exact regular tracking through the
+    The slab is D×H×W voxels of edge ``voxel_size`` mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W,
+    y ↔ H, z ↔ D, the printing axis), lit by a uniform environment. Light transport: exact regular tracking through the
     piecewise-constant voxels, Henyey–Greenstein scattering, optional smooth dielectric boundary on all six
     faces; every colour channel is estimated without bias (one walk per channel when σ_t differs between channels,
     one shared walk otherwise).
@@ -27,7 +27,8 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
     Args:
         sigma_t: (3, D, H, W) extinction coefficient in mm⁻¹, >= 0, float32 or float64, CPU.
         albedo: (3, D, H, W) single-scattering albedo in [0, 1], same dtype.
-        voxel_size: voxel edge in mm, > 0.
+        voxel_size: voxel edge in mm, > 0, or the three edges (x, y, z) in mm for anisotropic voxels
+            (e.g. a printer's native 600 × 300 × 940 DPI grid).
         face: "top" (z = D·s), "bottom" (z = 0) or "both".
         g: Henyey–Greenstein mean cosine in (−1, 1).
         ior: refractive index of the slab (>= 1) with a smooth dielectric boundary, or None for index matched.
