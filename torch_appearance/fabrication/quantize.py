@@ -1,0 +1,236 @@
+"""Probabilistic ink quantisation (Nindel et al. 2021, §4.7): mixture volume → one ink per printer micro-voxel.
+
+The optimisation grid (macro voxels, cubic, edge s mm) is resampled to the printer's native grid (default
+600 × 300 × 940 DPI in x, y, z). Both grids cover the same physical box W·s × H·s × D·s mm (x ↔ W, y ↔ H,
+z ↔ D, layer 0 at the bottom, as in :func:`torch_appearance.render_texels`). Each micro-voxel takes the macro
+voxel that contains its centre (works for non-integer factors) and draws one ink from that voxel's mixture.
+"""
+import math
+import numbers
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["PRINTER_DPI", "micro_voxel_size", "micro_grid_shape", "micro_grid_pitch", "source_index",
+           "resample_nearest", "quantize_mixture", "index_volume_to_weights"]
+
+#: Native resolution of Stratasys PolyJet printers (J7/J8 family) in dots per inch along (x, y, z).
+PRINTER_DPI = (600, 300, 940)
+
+_MM_PER_INCH = 25.4
+_CHUNK = 1 << 22  # micro-voxels per sampling chunk (bounds the temporaries to ~100 MB)
+
+
+def _check_dpi(printer_dpi, name="printer_dpi"):
+    if isinstance(printer_dpi, (str, bytes)) or not isinstance(printer_dpi, (Sequence, np.ndarray)):
+        raise TypeError(f"{name}: expected three numbers (x, y, z) in dots per inch, got {type(printer_dpi).__name__}")
+    values = list(printer_dpi)
+    if len(values) != 3 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in values):
+        raise ValueError(f"{name}: expected three numbers (x, y, z) in dots per inch, got {printer_dpi!r}")
+    values = tuple(float(v) for v in values)
+    if not all(math.isfinite(v) and v > 0 for v in values):
+        raise ValueError(f"{name}: expected finite values > 0, got {values!r}")
+    return values
+
+
+def _check_voxel_size(voxel_size_mm):
+    if isinstance(voxel_size_mm, bool) or not isinstance(voxel_size_mm, numbers.Real):
+        raise TypeError(f"voxel_size_mm: expected a real number (mm), got {type(voxel_size_mm).__name__}")
+    if not (math.isfinite(voxel_size_mm) and voxel_size_mm > 0):
+        raise ValueError(f"voxel_size_mm: expected a finite value > 0 (mm), got {voxel_size_mm!r}")
+    return float(voxel_size_mm)
+
+
+def micro_voxel_size(printer_dpi=PRINTER_DPI):
+    """Nominal printer voxel edges ``(sx, sy, sz)`` in mm: 25.4 / dpi per axis (x, y, z)."""
+    return tuple(_MM_PER_INCH / v for v in _check_dpi(printer_dpi))
+
+
+def micro_grid_shape(shape, voxel_size_mm, printer_dpi=PRINTER_DPI):
+    """Printer-grid counts ``(Dz, Hy, Wx)`` covering the box of a ``(D, H, W)`` grid of cubic voxels.
+
+    Each count is ``round(extent_mm · dpi / 25.4)`` (halves round up), at least 1. The actual micro pitch per
+    axis is ``extent / count``, within half a micro voxel of the nominal 25.4 / dpi over the whole extent.
+
+    Args:
+        shape: macro grid ``(D, H, W)``.
+        voxel_size_mm: macro voxel edge s in mm.
+        printer_dpi: ``(x, y, z)`` dots per inch.
+    """
+    if isinstance(shape, (str, bytes)) or not isinstance(shape, Sequence) or len(shape) != 3 or not all(
+            isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1 for v in shape):
+        raise ValueError(f"shape: expected (D, H, W), three ints >= 1, got {shape!r}")
+    s = _check_voxel_size(voxel_size_mm)
+    dx, dy, dz = _check_dpi(printer_dpi)
+    d, h, w = (int(v) for v in shape)
+    return tuple(max(1, int(math.floor(n * s * dpi / _MM_PER_INCH + 0.5))) for n, dpi in ((d, dz), (h, dy), (w, dx)))
+
+
+def micro_grid_pitch(shape, voxel_size_mm, printer_dpi=PRINTER_DPI):
+    """Actual micro-voxel edges ``(sx, sy, sz)`` in mm of the grid of :func:`micro_grid_shape`: extent / count.
+
+    Use these (not the nominal :func:`micro_voxel_size`) to render a quantised volume over exactly the macro box;
+    they differ from 25.4 / dpi by the rounding of the counts (e.g. 12 layers of 25.4/300 mm: 38 layers of
+    0.02675 mm instead of 0.02702 mm).
+    """
+    dz, hy, wx = micro_grid_shape(shape, voxel_size_mm, printer_dpi)
+    d, h, w = (int(v) for v in shape)
+    s = float(voxel_size_mm)
+    return (w * s / wx, h * s / hy, d * s / dz)
+
+
+def source_index(n_source, n_target):
+    """For a target grid of ``n_target`` cells over the same interval as ``n_source`` cells: the source cell
+    containing each target cell's centre, ``floor((i + ½) · n_source / n_target)``, computed in exact integers.
+
+    Returns:
+        ``int64`` array of shape ``(n_target,)`` with values in ``[0, n_source)``, non-decreasing.
+    """
+    for name, v in (("n_source", n_source), ("n_target", n_target)):
+        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+    i = np.arange(int(n_target), dtype=np.int64)
+    return ((2 * i + 1) * int(n_source)) // (2 * int(n_target))
+
+
+def resample_nearest(volume, out_shape):
+    """Nearest-cell resampling of the last three axes onto ``out_shape`` over the same box.
+
+    Each output cell takes the input cell containing its centre (:func:`source_index` per axis). Useful to put
+    an anisotropic printer-resolution index volume onto a cubic grid for rendering.
+
+    Args:
+        volume: ``(..., D, H, W)`` ndarray or tensor.
+        out_shape: ``(D', H', W')``.
+
+    Returns:
+        ``(..., D', H', W')`` of the same type and dtype.
+    """
+    if not isinstance(volume, (np.ndarray, torch.Tensor)) or volume.ndim < 3:
+        raise ValueError(f"volume: expected an ndarray or tensor with at least 3 dimensions (..., D, H, W), "
+                         f"got {type(volume).__name__} {tuple(getattr(volume, 'shape', ()))}")
+    if isinstance(out_shape, (str, bytes)) or not isinstance(out_shape, Sequence) or len(out_shape) != 3:
+        raise ValueError(f"out_shape: expected (D', H', W'), got {out_shape!r}")
+    iz, iy, ix = (source_index(n_in, n_out) for n_in, n_out in zip(volume.shape[-3:], out_shape))
+    if isinstance(volume, torch.Tensor):
+        iz, iy, ix = (torch.from_numpy(a).to(volume.device) for a in (iz, iy, ix))
+    return volume[..., iz[:, None, None], iy[None, :, None], ix[None, None, :]]
+
+
+def _weights_numpy(weights):
+    if isinstance(weights, torch.Tensor):
+        if not weights.is_floating_point():
+            raise TypeError(f"weights: expected a floating-point dtype, got {weights.dtype}")
+        weights = weights.detach().to(device="cpu", dtype=torch.float64).numpy()
+    elif isinstance(weights, np.ndarray):
+        if not np.issubdtype(weights.dtype, np.floating):
+            raise TypeError(f"weights: expected a floating-point dtype, got {weights.dtype}")
+        weights = weights.astype(np.float64, copy=False)
+    else:
+        raise TypeError(f"weights: expected a torch.Tensor or numpy.ndarray of shape (N, D, H, W), "
+                        f"got {type(weights).__name__}")
+    if weights.ndim != 4 or min(weights.shape) < 1:
+        raise ValueError(f"weights: expected shape (N, D, H, W) with all sizes >= 1, got {weights.shape}")
+    if weights.shape[0] > 256:
+        raise ValueError(f"weights: at most 256 inks fit uint8 material indices, got N = {weights.shape[0]}")
+    finite = np.isfinite(weights)
+    if not finite.all():
+        raise ValueError(f"weights: expected finite values, got {int(weights.size - finite.sum())} NaN/Inf entries")
+    if (weights < 0).any():
+        raise ValueError(f"weights: expected weights >= 0, got minimum {float(weights.min()):g}")
+    total = weights.sum(0)
+    bad = np.abs(total - 1.0) > 1e-3
+    if bad.any():
+        raise ValueError(f"weights: expected per-voxel sums of 1 (mixture weights, shape (N, D, H, W)), got sums in "
+                         f"[{float(total.min()):.6g}, {float(total.max()):.6g}] ({int(bad.sum())} voxel(s) off by "
+                         f"more than 1e-3)")
+    return weights
+
+
+def quantize_mixture(weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0):
+    """Draw one ink per printer micro-voxel from the mixture of the macro voxel containing its centre.
+
+    The micro grid covers the macro box (W·s × H·s × D·s mm) with ``micro_grid_shape`` cells; micro cell
+    (k, j, i) maps to macro voxel ``(floor(z_k / s), floor(y_j / s), floor(x_i / s))`` of its centre, exact
+    for non-integer factors. Its ink is the first n with ``u < c_n``, where c is the macro voxel's normalised
+    cumulative mixture and u one uniform draw of ``numpy.random.Generator(PCG64(seed)).random()`` per
+    micro-voxel in C order (so ``P(ink n) = ρ_n / Σρ`` exactly, and inks of weight 0 are never drawn).
+    Vectorised; memory is bounded by processing chunks of micro layers (the random stream is the same).
+
+    Args:
+        weights: (N, D, H, W) mixture weights (tensor or ndarray, floating point), >= 0, per-voxel sums within
+            1e-3 of 1 (they are renormalised exactly). N <= 256.
+        voxel_size_mm: macro voxel edge s in mm (cubic voxels, as in the optimisation).
+        printer_dpi: ``(x, y, z)`` printer resolution in dots per inch.
+        seed: int >= 0, the random seed.
+
+    Returns:
+        ``numpy.ndarray`` ``uint8`` of shape ``(Dz, Hy, Wx)`` = ``micro_grid_shape((D, H, W), ...)``: ink
+        (material) indices, layer 0 at the bottom (z = 0), row j ↔ y, column i ↔ x.
+
+    Raises:
+        TypeError, ValueError: naming the argument.
+
+    Example:
+        >>> rho = MaterialMixture(InkSet.from_names(), (12, 16, 16)).weights()
+        >>> indices = quantize_mixture(rho, 25.4 / 300)   # (37, 16, 32) at 600 × 300 × 940 DPI
+    """
+    w = _weights_numpy(weights)
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
+    n, d, h, wd = w.shape
+    dz, hy, wx = micro_grid_shape((d, h, wd), voxel_size_mm, printer_dpi)
+    iz, iy, ix = source_index(d, dz), source_index(h, hy), source_index(wd, wx)
+
+    # Normalised cumulative weights; the thresholds c_0..c_{N-2} (c_{N-1} = 1 is implicit).
+    cdf = np.cumsum(w, axis=0)
+    cdf = cdf[:-1] / cdf[-1:]                         # (N-1, D, H, W); x / x = 1 exactly for trailing zeros
+
+    rng = np.random.Generator(np.random.PCG64(int(seed)))
+    out = np.empty((dz, hy, wx), dtype=np.uint8)
+    layers = max(1, _CHUNK // (hy * wx))
+    starts = np.searchsorted(iz, np.arange(d + 1))    # micro layers [starts[z], starts[z+1]) lie in macro layer z
+    for z in range(d):                                # loop over macro layers, then chunks of micro layers
+        if starts[z] == starts[z + 1]:
+            continue
+        thresholds = cdf[:, z][:, iy[:, None], ix[None, :]]   # (N-1, Hy, Wx): lateral upsampling of layer z
+        for z0 in range(starts[z], starts[z + 1], layers):
+            z1 = min(starts[z + 1], z0 + layers)
+            u = rng.random((z1 - z0, hy, wx))         # C order over the whole volume, chunk after chunk
+            index = np.zeros(u.shape, dtype=np.uint8)
+            for k in range(n - 1):                    # loop over inks: count the thresholds u has passed
+                index += u >= thresholds[k]
+            out[z0:z1] = index
+    return out
+
+
+def index_volume_to_weights(indices, n_inks, dtype=torch.float32):
+    """One-hot weights of a material-index volume (e.g. for :func:`torch_appearance.nn.mix_inks`).
+
+    Args:
+        indices: (Dz, Hy, Wx) integer ndarray or tensor, values in [0, n_inks).
+        n_inks: number of inks N.
+        dtype: floating dtype of the result.
+
+    Returns:
+        ``torch.Tensor`` (N, Dz, Hy, Wx) with exactly one 1 per voxel, the rest 0.
+    """
+    if isinstance(n_inks, bool) or not isinstance(n_inks, numbers.Integral) or n_inks < 1:
+        raise ValueError(f"n_inks: expected an int >= 1, got {n_inks!r}")
+    if isinstance(indices, np.ndarray):
+        if not np.issubdtype(indices.dtype, np.integer):
+            raise TypeError(f"indices: expected an integer dtype, got {indices.dtype}")
+        indices = torch.from_numpy(indices.astype(np.int64))
+    elif isinstance(indices, torch.Tensor):
+        if indices.is_floating_point() or indices.is_complex() or indices.dtype == torch.bool:
+            raise TypeError(f"indices: expected an integer dtype, got {indices.dtype}")
+        indices = indices.long()
+    else:
+        raise TypeError(f"indices: expected an ndarray or tensor of shape (Dz, Hy, Wx), got {type(indices).__name__}")
+    if indices.dim() != 3:
+        raise ValueError(f"indices: expected shape (Dz, Hy, Wx), got {tuple(indices.shape)}")
+    if indices.numel() and (int(indices.min()) < 0 or int(indices.max()) >= n_inks):
+        raise ValueError(f"indices: expected values in [0, {n_inks}), got range "
+                         f"[{int(indices.min())}, {int(indices.max())}]")
+    return torch.nn.functional.one_hot(indices, int(n_inks)).permute(3, 0, 1, 2).to(dtype).contiguous()
