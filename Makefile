@@ -7,8 +7,9 @@ CSRC := $(shell find csrc -name '*.cpp' -o -name '*.h')
 DEPS_STAMP := $(VENV)/.deps-stamp
 BUILD_STAMP := .build-stamp
 PYTEST_ARGS ?=
+DEMO_ARGS ?= --iterations 150 --eval-every 15
 
-.PHONY: demo test build bench clean venv
+.PHONY: demo render-demo test build bench clean venv
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -29,8 +30,14 @@ $(BUILD_STAMP): $(DEPS_STAMP) $(CSRC) setup.py torch_appearance/_buildinfo.py
 
 build: $(BUILD_STAMP)
 
+# The main job on a built-in default: a small print optimisation of the ColorChecker slab (a few minutes).
 demo: build
-	$(PY) scripts/demo.py --out results/demo
+	rm -rf results/demo
+	$(PY) scripts/optimize_print.py --target colorchecker $(DEMO_ARGS) --out results/demo
+
+# The tracer alone: renders the built-in ink slab (PNG + EXR + timings).
+render-demo: build
+	$(PY) scripts/demo.py --out results/render-demo
 
 test: build
 	$(PY) -m pytest -n 2 $(PYTEST_ARGS)

@@ -1,0 +1,513 @@
+"""Print appearance optimisation on slabs (Nindel et al., TOG 2021): the loop as a library function.
+
+Given target texel images for the top (and optionally bottom) face of a slab, find per-voxel ink mixtures whose
+rendered (= predicted printed) look matches them, quantise to the printer's native resolution, and write a run
+folder (see :func:`optimize_print`). ``scripts/optimize_print.py`` is the command-line front end.
+
+Data flow: ``MaterialMixture`` (learnable logits, N × D × H × W) → (σ_t, albedo) → ``render_texels`` (C++ path
+tracer, radiative backpropagation) → texel colours placed on the voxel grid → ``AppearanceLoss`` (E1 ΔE76², E2 3D
+SSIM, E3 3D Sobel) → ``loss.backward()`` → Adagrad/Adam step. Every ``eval_every`` iterations a render at
+``eval_spp`` with a fixed seed is scored with CIEDE2000. After the loop: probabilistic quantisation (one ink per
+printer micro-voxel) and an evaluation render of the *quantised* volume at the printer resolution.
+"""
+import csv
+import dataclasses
+import io as _io
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .. import io as ta_io
+from ..color import rgb_to_lab
+from ..fabrication.export import export_slices, save_index_volume
+from ..fabrication.inks import DEFAULT_INKS, InkSet
+from ..fabrication.quantize import PRINTER_DPI, micro_grid_pitch, quantize_mixture, source_index
+from ..metrics import color_report, delta_e_2000
+from ..nn.losses import AppearanceLoss
+from ..nn.mixture import MaterialMixture, mix_inks
+from ..render.volpath import render_texels
+from .targets import load_target
+
+__all__ = ["PrintConfig", "optimize_print", "slab_texel_grid", "homogeneous_table", "naive_extrusion",
+           "render_quantized", "LOG_FIELDS"]
+
+LOG_FIELDS = ["iteration", "wall_s", "loss", "E1", "E2", "E3", "dE00_mean", "dE00_p95", "dE76_mean", "seed"]
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class PrintConfig:
+    """Settings of one print optimisation run (every field is a flag of scripts/optimize_print.py).
+
+    Lengths in mm; ``dpi`` is the optimisation voxel pitch (300 DPI ≈ 0.0847 mm cubic voxels).
+    """
+    target: str = "colorchecker"
+    bottom_target: Optional[str] = None
+    thickness_mm: float = 1.0
+    dpi: float = 300.0
+    width_mm: Optional[float] = None
+    height_mm: Optional[float] = None
+    inks: Sequence[str] = DEFAULT_INKS
+    gamma: Tuple[float, float, float] = (1.0, 3.0, 1.0)
+    spp: int = 8
+    eval_spp: int = 64
+    eval_every: int = 10
+    iterations: int = 200
+    optimizer: str = "adagrad"
+    lr: float = 0.3
+    parameterization: str = "sigmoid"
+    seed: int = 0
+    ior: Optional[float] = 1.5
+    g: Optional[float] = None  # HG parameter; default: the inks' common g (0.4 for the built-in inks)
+    printer_dpi: Tuple[float, float, float] = PRINTER_DPI
+    table_steps: int = 4
+    out: str = "results/print"
+    resume: bool = False
+
+    def validate(self):
+        """Raise ValueError/TypeError naming the field for anything out of range."""
+        def positive(name, value, integer=False):
+            ok = isinstance(value, int) if integer else isinstance(value, (int, float))
+            if not ok or isinstance(value, bool):
+                raise TypeError(f"{name}: expected {'an int' if integer else 'a number'}, got {type(value).__name__}")
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: expected > 0, got {value}")
+
+        for name in ("thickness_mm", "dpi", "lr"):
+            positive(name, getattr(self, name))
+        for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps"):
+            positive(name, getattr(self, name), integer=True)
+        for name in ("width_mm", "height_mm"):
+            if getattr(self, name) is not None:
+                positive(name, getattr(self, name))
+        if self.optimizer not in ("adagrad", "adam"):
+            raise ValueError(f"optimizer: expected 'adagrad' or 'adam', got {self.optimizer!r}")
+        if len(tuple(self.gamma)) != 3 or min(self.gamma) < 0 or sum(self.gamma) <= 0:
+            raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
+        if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
+            raise ValueError(f"printer_dpi: expected three positive DPI values (x, y, z), got {self.printer_dpi!r}")
+        if self.voxel_size * 1 > self.thickness_mm * 1.0001:
+            raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
+                             f"got {self.thickness_mm}")
+
+    @property
+    def voxel_size(self):
+        return 25.4 / self.dpi
+
+    @property
+    def depth(self):
+        return max(1, int(round(self.thickness_mm / self.voxel_size)))
+
+
+# ------------------------------------------------------------------------------------------------ geometry
+def slab_texel_grid(faces_rgb, depth):
+    """Place face texel images on the voxel grid for the appearance losses.
+
+    Args:
+        faces_rgb: (F, H, W, 3) texel colours, F = 1 (top) or 2 (top, bottom).
+        depth: D, voxel layers of the slab (top face = layer D − 1, bottom face = layer 0).
+
+    Returns:
+        (3, D, H, W) grid (zeros off the faces) and the (D, H, W) bool texel mask.
+    """
+    f, h, w, _ = faces_rgb.shape
+    if f == 2 and depth < 2:
+        raise ValueError(f"thickness_mm: a two-sided target needs at least 2 voxel layers, got {depth}")
+    grid = faces_rgb.new_zeros(3, depth, h, w)
+    mask = torch.zeros(depth, h, w, dtype=torch.bool, device=faces_rgb.device)
+    layers = [depth - 1, 0][:f]
+    for k, layer in enumerate(layers):
+        grid = grid.index_copy(1, torch.tensor([layer]), faces_rgb[k].permute(2, 0, 1).unsqueeze(1))
+        mask[layer] = True
+    return grid, mask
+
+
+def _render_faces(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None):
+    g = inks.g if cfg.g is None else cfg.g  # the inks' common HG g unless the run overrides it
+    image = render_texels(sigma_t, albedo, voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
+                          face="both" if faces == 2 else "top", g=g, ior=cfg.ior, spp=spp, seed=seed)
+    return image if faces == 2 else image.unsqueeze(0)
+
+
+# ------------------------------------------------------------------------------------------------ baselines
+def _compositions(n_inks, steps):
+    """All mixtures of ``n_inks`` inks in multiples of 1/steps, (M, n_inks)."""
+    out = []
+
+    def rec(prefix, left, k):
+        if k == n_inks - 1:
+            out.append(prefix + [left])
+            return
+        for v in range(left + 1):
+            rec(prefix + [v], left - v, k + 1)
+
+    rec([], steps, 0)
+    return np.array(out, np.float64) / steps
+
+
+def homogeneous_table(inks, mixtures, cfg, spp=64, lateral=16, seed=12345):
+    """Rendered top-face colour (linear RGB) of homogeneous slabs, one per mixture.
+
+    Each slab is ``lateral`` × ``lateral`` voxels of the run's thickness; the centre half of its texels is averaged
+    (edge texels lose light through the sides).
+
+    Args:
+        inks: InkSet of N inks. mixtures: (M, N) weights summing to 1.
+
+    Returns:
+        (M, 3) float64 linear RGB.
+    """
+    colours = []
+    c0, c1 = lateral // 4, lateral - lateral // 4
+    for m in np.asarray(mixtures, np.float64):
+        w = torch.tensor(m, dtype=torch.float32).view(-1, 1, 1, 1).expand(-1, cfg.depth, lateral, lateral)
+        sigma_t, albedo = mix_inks(w.contiguous(), inks)
+        img = _render_faces(sigma_t.detach(), albedo.detach(), cfg, inks, 1, spp, seed)[0]
+        colours.append(img[c0:c1, c0:c1].double().mean((0, 1)).numpy())
+    return np.stack(colours)
+
+
+def naive_extrusion(target_rgb, inks, cfg, table_spp=64):
+    """The naive baseline: the best homogeneous mixture per texel, extruded through the whole thickness.
+
+    Grey targets (all |a*|, |b*| < 2) use black/white mixtures matched to lightness L* (21 levels); colour targets
+    use the table of all mixtures in steps of 1/``cfg.table_steps`` matched by ΔE76.
+
+    Args:
+        target_rgb: (H, W, 3) linear RGB of the top face.
+
+    Returns:
+        (N, D, H, W) float32 mixture weights and a dict describing the table.
+    """
+    lab = rgb_to_lab(torch.as_tensor(target_rgb, dtype=torch.float64)).numpy()
+    grey = bool(np.all(np.abs(lab[..., 1:]) < 2.0))
+    names = [n.lower() for n in inks.names]
+    if grey and "black" in names and "white" in names:
+        k, wht = names.index("black"), names.index("white")
+        levels = np.linspace(0.0, 1.0, 21)
+        mixtures = np.zeros((len(levels), len(names)))
+        mixtures[:, k], mixtures[:, wht] = levels, 1.0 - levels
+        kind = "black/white by L*"
+    else:
+        mixtures = _compositions(len(names), cfg.table_steps)
+        kind = f"all mixtures in steps of 1/{cfg.table_steps} by dE76"
+    colours = homogeneous_table(inks, mixtures, cfg, spp=table_spp)
+    table_lab = rgb_to_lab(torch.as_tensor(colours)).numpy()
+    flat = lab.reshape(-1, 3)
+    if kind.startswith("black"):
+        d = np.abs(flat[:, None, 0] - table_lab[None, :, 0])
+    else:
+        d = np.linalg.norm(flat[:, None, :] - table_lab[None, :, :], axis=2)
+    choice = d.argmin(1)
+    h, w = target_rgb.shape[:2]
+    weights = mixtures[choice].reshape(h, w, -1).transpose(2, 0, 1)
+    weights = np.broadcast_to(weights[:, None], (len(names), cfg.depth, h, w))
+    return torch.tensor(np.ascontiguousarray(weights), dtype=torch.float32), {"kind": kind, "entries": len(mixtures)}
+
+
+# ------------------------------------------------------------------------------------------------ quantisation
+def render_quantized(indices, inks, cfg, macro_hw, faces, spp, seed):
+    """Render a printer-resolution material-index volume and average its texels back to the macro texel grid.
+
+    Args:
+        indices: (Dz, Hy, Wx) uint8 ink indices at ``cfg.printer_dpi``.
+        macro_hw: (H, W) of the optimisation texel grid.
+
+    Returns:
+        (F, H, W, 3) float32 linear RGB.
+    """
+    h, w = macro_hw
+    edges = micro_grid_pitch((cfg.depth, h, w), cfg.voxel_size, cfg.printer_dpi)  # exact box, not nominal DPI
+    idx = torch.as_tensor(indices.astype(np.int64))
+    onehot = torch.nn.functional.one_hot(idx, len(inks)).permute(3, 0, 1, 2).float().contiguous()
+    sigma_t, albedo = mix_inks(onehot, inks)
+    micro = _render_faces(sigma_t.detach().contiguous(), albedo.detach().contiguous(), cfg, inks, faces, spp, seed,
+                          voxel_size=edges)
+    _, hy, wx, _ = micro.shape
+    jy, ix = source_index(h, hy), source_index(w, wx)  # the macro texel holding each micro texel's centre
+    cell = torch.as_tensor((jy[:, None] * w + ix[None, :]).reshape(-1))
+    out = torch.zeros(faces, h * w, 3, dtype=torch.float64)
+    out.index_add_(1, cell, micro.reshape(faces, -1, 3).double())
+    count = torch.zeros(h * w, dtype=torch.float64).index_add_(0, cell, torch.ones(cell.numel(), dtype=torch.float64))
+    return (out / count.view(1, -1, 1)).reshape(faces, h, w, 3).float()
+
+
+# ------------------------------------------------------------------------------------------------ run folder I/O
+def _save_image(folder, stem, rgb):
+    rgb = np.ascontiguousarray(np.asarray(rgb, np.float32))
+    ta_io.write_exr(os.path.join(folder, f"{stem}.exr"), rgb)
+    ta_io.write_png(os.path.join(folder, f"{stem}.png"), np.clip(rgb, 0, 1))
+
+
+def _write_log(path, rows):
+    buffer = _io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=LOG_FIELDS)
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in LOG_FIELDS})
+    ta_io.atomic_write_bytes(path, buffer.getvalue().encode())
+
+
+def _atomic_torch_save(obj, path):
+    buffer = _io.BytesIO()
+    torch.save(obj, buffer)
+    ta_io.atomic_write_bytes(path, buffer.getvalue())
+
+
+def _iteration_seed(seed, iteration):
+    """A distinct 63-bit seed per iteration (SplitMix64 of the run seed and the iteration)."""
+    z = (int(seed) * 0x9E3779B97F4A7C15 + int(iteration) + 1) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return (z ^ (z >> 31)) >> 1
+
+
+def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = [r["wall_s"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax[0].plot(t, [r["loss"] for r in rows], lw=1)
+    ax[0].set(xlabel="wall-clock time [s]", ylabel="appearance loss E", yscale="log", title="training loss")
+    ev = [r for r in rows if r.get("dE00_mean") is not None]
+    ax[1].plot([r["wall_s"] for r in ev], [r["dE00_mean"] for r in ev], "o-", ms=3, label="mean ΔE00 (continuous)")
+    ax[1].plot([r["wall_s"] for r in ev], [r["dE00_p95"] for r in ev], "s--", ms=3, label="p95 ΔE00")
+    ax[1].axhline(baseline["dE00_mean"], color="k", ls=":", label="naive extrusion (mean)")
+    ax[1].axhline(final["dE00_mean"], color="C3", ls="-.", label="final quantised (mean)")
+    ax[1].set(xlabel="wall-clock time [s]", ylabel="CIEDE2000", title=f"evaluation at {cfg.eval_spp} spp")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    _save_fig(fig, os.path.join(folder, "convergence.png"))
+
+    # ink usage by depth: mean mixture per layer, from the top face down
+    w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
+    depth_mm = (np.arange(w.shape[1]) + 0.5) * cfg.voxel_size
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.stackplot(depth_mm, w, labels=inks.names,
+                 colors=[np.clip(np.asarray(ink.display_rgb, float), 0, 1) for ink in inks])
+    ax.set(xlabel="depth below the top face [mm]", ylabel="mean ink fraction", xlim=(depth_mm[0], depth_mm[-1]),
+           ylim=(0, 1), title="ink usage by depth")
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    _save_fig(fig, os.path.join(folder, "ink_usage_by_depth.png"))
+
+    de = delta_e_2000(torch.as_tensor(final["image"]), torch.as_tensor(target))
+    de = np.asarray(de, np.float64)
+    fig, ax = plt.subplots(figsize=(5, 4))
+    im = ax.imshow(de, cmap="magma", vmin=0)
+    fig.colorbar(im, ax=ax, label="CIEDE2000")
+    ax.set(title=f"final (quantised) vs target: mean {de.mean():.2f}, p95 {np.percentile(de, 95):.2f}")
+    ax.axis("off")
+    fig.tight_layout()
+    _save_fig(fig, os.path.join(folder, "dE00_heatmap.png"))
+
+
+def _save_fig(fig, path):
+    import matplotlib.pyplot as plt
+    buffer = _io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=120)
+    plt.close(fig)
+    ta_io.atomic_write_bytes(path, buffer.getvalue())
+
+
+def _score(image, target):
+    """CIEDE2000 mean/p95 and ΔE76 of (H, W, 3) linear images."""
+    rep = color_report(torch.as_tensor(image).reshape(-1, 3).double(), torch.as_tensor(target).reshape(-1, 3).double())
+    return {k: float(v) for k, v in rep.items()}
+
+
+# ------------------------------------------------------------------------------------------------ the loop
+def optimize_print(cfg: PrintConfig, progress=True, log=print):
+    """Run one print optimisation and write its run folder ``cfg.out``.
+
+    Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (iteration, wall_s, loss, E1, E2,
+    E3, dE00_mean, dE00_p95, dE76_mean, seed); ``convergence.png``; ``target.exr`` / ``baseline.exr`` (naive
+    extrusion, quantised) / ``initial.exr`` / ``optimized.exr`` (continuous mixture) / ``final.exr`` (quantised
+    result), each linear RGB of the top face at the target's size, with PNG previews (and ``*_bottom`` for
+    two-sided targets); ``dE00_heatmap.png``; ``ink_usage_by_depth.png``; ``mixture.npz`` (weights N×D×H×W, ink
+    names, voxel size); ``quantized.npz`` (uint8 material indices at the printer resolution); ``slices/``
+    (one PNG per printer layer + ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation;
+    ``cfg.resume`` continues from it); ``summary.json``.
+
+    Returns:
+        The summary dict (also written to ``summary.json``).
+    """
+    cfg.validate()
+    folder = cfg.out
+    os.makedirs(folder, exist_ok=True)
+    ckpt_path = os.path.join(folder, CHECKPOINT)
+    if os.path.exists(ckpt_path) and not cfg.resume:
+        raise ValueError(f"out: {folder!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
+                         f"continue it or choose another folder")
+    inks = _load_inks(cfg.inks)
+    if cfg.g is None:
+        inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
+
+    # targets: top (and bottom), sized by the image at the voxel pitch or by width_mm/height_mm
+    top = load_target(cfg.target, name="target")
+    size = None
+    if cfg.width_mm is not None or cfg.height_mm is not None:
+        h0, w0 = top.shape[:2]
+        width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
+        height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
+        size = (max(1, round(height / cfg.voxel_size)), max(1, round(width / cfg.voxel_size)))
+        top = load_target(cfg.target, size=size, name="target")
+    faces_target = [top]
+    if cfg.bottom_target is not None:
+        bottom = load_target(cfg.bottom_target, size=size, name="bottom_target")
+        if bottom.shape != top.shape:
+            raise ValueError(f"bottom_target: expected the size of the top target {top.shape[:2]}, "
+                             f"got {bottom.shape[:2]} (pass width_mm/height_mm to resample both)")
+        faces_target.append(bottom)
+    n_faces = len(faces_target)
+    h, w = top.shape[:2]
+    target = torch.tensor(np.stack(faces_target))  # (F, H, W, 3)
+    target_grid, mask = slab_texel_grid(target, cfg.depth)
+
+    ta_io.write_json(os.path.join(folder, "config.json"), {
+        **dataclasses.asdict(cfg), "inks": [dataclasses.asdict(i) for i in inks], "voxel_size_mm": cfg.voxel_size,
+        "grid_dhw": [cfg.depth, h, w], "faces": n_faces, "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads()})
+    _save_image(folder, "target", top)
+    if n_faces == 2:
+        _save_image(folder, "target_bottom", faces_target[1])
+
+    model = MaterialMixture(inks, (cfg.depth, h, w), parameterization=cfg.parameterization)
+    optim_cls = torch.optim.Adagrad if cfg.optimizer == "adagrad" else torch.optim.Adam
+    optimizer = optim_cls(model.parameters(), lr=cfg.lr)
+    criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
+    rows, start, wall_offset = [], 0, 0.0
+    if cfg.resume and os.path.exists(ckpt_path):
+        state = torch.load(ckpt_path, weights_only=False)
+        if tuple(state["grid_dhw"]) != (cfg.depth, h, w) or state["inks"] != list(inks.names):
+            raise ValueError(f"resume: the checkpoint in {folder!r} is for grid {state['grid_dhw']} and inks "
+                             f"{state['inks']}, this run has {[cfg.depth, h, w]} and {list(inks.names)}")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        rows, start, wall_offset = state["rows"], state["iteration"], state["wall_s"]
+        baseline = state["baseline"]
+        log(f"optimize_print: resuming {folder} at iteration {start}")
+    else:
+        baseline = None
+
+    eval_seed = _iteration_seed(cfg.seed, -1)
+    quant_seed = _iteration_seed(cfg.seed, -2)
+
+    def evaluate(spp=cfg.eval_spp):
+        with torch.no_grad():
+            s, a = model()
+            return _render_faces(s, a, cfg, inks, n_faces, spp, eval_seed)
+
+    if baseline is None:  # naive extrusion, quantised and scored the same way as the result
+        t0 = time.perf_counter()
+        base_w, table = naive_extrusion(top, inks, cfg)
+        indices = quantize_mixture(base_w, cfg.voxel_size, cfg.printer_dpi, seed=quant_seed)
+        base_img = render_quantized(indices, inks, cfg, (h, w), n_faces, cfg.eval_spp, eval_seed)
+        baseline = {"image": base_img.numpy(), **_score(base_img[0], top), "table": table,
+                    "seconds": time.perf_counter() - t0}
+        _save_image(folder, "baseline", baseline["image"][0])
+        initial = evaluate()
+        _save_image(folder, "initial", initial[0].numpy())
+        rows.append({"iteration": 0, "wall_s": 0.0, **_loss_row(criterion, initial, target_grid, mask, cfg.depth),
+                     **_score(initial[0], top), "seed": eval_seed})
+
+    # ---- optimisation
+    try:
+        from tqdm import tqdm
+        bar = tqdm(total=cfg.iterations, initial=start, disable=not progress, desc="optimize_print", unit="it")
+    except ImportError:  # pragma: no cover
+        bar = None
+    t_start = time.perf_counter() - wall_offset
+    last_eval = rows[-1] if rows else {}
+    for it in range(start, cfg.iterations):
+        seed = _iteration_seed(cfg.seed, it)
+        sigma_t, albedo = model()
+        image = _render_faces(sigma_t, albedo, cfg, inks, n_faces, cfg.spp, seed)
+        grid, _ = slab_texel_grid(image, cfg.depth)
+        loss, parts = criterion.forward_parts(grid, target_grid, mask)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
+        if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
+            row.update(_score(evaluate()[0], top))
+            last_eval = row
+        row["wall_s"] = time.perf_counter() - t_start
+        rows.append(row)
+        if "dE00_mean" in row:
+            _atomic_torch_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "rows": rows,
+                                "iteration": it + 1, "wall_s": row["wall_s"], "baseline": baseline,
+                                "grid_dhw": [cfg.depth, h, w], "inks": list(inks.names)}, ckpt_path)
+            _write_log(os.path.join(folder, "log.csv"), rows)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
+    if bar is not None:
+        bar.close()
+    _write_log(os.path.join(folder, "log.csv"), rows)
+
+    # ---- results: continuous, quantised, exports
+    weights = model.weights().detach()
+    optimized = evaluate()
+    _save_image(folder, "optimized", optimized[0].numpy())
+    indices = quantize_mixture(weights, cfg.voxel_size, cfg.printer_dpi, seed=quant_seed)
+    final_img = render_quantized(indices, inks, cfg, (h, w), n_faces, cfg.eval_spp, eval_seed)
+    final = {"image": final_img[0].numpy(), **_score(final_img[0], top)}
+    _save_image(folder, "final", final["image"])
+    if n_faces == 2:
+        _save_image(folder, "final_bottom", final_img[1].numpy())
+        _save_image(folder, "baseline_bottom", baseline["image"][1])
+        final["bottom"] = _score(final_img[1], faces_target[1])
+    ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), _npz_bytes(
+        weights=weights.numpy().astype(np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
+    save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
+    export_slices(indices, inks, os.path.join(folder, "slices"))
+    _plots(folder, rows, baseline, weights, inks, cfg, top, final)
+
+    opt_rows = [r for r in rows if r["iteration"] > 0]
+    summary = {
+        "iterations": cfg.iterations,
+        "wall_s": rows[-1]["wall_s"],
+        "seconds_per_iteration": (rows[-1]["wall_s"] / max(1, len(opt_rows))) if opt_rows else None,
+        "grid_dhw": [cfg.depth, h, w], "texels": n_faces * h * w, "spp": cfg.spp, "eval_spp": cfg.eval_spp,
+        "final_quantized": {k: v for k, v in final.items() if k != "image"},
+        "optimized_continuous": _score(optimized[0], top),
+        "baseline_naive_extrusion": {k: v for k, v in baseline.items() if k != "image"},
+        "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
+        "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
+        "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
+    }
+    ta_io.write_json(os.path.join(folder, "summary.json"), summary)
+    log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
+        f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}, naive extrusion "
+        f"{baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f} -> {folder}")
+    return summary
+
+
+def _loss_row(criterion, image, target_grid, mask, depth):
+    grid, _ = slab_texel_grid(image, depth)
+    with torch.no_grad():
+        loss, parts = criterion.forward_parts(grid, target_grid, mask)
+    return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
+
+
+def _load_inks(spec):
+    if isinstance(spec, str):
+        if spec.lower().endswith(".json"):
+            return InkSet.load_json(spec)
+        spec = [s.strip() for s in spec.split(",") if s.strip()]
+    return InkSet.from_names(list(spec))
+
+
+def _npz_bytes(**arrays):
+    buffer = _io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return buffer.getvalue()
