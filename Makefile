@@ -7,7 +7,7 @@ CSRC := $(shell find csrc -name '*.cpp' -o -name '*.h')
 DEPS_STAMP := $(VENV)/.deps-stamp
 BUILD_STAMP := .build-stamp
 PYTEST_ARGS ?=
-DEMO_ARGS ?= --iterations 150 --eval-every 15
+DEMO_ARGS ?=
 
 .PHONY: demo render-demo test build bench clean venv
 

@@ -55,18 +55,18 @@ class PrintConfig:
     height_mm: Optional[float] = None
     inks: Sequence[str] = DEFAULT_INKS
     gamma: Tuple[float, float, float] = (1.0, 3.0, 1.0)
-    spp: int = 8
-    eval_spp: int = 64
-    eval_every: int = 10
-    iterations: int = 200
+    spp: int = 32
+    eval_spp: int = 256
+    eval_every: int = 25
+    iterations: int = 300
     optimizer: str = "adagrad"
-    lr: float = 0.3
+    lr: float = 1.0
     parameterization: str = "sigmoid"
     seed: int = 0
     ior: Optional[float] = 1.5
     g: Optional[float] = None  # HG parameter; default: the inks' common g (0.4 for the built-in inks)
     printer_dpi: Tuple[float, float, float] = PRINTER_DPI
-    table_steps: int = 4
+    table_steps: int = 6
     out: str = "results/print"
     resume: bool = False
 
@@ -176,7 +176,8 @@ def homogeneous_table(inks, mixtures, cfg, spp=64, lateral=16, seed=12345):
 def naive_extrusion(target_rgb, inks, cfg, table_spp=64):
     """The naive baseline: the best homogeneous mixture per texel, extruded through the whole thickness.
 
-    Grey targets (all |a*|, |b*| < 2) use black/white mixtures matched to lightness L* (21 levels); colour targets
+    Grey targets (all |a*|, |b*| < 2) use black/white mixtures matched to lightness L* (41 levels of black,
+    quadratically spaced: a little black darkens a lot, so the light end needs the finer steps); colour targets
     use the table of all mixtures in steps of 1/``cfg.table_steps`` matched by ΔE76.
 
     Args:
@@ -190,7 +191,7 @@ def naive_extrusion(target_rgb, inks, cfg, table_spp=64):
     names = [n.lower() for n in inks.names]
     if grey and "black" in names and "white" in names:
         k, wht = names.index("black"), names.index("white")
-        levels = np.linspace(0.0, 1.0, 21)
+        levels = np.linspace(0.0, 1.0, 41) ** 2
         mixtures = np.zeros((len(levels), len(names)))
         mixtures[:, k], mixtures[:, wht] = levels, 1.0 - levels
         kind = "black/white by L*"
@@ -291,7 +292,7 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
     w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
     depth_mm = (np.arange(w.shape[1]) + 0.5) * cfg.voxel_size
     fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.stackplot(depth_mm, w, labels=inks.names,
+    ax.stackplot(depth_mm, w, labels=inks.names, edgecolor="0.3", linewidth=0.4,
                  colors=[np.clip(np.asarray(ink.display_rgb, float), 0, 1) for ink in inks])
     ax.set(xlabel="depth below the top face [mm]", ylabel="mean ink fraction", xlim=(depth_mm[0], depth_mm[-1]),
            ylim=(0, 1), title="ink usage by depth")

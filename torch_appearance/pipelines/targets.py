@@ -14,7 +14,7 @@ __all__ = ["zebra_target", "colorchecker_target", "load_target", "BUILTIN_TARGET
 ZEBRA_STRIPES = (30, 15, 10, 5, 3, 1)
 
 
-def zebra_target(height=64, band_width=8, black=0.03, white=0.75):
+def zebra_target(height=64, band_width=8, black=0.06, white=0.75):
     """The paper's "zebra" resolution test: six vertical bands of black/white horizontal stripes.
 
     Band k (left to right) alternates black and white stripes :data:`ZEBRA_STRIPES`\\ [k] texels high.
