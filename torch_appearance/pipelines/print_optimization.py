@@ -13,11 +13,10 @@ printer micro-voxel) and an evaluation render of the *quantised* volume at the p
 import csv
 import dataclasses
 import io as _io
-import json
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np

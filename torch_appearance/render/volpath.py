@@ -1,5 +1,4 @@
 """``render_texels``: texel-space radiance of a heterogeneous voxel slab, differentiable by path replay."""
-import torch
 
 from .scene import SlabScene, check_grid, check_medium
 
