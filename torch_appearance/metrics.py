@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 import torch
 
-__all__ = ["linear_rgb_to_lab", "delta_e_2000", "delta_e_76", "color_report"]
+__all__ = ["ssim_2d", "linear_rgb_to_lab", "delta_e_2000", "delta_e_76", "color_report"]
 
 
 def _as_rgb_array(name, value):
@@ -161,3 +161,29 @@ def color_report(pred, target, mask=None):
     de76 = np.linalg.norm(lab_a - lab_b, axis=-1)
     return {"dE00_mean": float(de00.mean()), "dE00_p95": float(np.percentile(de00, 95)),
             "dE76_mean": float(de76.mean())}
+
+
+def ssim_2d(pred, target, window_size=11):
+    """Mean SSIM (kornia, Gaussian window) of two linear-RGB images (H, W, 3), compared in sRGB encoding.
+
+    Args:
+        pred, target: (H, W, 3) linear RGB (numpy or torch), values clipped to [0, 1].
+        window_size: odd Gaussian window size in pixels.
+
+    Returns:
+        float in [−1, 1] (1 for identical images).
+    """
+    import kornia
+
+    from .color import linear_to_srgb
+
+    def prep(name, x):
+        x = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x).detach().double()
+        if x.dim() != 3 or x.shape[-1] != 3:
+            raise ValueError(f"{name}: expected an (H, W, 3) image, got shape {tuple(x.shape)}")
+        return linear_to_srgb(x.clamp(0, 1)).permute(2, 0, 1).unsqueeze(0)
+
+    a, b = prep("pred", pred), prep("target", target)
+    if a.shape != b.shape:
+        raise ValueError(f"target: expected shape {tuple(pred.shape)} (that of pred), got {tuple(target.shape)}")
+    return float(kornia.metrics.ssim(a, b, window_size).mean())

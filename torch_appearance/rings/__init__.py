@@ -1,0 +1,10 @@
+"""Growth-ring analysis of wood photographs: synthetic boards, orientation fields, curved Gabor filters, ring
+tracing and board-location estimation (Nindel et al., thesis ch. 2)."""
+from .synthetic import synthetic_board
+from .orientation import orientation_field, orientation_from_phase
+from .gabor import GaborResult, curved_gabor
+from .tracing import trace_rings
+from .board import BoardEstimate, estimate_board, initial_wood_model, resolve_phase_sign
+
+__all__ = ["synthetic_board", "orientation_field", "orientation_from_phase", "GaborResult", "curved_gabor",
+           "trace_rings", "BoardEstimate", "estimate_board", "initial_wood_model", "resolve_phase_sign"]

@@ -1,0 +1,783 @@
+"""Board location in the log and the initial WoodModel guess (Nindel et al., thesis ch. 2, §3.4–3.5).
+
+Geometry of a tangential ("flat-sawn") board. The stem axis runs nearly parallel to the board; its projection onto
+the board is a line (the *projected tree centre*) with direction ``a = (cos ψ, sin ψ)`` in the image and normal
+``b = (−sin ψ, cos ψ)``. With board-plane coordinates measured from the image centre ``p_c`` (mm),
+``a' = a·(p − p_c)`` along and ``w' = b·(p − p_c)`` across the axis, the distance of the axis from the board is
+``d0 − γ·a'`` (``d0`` at the image centre, ``γ = sin β`` for the out-of-plane tilt β) and a board point lies at radius
+
+    r(p) = sqrt((d0 − γ·a')² + (w' − c)²)                                           (mm)
+
+from the axis, ``c`` being the offset of the projected centre line. Rings are the circles ``r = s_r·(k + φ0)``;
+with tilt they appear as nested arches (ellipses around the point where the axis pierces the board plane).
+
+:func:`estimate_board` follows §3.4: rings are ordered across the board along transversals (lines across the
+axis), the projected tree centre is put in the widest gap between neighbouring rings with gaps decreasing
+monotonically to both sides, the ring scale starts from the median gap, and the axis distance (the paper's
+x-translation; its sign is unobservable, we report d0 > 0) and tilt are found by brute-force search of the ring
+shapes followed by a least-squares fit of all parameters to the traced ring points. The result converts to the
+``rotation`` / ``translation`` of :class:`torch_appearance.nn.wood.WoodModel`; :func:`initial_wood_model` adds the
+initial radial distortion (§3.5) from observed vs. ideal ring positions, refined on the dense phase so that the
+local phase error starts well below π/2 (§3.6).
+
+Phase sign: the Gabor phase is ``±(2π G + const)`` with a sign that depends on the (mod π) normal chosen per
+pixel; beyond the projected centre the sign flips. :func:`resolve_phase_sign` makes it agree with the model's
+``phase = 2π·frac(G)`` (increasing outwards); stage-1 fitting compares ``wrap(resolved − model phase)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import ndimage, optimize, sparse
+from scipy.sparse import linalg as sparse_linalg
+
+from .tracing import polyline_length, wrap_angle
+
+__all__ = ["BoardEstimate", "estimate_board", "resolve_phase_sign", "initial_wood_model", "find_centre_gap"]
+
+_TWO_PI = 2.0 * math.pi
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the estimate
+# ----------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class BoardEstimate:
+    """Location of a tangential board in the log, estimated from traced rings (all lengths mm unless "px").
+
+    Attributes:
+        image_shape: ``(H, W)`` of the analysed image (pixels).
+        pixel_size_mm: pixel pitch (mm); pixel (y, x) is the board point (u, v) = (x, y)·pixel_size_mm.
+        axis_angle: ψ, direction of the projected stem axis in the image (rad, [0, π), from +x towards +y).
+        centre_offset_mm: c, signed offset of the projected axis from the image centre along b = (−sin ψ, cos ψ).
+        centre_point_px: ``(x, y)`` point of the projected axis closest to the image centre (pixels).
+        centre_visible: whether the projected axis crosses the image.
+        axis_distance_mm: d0 > 0, distance of the stem axis from the board plane at the image centre.
+        tilt: β, out-of-plane inclination of the axis (rad); the distance is d0 − sin β · a'.
+        ring_scale_mm: s_r, mean ring width (mm).
+        ring_phase: ``(φ0 on the side w' > c, φ0 on the side w' < c)``: traced rings lie at r = s_r·(k + φ0)
+            (the two differ by 0.5 when the traced phase level flips sign beyond the centre).
+        rotation: ``(3,)`` axis-angle (rad) of the WoodModel board→tree rotation.
+        translation: ``(3,)`` WoodModel translation (mm): q = R·(u, v, 0) + translation (z = 0 at the image centre).
+        fit_rms_mm: RMS distance (radial, mm) of the ring points from their ideal circles.
+        ring_index: per input ring, its integer ring index k (−1 for rings not used: too short or outliers).
+        ring_radius_mm: per input ring, the mean radius of its points (NaN if not used).
+        ring_order: ring ids ordered across the board along the middle transversal.
+        neighbour_distances_mm: mean distance between consecutive rings of ``ring_order`` (over transversals).
+        rings: the input polylines, ``(K, 2)`` (x, y) pixel arrays.
+    """
+
+    image_shape: tuple
+    pixel_size_mm: float
+    axis_angle: float
+    centre_offset_mm: float
+    centre_point_px: tuple
+    centre_visible: bool
+    axis_distance_mm: float
+    tilt: float
+    ring_scale_mm: float
+    ring_phase: tuple
+    rotation: np.ndarray
+    translation: np.ndarray
+    fit_rms_mm: float
+    ring_index: list
+    ring_radius_mm: list
+    ring_order: list
+    neighbour_distances_mm: list
+    rings: list = dataclasses.field(repr=False, default_factory=list)
+
+    # ------------------------------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """JSON-serialisable dict (plain floats, ints and lists; NaN radii become ``None``)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "rings":
+                v = [np.asarray(p, dtype=float).tolist() for p in v]
+            elif f.name == "ring_radius_mm":
+                v = [None if not np.isfinite(x) else float(x) for x in v]
+            elif isinstance(v, np.ndarray):
+                v = v.astype(float).tolist()
+            elif isinstance(v, tuple):
+                v = [x.item() if isinstance(x, np.generic) else x for x in v]
+            elif isinstance(v, list):
+                v = [x.item() if isinstance(x, np.generic) else x for x in v]
+            elif isinstance(v, np.generic):
+                v = v.item()
+            out[f.name] = v
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "BoardEstimate":
+        """Inverse of :meth:`to_dict`."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        missing = names - set(d) - {"rings"}
+        if missing:
+            raise ValueError(f"d is missing BoardEstimate fields {sorted(missing)}")
+        kw = {k: d[k] for k in names if k in d}
+        kw["image_shape"] = tuple(int(x) for x in kw["image_shape"])
+        kw["centre_point_px"] = tuple(float(x) for x in kw["centre_point_px"])
+        kw["ring_phase"] = tuple(float(x) for x in kw["ring_phase"])
+        kw["rotation"] = np.asarray(kw["rotation"], dtype=np.float64)
+        kw["translation"] = np.asarray(kw["translation"], dtype=np.float64)
+        kw["ring_radius_mm"] = [np.nan if x is None else float(x) for x in kw["ring_radius_mm"]]
+        kw["rings"] = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in kw.get("rings", [])]
+        return cls(**kw)
+
+    # ------------------------------------------------------------------------------------------------------------
+    def _params(self):
+        return (self.axis_angle, self.centre_offset_mm, self.axis_distance_mm, math.sin(self.tilt))
+
+    def rotation_matrix(self) -> np.ndarray:
+        """``(3, 3)`` board→tree rotation R (rows: tree x, y, z axes in board coordinates)."""
+        return _rotation_matrix(self.axis_angle, self.tilt)
+
+    def tree_points(self, xy_px) -> np.ndarray:
+        """Tree-space points ``(N, 3)`` (mm) of pixel positions ``xy_px`` ``(N, 2)`` (x, y) on the board surface."""
+        xy = np.asarray(xy_px, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise ValueError(f"xy_px must have shape (N, 2), got {xy.shape}")
+        uv = np.concatenate([xy * self.pixel_size_mm, np.zeros((len(xy), 1))], axis=1)
+        return uv @ self.rotation_matrix().T + self.translation
+
+    def pixel_grid(self):
+        """``(H, W, 3)`` tree-space points of all pixel centres (mm)."""
+        h, w = self.image_shape
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+        return self.tree_points(np.stack([xx.ravel(), yy.ravel()], 1)).reshape(h, w, 3)
+
+    def radius_map(self) -> np.ndarray:
+        """``(H, W)`` undistorted radius r (mm) of every pixel."""
+        q = self.pixel_grid()
+        return np.hypot(q[..., 0], q[..., 1])
+
+    def side_map(self) -> np.ndarray:
+        """``(H, W)`` ±1: side of the projected tree centre (+1 where w' > c). The Gabor phase sign typically
+        flips across this line."""
+        h, w = self.image_shape
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+        _, wp = _board_coords(np.stack([xx, yy], -1).reshape(-1, 2) * self.pixel_size_mm,
+                              self.axis_angle, _image_centre_mm(self.image_shape, self.pixel_size_mm))
+        return np.where(wp.reshape(h, w) >= self.centre_offset_mm, 1.0, -1.0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# geometry helpers
+# ----------------------------------------------------------------------------------------------------------------
+def _image_centre_mm(image_shape, pixel_size_mm):
+    h, w = image_shape
+    return np.array([(w - 1) / 2.0, (h - 1) / 2.0]) * pixel_size_mm
+
+
+def _board_coords(p_mm, psi, centre_mm):
+    """(a', w') of board points ``(N, 2)`` mm for axis angle ψ."""
+    d = p_mm - centre_mm
+    ca, sa = math.cos(psi), math.sin(psi)
+    return d[:, 0] * ca + d[:, 1] * sa, -d[:, 0] * sa + d[:, 1] * ca
+
+
+def _radius(ap, wp, c, d0, g):
+    return np.sqrt((d0 - g * ap) ** 2 + (wp - c) ** 2)
+
+
+def _rotation_matrix(psi, tilt):
+    a = np.array([math.cos(psi), math.sin(psi), 0.0])
+    cb, sb = math.cos(tilt), math.sin(tilt)
+    z_b = np.array([cb * a[0], cb * a[1], sb])
+    x_b = np.array([-sb * a[0], -sb * a[1], cb])
+    y_b = np.cross(z_b, x_b)   # = (a_y, −a_x, 0) = −b  ⇒ q_y = −(w' − c)
+    return np.stack([x_b, y_b, z_b])
+
+
+def _transform(psi, c, d0, tilt, image_shape, pixel_size_mm):
+    """WoodModel (rotation, translation) for the board geometry."""
+    from scipy.spatial.transform import Rotation
+
+    rot = _rotation_matrix(psi, tilt)
+    p_c = np.append(_image_centre_mm(image_shape, pixel_size_mm), 0.0)
+    t_prime = np.array([d0, c, 0.0])      # tree-space point of the image centre
+    translation = t_prime - rot @ p_c
+    return Rotation.from_matrix(rot).as_rotvec(), translation
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# input checks
+# ----------------------------------------------------------------------------------------------------------------
+def _check_rings(rings):
+    if not isinstance(rings, (list, tuple)):
+        raise TypeError(f"rings must be a list of (K, 2) arrays, got {type(rings).__name__}")
+    out = []
+    for i, p in enumerate(rings):
+        try:
+            a = np.asarray(p, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(f"rings[{i}] must be a (K, 2) array of numbers, got {type(p).__name__}") from None
+        if a.ndim != 2 or a.shape[1] != 2:
+            raise ValueError(f"rings[{i}] must have shape (K, 2), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"rings[{i}] has non-finite values")
+        out.append(a)
+    return out
+
+
+def _check_shape(image_shape):
+    if not isinstance(image_shape, (tuple, list)) or len(image_shape) not in (2, 3):
+        raise TypeError(f"image_shape must be (H, W) or (H, W, C), got {image_shape!r}")
+    try:
+        h, w = int(image_shape[0]), int(image_shape[1])
+    except (TypeError, ValueError):
+        raise TypeError(f"image_shape must hold integers, got {image_shape!r}") from None
+    if h < 2 or w < 2:
+        raise ValueError(f"image_shape must be at least (2, 2), got {tuple(image_shape)}")
+    return h, w
+
+
+def _check_pixel_size(pixel_size_mm):
+    try:
+        ps = float(pixel_size_mm)
+    except (TypeError, ValueError):
+        raise TypeError(f"pixel_size_mm must be a number, got {type(pixel_size_mm).__name__}") from None
+    if not (math.isfinite(ps) and ps > 0):
+        raise ValueError(f"pixel_size_mm must be positive and finite, got {pixel_size_mm!r}")
+    return ps
+
+
+def _resample(poly, spacing):
+    """Resample a polyline at (about) constant arc-length spacing (px)."""
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return poly[:1]
+    n = max(2, int(round(s[-1] / spacing)) + 1)
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, poly[:, 0]), np.interp(t, s, poly[:, 1])], axis=1)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# §3.4 steps
+# ----------------------------------------------------------------------------------------------------------------
+def find_centre_gap(gaps, tolerance=0.1):
+    """Index of the gap holding the projected tree centre (paper §3.4).
+
+    The centre lies in the widest gap between neighbouring rings such that the gaps decrease monotonically on both
+    sides of it. Gaps are tried widest first; the first whose sides are monotone (each gap at most
+    ``1 + tolerance`` times the one before it, going outwards) wins; if none is, the widest with the fewest
+    violations.
+
+    Args:
+        gaps: ``(n,)`` distances between consecutive ring crossings along a transversal.
+        tolerance: relative slack of the monotonicity test (noise in ring positions).
+
+    Returns:
+        int index into ``gaps``.
+    """
+    g = np.asarray(gaps, dtype=np.float64)
+    if g.ndim != 1 or len(g) == 0:
+        raise ValueError(f"gaps must be a non-empty 1-D array, got shape {g.shape}")
+    best, best_viol = None, None
+    for i in np.argsort(-g, kind="stable"):
+        right = g[i:]
+        left = g[: i + 1][::-1]
+        viol = int((right[1:] > right[:-1] * (1 + tolerance)).sum() + (left[1:] > left[:-1] * (1 + tolerance)).sum())
+        if viol == 0:
+            return int(i)
+        if best_viol is None or viol < best_viol:
+            best, best_viol = int(i), viol
+    return best
+
+
+def _transversals(points_ap, points_wp, ring_of, seg_ok, n_transversals):
+    """Crossings of the ring polylines with lines a' = const. Returns list of (A, w' sorted, ring ids sorted)."""
+    a0, a1 = points_ap[:-1][seg_ok], points_ap[1:][seg_ok]
+    w0, w1 = points_wp[:-1][seg_ok], points_wp[1:][seg_ok]
+    rid = ring_of[:-1][seg_ok]
+    lo, hi = np.percentile(points_ap, [5, 95])
+    out = []
+    for A in np.linspace(lo, hi, n_transversals):
+        hit = (a0 - A) * (a1 - A) < 0
+        hit |= (a0 == A) & (a1 != A)
+        if hit.sum() < 2:
+            continue
+        t = (A - a0[hit]) / (a1[hit] - a0[hit])
+        w = w0[hit] + t * (w1[hit] - w0[hit])
+        o = np.argsort(w)
+        out.append((A, w[o], rid[hit][o]))
+    return out
+
+
+def _assign_rings(rbar, side_major, s_r, phi):
+    """Ring indices k_j = round(r̄_j / s_r − φ0[side])."""
+    ph = np.where(side_major > 0, phi[0], phi[1])
+    return np.rint(rbar / s_r - ph).astype(np.int64)
+
+
+def _spacing(rbar):
+    """Robust ring spacing from sorted mean radii (legs of the same ring, nearly equal radii, are merged)."""
+    r = np.sort(rbar)
+    d = np.diff(r)
+    if len(d) == 0:
+        return None
+    scale = np.median(d[d > 0]) if (d > 0).any() else 0.0
+    d = d[d > 0.35 * scale]
+    if len(d) == 0:
+        return None
+    med = np.median(d)
+    single = d[d < 1.5 * med]     # a missed ring shows up as a double gap
+    return float(np.median(single)) if len(single) else float(med)
+
+
+def _fit_phase_offsets(rbar, weights, side_major, s_r):
+    """Circular mean of r̄/s_r per side → φ0 in [0, 1) (side +1, side −1)."""
+    out = []
+    for sgn in (1, -1):
+        m = side_major == sgn
+        if not m.any():
+            m = np.ones_like(m)
+        z = (weights[m] * np.exp(1j * _TWO_PI * rbar[m] / s_r)).sum()
+        out.append((np.angle(z) / _TWO_PI) % 1.0)
+    return np.array(out)
+
+
+def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0, n_transversals=15,
+                   max_tilt_deg=20.0, max_points=3000) -> BoardEstimate:
+    """Estimate the board location in the log from traced rings (paper §3.4).
+
+    Args:
+        rings: list of ``(K, 2)`` (x, y) pixel polylines (e.g. from :func:`~torch_appearance.rings.trace_rings`).
+        image_shape: ``(H, W)`` or ``(H, W, C)`` of the analysed image.
+        pixel_size_mm: pixel pitch (mm).
+        min_ring_length_px: rings shorter than this are ignored.
+        n_transversals: number of lines across the axis used to order rings and locate the centre.
+        max_tilt_deg: largest out-of-plane tilt searched.
+        max_points: ring points used by the fits (rings are resampled uniformly to stay below it).
+
+    Returns:
+        :class:`BoardEstimate`.
+
+    Raises:
+        TypeError, ValueError: bad argument types/shapes; fewer than three usable rings.
+    """
+    rings = _check_rings(rings)
+    h, w = _check_shape(image_shape)
+    ps = _check_pixel_size(pixel_size_mm)
+    lengths = np.array([polyline_length(p) for p in rings])
+    used = np.nonzero(lengths >= float(min_ring_length_px))[0]
+    if len(used) < 3:
+        raise ValueError(f"rings: need at least 3 rings of length ≥ {min_ring_length_px} px, got {len(used)}")
+
+    spacing = max(1.0, lengths[used].sum() / max_points)
+    pts, ring_of = [], []
+    for j, i in enumerate(used):
+        p = _resample(rings[i], spacing)
+        pts.append(p)
+        ring_of.append(np.full(len(p), j))
+    pts_px = np.concatenate(pts)
+    ring_of = np.concatenate(ring_of)
+    seg_ok = ring_of[1:] == ring_of[:-1]
+    p_mm = pts_px * ps
+    centre = _image_centre_mm((h, w), ps)
+    n_rings = len(used)
+    counts = np.bincount(ring_of, minlength=n_rings).astype(np.float64)
+
+    # --- axis direction: length-weighted mean of the doubled ring tangent angles
+    d = np.diff(p_mm, axis=0)[seg_ok]
+    z2 = (np.linalg.norm(d, axis=1) * np.exp(2j * np.arctan2(d[:, 1], d[:, 0]))).sum()
+    psi = (0.5 * np.angle(z2)) % math.pi
+
+    # --- order rings across the board along transversals; the centre is in the widest monotone gap
+    def transversal_stats(psi_):
+        ap, wp = _board_coords(p_mm, psi_, centre)
+        trans = _transversals(ap, wp, ring_of, seg_ok, n_transversals)
+        centres, all_gaps = [], []
+        for A, ws, _ids in trans:
+            gaps = np.diff(ws)
+            all_gaps.append(gaps)
+            i = find_centre_gap(gaps)
+            if 0 < i < len(gaps) - 1 or len(gaps) <= 2:
+                centres.append((A, 0.5 * (ws[i] + ws[i + 1])))
+        return ap, wp, trans, centres, all_gaps
+
+    ap, wp, trans, centres, all_gaps = transversal_stats(psi)
+    if len(centres) >= 3:   # the centre line gives a second estimate of the axis direction
+        cc = np.array(centres)
+        slope = np.polyfit(cc[:, 0], cc[:, 1], 1)[0]
+        if abs(slope) < 0.5:
+            psi = (psi + math.atan(slope)) % math.pi
+            ap, wp, trans, centres, all_gaps = transversal_stats(psi)
+    gaps_all = np.concatenate(all_gaps) if all_gaps else np.diff(np.sort(wp))
+    s_r0 = float(np.median(gaps_all[gaps_all > 0])) if (gaps_all > 0).any() else float(np.ptp(wp) / n_rings)
+    c0 = float(np.median([c for _, c in centres])) if centres else None
+
+    # ring order and mean neighbour distances along the middle transversal
+    ring_order, neighbour = [], []
+    if trans:
+        A, ws, ids = trans[len(trans) // 2]
+        ring_order = [int(used[i]) for i in ids]
+        pair_gaps = {}
+        for _, ws_t, ids_t in trans:
+            for k in range(len(ids_t) - 1):
+                pair_gaps.setdefault((ids_t[k], ids_t[k + 1]), []).append(ws_t[k + 1] - ws_t[k])
+        for k in range(len(ids) - 1):
+            neighbour.append(float(np.mean(pair_gaps[(ids[k], ids[k + 1])])))
+
+    # --- brute force over (ψ, c, d0, γ): rings must be circles around the axis (normalised within-ring variance)
+    sub = np.arange(len(p_mm)) if len(p_mm) <= 600 else np.linspace(0, len(p_mm) - 1, 600).astype(np.int64)
+    rs = ring_of[sub]
+    cnt_s = np.maximum(np.bincount(rs, minlength=n_rings), 1)
+    onehot = sparse.csr_matrix((np.ones(len(rs)), (np.arange(len(rs)), rs)), shape=(len(rs), n_rings))
+    span = float(np.ptp(wp))
+    psi_grid = psi + np.radians(np.linspace(-12.0, 12.0, 7))
+    d_grid = s_r0 * np.geomspace(0.2, 60.0, 20)
+    g_max = math.sin(math.radians(float(max_tilt_deg)))
+    g_grid = np.linspace(-g_max, g_max, 21)
+    starts = []
+    for psi_k in psi_grid:
+        ap_k, wp_k = _board_coords(p_mm[sub], psi_k, centre)
+        c_grid = [np.linspace(wp_k.min() - 1.5 * span, wp_k.max() + 1.5 * span, 25)]
+        if c0 is not None:
+            c_grid.append(c0 + s_r0 * np.linspace(-2, 2, 9))
+        c_grid = np.concatenate(c_grid)
+        C, D, Gm = (x.ravel() for x in np.meshgrid(c_grid, d_grid, g_grid, indexing="ij"))
+        scores = np.empty(len(C))
+        for s0 in range(0, len(C), 4096):
+            sl = slice(s0, s0 + 4096)
+            r = np.sqrt((D[sl, None] - Gm[sl, None] * ap_k[None]) ** 2 + (wp_k[None] - C[sl, None]) ** 2)
+            means = (onehot.T @ r.T).T / cnt_s[None]
+            ss_w = ((r - means[:, rs]) ** 2).sum(1)
+            ss_t = ((r - r.mean(1, keepdims=True)) ** 2).sum(1)
+            scores[sl] = ss_w / np.maximum(ss_t, 1e-300)
+        # starts: the best geometry for each axis distance (the paper's brute-force search of the x-translation)
+        sc = scores.reshape(len(c_grid), len(d_grid), len(g_grid))
+        for j in range(len(d_grid)):
+            i, k = np.unravel_index(np.argmin(sc[:, j, :]), (len(c_grid), len(g_grid)))
+            starts.append((sc[i, j, k], psi_k, c_grid[i], d_grid[j], g_grid[k]))
+    starts.sort(key=lambda t: t[0])
+    starts = starts[:6]
+
+    # --- full fit: ring points on circles r = s_r (k_j + φ0[side]) with integer k_j
+    # (on ≤ 600 points per start; the winner is polished on all points)
+    sub = np.arange(len(p_mm)) if len(p_mm) <= 600 else np.linspace(0, len(p_mm) - 1, 600).astype(np.int64)
+    counts_sub = np.bincount(ring_of[sub], minlength=n_rings).astype(np.float64)
+    best = None
+    for _, psi_s, c_s, d_s, g_s in starts:
+        res = _refine(p_mm[sub], ring_of[sub], counts_sub, centre, psi_s, c_s, d_s, g_s, s_r0, rounds=2)
+        if res is not None and (best is None or res["cost"] < best["cost"]):
+            best = res
+    if best is not None:
+        full = _refine(p_mm, ring_of, counts, centre, best["psi"], best["c"], best["d0"], best["gamma"], s_r0,
+                       rounds=2)
+        best = full if full is not None else best
+    if best is None:
+        raise ValueError("rings: could not fit a board geometry to the rings (are they growth rings of a "
+                         "tangential board?)")
+
+    psi_f, c_f, d_f, g_f, s_f = best["psi"], best["c"], best["d0"], best["gamma"], best["s_r"]
+    # normalise: d0 > 0 (the sign of the x-translation is unobservable), ψ in [0, π)
+    if d_f < 0:
+        d_f, g_f = -d_f, -g_f
+    if not 0 <= psi_f < math.pi:
+        k = math.floor(psi_f / math.pi)
+        psi_f -= k * math.pi
+        if k % 2:   # a → −a flips a', w'
+            c_f, g_f = -c_f, -g_f
+            best["phi"] = best["phi"][::-1]
+    tilt = math.asin(float(np.clip(g_f, -1.0, 1.0)))
+    rotation, translation = _transform(psi_f, c_f, d_f, tilt, (h, w), ps)
+    b = np.array([-math.sin(psi_f), math.cos(psi_f)])
+    centre_pt = (centre + c_f * b) / ps
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], dtype=np.float64) * ps
+    _, wc = _board_coords(corners, psi_f, centre)
+    ring_index = [-1] * len(rings)
+    ring_radius = [float("nan")] * len(rings)
+    for j, i in enumerate(used):
+        if best["keep"][j]:
+            ring_index[i] = int(best["k"][j])
+            ring_radius[i] = float(best["rbar"][j])
+    return BoardEstimate(
+        image_shape=(h, w), pixel_size_mm=ps, axis_angle=float(psi_f), centre_offset_mm=float(c_f),
+        centre_point_px=(float(centre_pt[0]), float(centre_pt[1])),
+        centre_visible=bool(wc.min() <= c_f <= wc.max()), axis_distance_mm=float(d_f), tilt=float(tilt),
+        ring_scale_mm=float(s_f), ring_phase=(float(best["phi"][0]), float(best["phi"][1])), rotation=rotation,
+        translation=translation, fit_rms_mm=float(best["rms"]), ring_index=ring_index,
+        ring_radius_mm=ring_radius, ring_order=ring_order, neighbour_distances_mm=neighbour,
+        rings=[np.array(p) for p in rings])
+
+
+def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
+    """Least-squares fit of (ψ, c, d0, γ, s_r, φ0±) with ring indices re-assigned between rounds."""
+    n_rings = len(counts)
+    present = counts > 0
+    keep = present.copy()
+
+    def geometry(x):
+        ap, wp = _board_coords(p_mm, x[0], centre)
+        return ap, wp, _radius(ap, wp, x[1], x[2], x[3])
+
+    def ring_means(v):
+        return np.bincount(ring_of, weights=v, minlength=n_rings) / np.maximum(counts, 1)
+
+    x = np.array([psi, c, d0, g])
+    ap, wp, r = geometry(x)
+    rbar = ring_means(r)
+    # spacing per side of the centre line: the traced level may sit half a ring apart on the two sides
+    side_major = np.where(ring_means(np.where(wp >= x[1], 1.0, -1.0)) >= 0, 1, -1)
+    found = [_spacing(rbar[present & (side_major == sgn)]) for sgn in (1, -1)]
+    found = [v for v in found if v is not None and np.isfinite(v) and v > 0]
+    if not found:
+        return None
+    s_r = float(np.median(found))
+    if s_r < 0.2 * s_r0:
+        return None
+    s_r = min(s_r, 3 * s_r0)
+    out = None
+    for _ in range(rounds):
+        side_pt = np.where(wp >= x[1], 1.0, -1.0)
+        side_major = np.where(ring_means(side_pt) >= 0, 1, -1)
+        phi = _fit_phase_offsets(rbar, counts * keep, side_major, s_r)
+        k = _assign_rings(rbar, side_major, s_r, phi)
+        side_idx = (side_pt < 0).astype(np.int64)
+        pt_keep = keep[ring_of]
+
+        def residuals(y):
+            _, _, rr = geometry(y[:4])
+            ph = y[5:7][side_idx]
+            return ((rr - y[4] * (k[ring_of] + ph)) / s_r0)[pt_keep]
+
+        y0 = np.concatenate([x, [s_r], phi])
+        try:
+            sol = optimize.least_squares(residuals, y0, loss="soft_l1", f_scale=0.1, x_scale="jac", max_nfev=100)
+        except (ValueError, np.linalg.LinAlgError):
+            return out
+        y = sol.x
+        if y[4] < 0.2 * s_r0:
+            return out
+        x, s_r, phi = y[:4], float(y[4]), y[5:7]
+        ap, wp, r = geometry(x)
+        rbar = ring_means(r)
+        # per-ring RMS; a ring far off its circle (mis-traced) is dropped from the next round
+        res = r - s_r * (k[ring_of] + phi[(np.where(wp >= x[1], 0, 1))])
+        ring_rms = np.sqrt(ring_means(res ** 2))
+        keep = present & (ring_rms < max(0.25 * s_r, 3 * np.median(ring_rms[present])))
+        rms = float(np.sqrt(np.mean(res[keep[ring_of]] ** 2)))
+        # shift k so that φ0 lies in [0, 1)
+        shift = np.floor(phi)
+        phi = phi - shift
+        k_out = k + shift[np.where(side_major > 0, 0, 1)].astype(np.int64)
+        out = {"psi": float(x[0]), "c": float(x[1]), "d0": float(x[2]), "gamma": float(x[3]), "s_r": s_r,
+               "phi": phi, "k": k_out.astype(np.int64), "rbar": rbar, "keep": keep, "rms": rms,
+               "cost": rms / s_r + 0.02 * (~keep).mean()}
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# phase sign and the initial WoodModel
+# ----------------------------------------------------------------------------------------------------------------
+def resolve_phase_sign(phase, estimate: BoardEstimate, *, sigma_px=None, method="gradient"):
+    """Flip the Gabor phase so that it increases outwards like the model phase 2π·frac(G).
+
+    Args:
+        phase: ``(H, W)`` Gabor phase I_φ (rad).
+        estimate: board estimate (gives the ideal radius field r).
+        sigma_px: smoothing (pixels) of the per-pixel sign vote; default ¼ of the median ring spacing in pixels.
+        method: ``"gradient"``: sign of the (smoothed) agreement of ∇I_φ (wrapped differences) with ∇r, robust to
+            any per-region sign convention of the Gabor filter; ``"side"``: +1/−1 on the two sides of the
+            projected tree centre, with the global sign from the gradient vote.
+
+    Returns:
+        ``(resolved, sign)``: ``(H, W)`` phase in [0, 2π) and the ``(H, W)`` ±1 sign applied.
+    """
+    from .tracing import _as_field
+
+    phase = _as_field("phase", phase)
+    if phase.shape != tuple(estimate.image_shape):
+        raise ValueError(f"phase must have the estimate's image shape {tuple(estimate.image_shape)}, "
+                         f"got {phase.shape}")
+    if method not in ("gradient", "side"):
+        raise ValueError(f"method must be 'gradient' or 'side', got {method!r}")
+    r = estimate.radius_map()
+    gy_r, gx_r = np.gradient(r)
+    gx = np.zeros_like(phase)
+    gy = np.zeros_like(phase)
+    gx[:, 1:-1] = wrap_angle(phase[:, 2:] - phase[:, :-2]) / 2
+    gy[1:-1] = wrap_angle(phase[2:] - phase[:-2]) / 2
+    vote = gx * gx_r + gy * gy_r
+    if sigma_px is None:
+        sigma_px = max(1.0, 0.25 * estimate.ring_scale_mm / estimate.pixel_size_mm)
+    if method == "gradient":
+        sign = np.where(ndimage.gaussian_filter(vote, float(sigma_px)) >= 0, 1.0, -1.0)
+    else:
+        side = estimate.side_map()
+        sign = side * (1.0 if (vote * side).sum() >= 0 else -1.0)
+    return (sign * phase) % _TWO_PI, sign
+
+
+def _texture_weights(model, q):
+    """Sparse (N, Hd·Wd) bilinear weights of the model's m_r texture at tree points q (N, 3), matching its
+    grid_sample(align_corners=True, padding_mode='border') lookup."""
+    hd, wd = model.distortion_shape
+    z0, z1 = model.z_range_mm
+    ix = np.clip((q[:, 2] - z0) / (z1 - z0) * (wd - 1), 0, wd - 1)
+    r = np.hypot(q[:, 0], q[:, 1])
+    if model.distortion == "radial":
+        iy = np.clip(r / model.r_max_mm * (hd - 1), 0, hd - 1)
+        periodic = False
+    else:
+        iy = (np.arctan2(q[:, 1], q[:, 0]) + math.pi) * (hd / _TWO_PI)
+        periodic = True
+    x0 = np.minimum(np.floor(ix).astype(np.int64), wd - 2)
+    fx = ix - x0
+    if periodic:
+        y0 = np.floor(iy).astype(np.int64)
+        fy = iy - y0
+        y0 %= hd
+        y1 = (y0 + 1) % hd
+    else:
+        y0 = np.minimum(np.floor(iy).astype(np.int64), hd - 2)
+        fy = iy - y0
+        y1 = y0 + 1
+    n = len(q)
+    rows = np.repeat(np.arange(n), 4)
+    cols = np.stack([y0 * wd + x0, y0 * wd + x0 + 1, y1 * wd + x0, y1 * wd + x0 + 1], 1).ravel()
+    vals = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], 1).ravel()
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(n, hd * wd))
+
+
+def _laplacian(hd, wd, periodic_rows):
+    """Graph Laplacian of the texel grid (smoothness prior)."""
+    idx = np.arange(hd * wd).reshape(hd, wd)
+    pairs = [np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1)]
+    if periodic_rows:
+        pairs.append(np.stack([idx.ravel(), np.roll(idx, -1, axis=0).ravel()], 1))
+    else:
+        pairs.append(np.stack([idx[:-1].ravel(), idx[1:].ravel()], 1))
+    e = np.concatenate(pairs)
+    m = len(e)
+    dmat = sparse.csr_matrix((np.concatenate([np.ones(m), -np.ones(m)]),
+                              (np.concatenate([np.arange(m)] * 2), np.concatenate([e[:, 0], e[:, 1]]))),
+                             shape=(m, hd * wd))
+    return (dmat.T @ dmat).tocsr()
+
+
+def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=None, distortion="radial",
+                       distortion_shape=(32, 64), n_rings=64, smoothness=1e-3, dense_refine=True,
+                       dtype=None, return_info=False):
+    """Initial WoodModel (board transform, ring scale, radial distortion) from a board estimate (paper §3.5).
+
+    The distortion starts from the paper's recipe, the difference between the observed traced rings and their
+    ideal undistorted circles r = s_r·(k + φ0) mapped to radial displacements, plus a global offset that makes
+    the model phase 2π·frac(G) agree with the sign-resolved Gabor phase; with ``dense_refine`` the wrapped
+    per-pixel phase residual is then added (it is small once the rings are in place). The texture is the
+    least-squares fit (magnitude-weighted, with a small Laplacian smoothness prior) of these displacements at the
+    pixels' tree-space (z, r) — or (z, θ_t) for ``distortion="azimuthal"`` — positions.
+
+    Args:
+        estimate: :class:`BoardEstimate` from :func:`estimate_board`.
+        phase: ``(H, W)`` Gabor phase of the photograph (rad), as traced.
+        magnitude: optional ``(H, W)`` Gabor magnitude (weights of the dense fit).
+        rings: ring polylines; default ``estimate.rings`` (with ``estimate.ring_index``).
+        distortion, distortion_shape, n_rings: passed to ``WoodModel``.
+        smoothness: weight of the Laplacian prior relative to the mean data weight per texel.
+        dense_refine: add the wrapped dense phase residual (recommended).
+        dtype: torch dtype of the model (default float32).
+        return_info: also return a dict with ``resolved_phase`` (H, W), ``sign`` (H, W), ``phase_error`` (H, W)
+            wrapped (resolved − model phase, rad), ``fraction_below_half_pi`` and ``rms_phase_error``.
+
+    Returns:
+        :class:`~torch_appearance.nn.wood.WoodModel` (and the info dict with ``return_info``).
+
+    Raises:
+        TypeError, ValueError: bad inputs (wrong shapes, unknown distortion, no usable rings).
+    """
+    import torch
+    from ..nn.wood import WoodModel
+
+    if not isinstance(estimate, BoardEstimate):
+        raise TypeError(f"estimate must be a BoardEstimate, got {type(estimate).__name__}")
+    if distortion not in ("radial", "azimuthal"):
+        raise ValueError(f"distortion must be 'radial' or 'azimuthal' (the initial guess is a distortion), "
+                         f"got {distortion!r}")
+    from .tracing import _as_field
+
+    phase = _as_field("phase", phase, tuple(estimate.image_shape))
+    mag = None if magnitude is None else _as_field("magnitude", magnitude, phase.shape)
+    dtype = torch.float32 if dtype is None else dtype
+    h, w = estimate.image_shape
+    ps = estimate.pixel_size_mm
+    s_r = estimate.ring_scale_mm
+    resolved, sign = resolve_phase_sign(phase, estimate)
+
+    q = estimate.pixel_grid().reshape(-1, 3)
+    r = np.hypot(q[:, 0], q[:, 1])
+    z = q[:, 2]
+    zspan = z.max() - z.min()
+    z_range = (float(z.min() - 0.05 * zspan - 1e-3), float(z.max() + 0.05 * zspan + 1e-3))
+    r_max = float(r.max() + 2 * s_r)
+    model = WoodModel(ring_scale_mm=s_r, n_rings=n_rings, distortion=distortion, distortion_shape=distortion_shape,
+                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype)
+    model.set_parameters(rotation=torch.as_tensor(estimate.rotation, dtype=torch.float64),
+                         translation=torch.as_tensor(estimate.translation, dtype=torch.float64))
+
+    # --- ring-based displacements: observed ring points vs. their ideal circles
+    if rings is None:
+        rings, ring_index = estimate.rings, estimate.ring_index
+        rings = _check_rings(rings)
+    else:
+        rings = _check_rings(rings)
+        ring_index = None
+    rows, targets = [], []
+    c = estimate.centre_offset_mm
+    centre = _image_centre_mm((h, w), ps)
+    for j, poly in enumerate(rings):
+        if len(poly) < 2 or (ring_index is not None and ring_index[j] < 0):
+            continue
+        p = _resample(poly, 1.0)
+        qq = estimate.tree_points(p)
+        rr = np.hypot(qq[:, 0], qq[:, 1])
+        _, wp = _board_coords(p * ps, estimate.axis_angle, centre)
+        phi = np.where(wp >= c, estimate.ring_phase[0], estimate.ring_phase[1])
+        k = ring_index[j] if ring_index is not None else int(np.rint(np.median(rr / s_r - phi)))
+        rows.append(qq)
+        targets.append(s_r * (k + phi) - rr)
+    if not rows:
+        raise ValueError("rings: no usable ring polylines for the initial distortion")
+    q_ring = np.concatenate(rows)
+    m_ring = np.concatenate(targets)
+
+    hd, wd = model.distortion_shape
+    lap = _laplacian(hd, wd, periodic_rows=distortion == "azimuthal")
+
+    def solve(a_mat, values, weights):
+        wmat = sparse.diags(weights)
+        ata = (a_mat.T @ wmat @ a_mat).tocsr()
+        lam = smoothness * max(float(weights.sum()) / (hd * wd), 1e-12)
+        lhs = ata + lam * lap + 1e-9 * lam * sparse.identity(hd * wd)
+        return sparse_linalg.spsolve(lhs.tocsc(), a_mat.T @ (weights * values))
+
+    # ring displacements are sparse in (z, r): fit them with a stronger smoothness so that texels between rings
+    # interpolate; then add the offset that matches the dense resolved phase
+    a_ring = _texture_weights(model, q_ring)
+    tex = solve(a_ring, m_ring - np.median(m_ring), np.ones(len(m_ring))) + np.median(m_ring)
+    a_pix = _texture_weights(model, q)
+    weight = np.ones(len(q)) if mag is None else np.maximum(mag.ravel(), 0.0)
+    m_pix = a_pix @ tex
+    resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
+    offset = np.angle((weight * np.exp(1j * resid)).sum())
+    tex = tex + s_r * offset / _TWO_PI
+    if dense_refine:
+        m_pix = a_pix @ tex
+        resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
+        target = m_pix + s_r * resid / _TWO_PI
+        tex = solve(a_pix, target, weight + 1e-12)
+    model.set_parameters(m_r=torch.as_tensor(tex.reshape(hd, wd), dtype=torch.float64))
+    if not return_info:
+        return model
+    with torch.no_grad():
+        out = model.render_board(h, w, ps)
+    err = wrap_angle(resolved - out["phase"].double().cpu().numpy())
+    wsum = weight.reshape(h, w)
+    info = {"resolved_phase": resolved, "sign": sign, "phase_error": err,
+            "fraction_below_half_pi": float((wsum * (np.abs(err) < math.pi / 2)).sum() / wsum.sum()),
+            "rms_phase_error": float(np.sqrt((wsum * err ** 2).sum() / wsum.sum()))}
+    return model, info
