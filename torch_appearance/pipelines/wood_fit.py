@@ -21,7 +21,8 @@ import torch
 from .. import io as ta_io
 from ..color import srgb_to_linear
 
-__all__ = ["WoodFitConfig", "fit_wood", "load_photo", "phase_loss", "wrap", "LOG_FIELDS"]
+__all__ = ["WoodFitConfig", "fit_wood", "load_photo", "phase_loss", "wrap", "effective_ring_width",
+           "boundary_lateness", "model_boundaries", "LOG_FIELDS"]
 
 LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms"]
 
@@ -40,6 +41,7 @@ class WoodFitConfig:
     q: int = 80
     distortion: str = "radial"
     distortion_shape: tuple = (32, 64)
+    smoothness: float = 1.0  # weight of the distortion prior (squared texel-to-texel change, in ring widths)
     device: str = "cpu"
     max_size: Optional[int] = None
     seed: int = 0
@@ -264,6 +266,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     for epoch in range(cfg.epochs + 1):
         out = model.render_board(h, w, cfg.pixel_size_mm)
         loss = phase_loss(out["phase"], target_phase, weight)
+        if cfg.smoothness > 0 and model.m_r is not None:
+            loss = loss + cfg.smoothness * distortion_prior(model)
         rms = float(torch.sqrt((wrap(target_phase - out["phase"].detach()) ** 2).mean()))
         rows.append({"stage": 1, "epoch": epoch, "wall_s": time.perf_counter() - start,
                      "phase_loss": loss.item(), "phase_rms": rms})
@@ -314,7 +318,9 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     np.save(os.path.join(folder, "fit_phase.npy"), fit_phase)
     model.cpu().save(os.path.join(folder, "model"))
     params = {"rotation_axis_angle_rad": model.rotation.tolist(), "translation_mm": model.translation.tolist(),
-              "ring_scale_mm": float(model.ring_scale), "distortion": cfg.distortion,
+              "ring_scale_mm": float(model.ring_scale),
+              "mean_ring_width_mm": effective_ring_width(model, h, w, cfg.pixel_size_mm),
+              "boundary_lateness": boundary_lateness(model), "distortion": cfg.distortion,
               "distortion_rms_mm": float(model.m_r.pow(2).mean().sqrt()) if model.m_r is not None else 0.0,
               "pixel_size_mm": cfg.pixel_size_mm, "image_hw": [h, w]}
     ta_io.write_json(os.path.join(folder, "params.json"), params)
@@ -327,7 +333,9 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
             log(f"fit_wood: cube preview skipped ({type(exc).__name__}: {exc})")
     summary = {
         "photo": os.path.abspath(cfg.photo), "image_hw": [h, w], "rings_traced": len(rings),
-        "ring_scale_mm": float(model.ring_scale), "initial_phase_rms": rows[0]["phase_rms"],
+        "ring_scale_mm": float(model.ring_scale),
+        "mean_ring_width_mm": effective_ring_width(model, h, w, cfg.pixel_size_mm),
+        "boundary_lateness": boundary_lateness(model), "initial_phase_rms": rows[0]["phase_rms"],
         "final_phase_rms": rows[cfg.epochs]["phase_rms"], "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),
         "fraction_initial_error_below_half_pi": info.get("fraction_below_half_pi"),
         "ssim_fit_vs_photo": ssim, "timings_s": timings, "epochs": cfg.epochs, "color_epochs": cfg.color_epochs,
@@ -337,6 +345,64 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         f"{summary['initial_phase_rms']:.3f} -> {summary['final_phase_rms']:.3f} rad, SSIM {ssim:.3f}; Gabor "
         f"{timings['gabor_s']:.1f} s, fit {timings['stage1_s'] + timings['stage2_s']:.1f} s -> {folder}")
     return summary
+
+
+def effective_ring_width(model, h, w, pixel_size_mm):
+    """Mean ring width over the board (mm): 1 / mean ∂G/∂r = s_r / mean(1 + ∂m_r/∂r).
+
+    The ring scale s_r alone is not identifiable: a radial distortion growing linearly with r rescales the rings
+    exactly like s_r does. The mean width of the rings the board actually shows is, and it is what is reported.
+    """
+    with torch.no_grad():
+        u = (torch.arange(w, dtype=model.rotation.dtype) + 0.5) * pixel_size_mm
+        v = (torch.arange(h, dtype=model.rotation.dtype) + 0.5) * pixel_size_mm
+        uu, vv = torch.meshgrid(u, v, indexing="xy")
+        q = model.board_to_tree(torch.stack([uu.reshape(-1), vv.reshape(-1)], 1))
+        r = q[:, :2].norm(dim=1, keepdim=True).clamp_min(1e-9)
+        eps = 1e-3 * float(model.ring_scale)
+        q2 = q.clone()
+        q2[:, :2] = q[:, :2] * (1 + eps / r)
+        dgdr = (model.evaluate(q2)["G"] - model.evaluate(q)["G"]) / eps
+        return float(1.0 / dgdr.mean())
+
+
+def boundary_lateness(model):
+    """Lateness at which the fitted colour profile changes fastest (the latewood → earlywood transition).
+
+    The Gabor phase, and so the fitted G, is aligned with the intensity's fundamental, not with the sharp
+    boundary; the stage-2 colour map (mean over rings) puts the boundary where its luminance jumps most.
+
+    Returns:
+        lateness ℓ* in [0, 1): ring boundaries are where G = k + ℓ*.
+    """
+    with torch.no_grad():
+        lum = model.color_map.mean(0) @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=model.color_map.dtype)
+        jump = (torch.roll(lum, -1) - lum).abs()  # jump between bin i and i+1 (cyclic: last → first)
+        k = lum.numel()
+        i = int(jump.argmax())
+        return float(((i + 0.5) / (k - 1)) % 1.0) if i < k - 1 else 0.0
+
+
+def model_boundaries(G, offset):
+    """Ring-boundary polylines of a fitted model: contours of G = k + offset, (x, y) pixel arrays."""
+    import contourpy
+
+    g = np.asarray(G, np.float64) - offset
+    gen = contourpy.contour_generator(z=g)
+    lines = []
+    for k in range(int(np.floor(g.min())) + 1, int(np.ceil(g.max()))):
+        for line in gen.lines(float(k)):
+            if len(line) >= 2:
+                lines.append(np.asarray(line, np.float64))  # contourpy gives (x, y) = (column, row)
+    return lines
+
+
+def distortion_prior(model):
+    """Smoothness prior of the radial distortion texture: mean squared change between neighbouring texels, in
+    ring widths² (dimensionless). It keeps m_r from imitating a different ring scale or axis distance (a
+    distortion growing with r is indistinguishable from a ring-scale change) and from fitting noise."""
+    m = model.m_r / model.ring_scale
+    return (m[..., 1:, :] - m[..., :-1, :]).pow(2).mean() + (m[..., :, 1:] - m[..., :, :-1]).pow(2).mean()
 
 
 def _phase_normalised_groups(model, h, w, cfg):
@@ -350,7 +416,7 @@ def _phase_normalised_groups(model, h, w, cfg):
     """
     with torch.no_grad():
         g_mean = float(model.render_board(h, w, cfg.pixel_size_mm)["G"].abs().mean().clamp_min(1.0))
-    s_r = float(model.ring_scale)
+    s_r = float(model.ring_scale.detach())
     r_mean = g_mean * s_r
     scale = {"translation": s_r, "rotation": s_r / r_mean, "log_ring_scale": 1.0 / g_mean, "m_r": s_r, "m_t": s_r}
     groups = []

@@ -1,0 +1,90 @@
+"""Wood fit pipeline end to end on a synthetic board with known ground truth, plus its run folder and bad input."""
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from torch_appearance import io as ta_io
+from torch_appearance.nn.wood import WoodModel
+from torch_appearance.pipelines.wood_fit import WoodFitConfig, fit_wood, load_photo, model_boundaries
+from torch_appearance.rings.synthetic import synthetic_board
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("wood")
+    board = synthetic_board(256, 256, 0.1, seed=3)
+    ta_io.write_png(str(folder / "board.png"), board["image"])
+    cfg = WoodFitConfig(photo=str(folder / "board.png"), out=str(folder / "run"), pixel_size_mm=0.1, epochs=250,
+                        color_epochs=60, preview=False)
+    summary = fit_wood(cfg, progress=False, log=lambda *_: None)
+    return board, summary, folder / "run"
+
+
+@pytest.mark.slow
+def test_synthetic_board_phase_and_boundaries(fitted):
+    """Detected ring boundaries lie within 1.5 px (mean) of the true ones; the fitted phase matches the true growth
+    phase 2π·frac(G) up to a constant (the Gabor phase is aligned with the rings' fundamental) with RMS < 0.3 rad."""
+    board, summary, run = fitted
+    model = WoodModel.load(str(run / "model"))
+    with torch.no_grad():
+        out = model.render_board(256, 256, 0.1)
+    true_phase = 2 * math.pi * (board["G"] - np.floor(board["G"]))
+    d = np.angle(np.exp(1j * (out["phase"].numpy() - true_phase)))
+    offset = np.angle(np.exp(1j * d).mean())
+    rms = float(np.sqrt((np.angle(np.exp(1j * (d - offset))) ** 2).mean()))
+    assert rms < 0.3, rms
+    assert summary["final_phase_rms"] < summary["initial_phase_rms"]
+    lines = model_boundaries(out["G"].numpy(), summary["boundary_lateness"])
+    detected = np.concatenate(lines)
+    truth = np.concatenate(board["boundaries"])
+    assert float(cKDTree(truth).query(detected)[0].mean()) < 1.5
+    assert float(cKDTree(detected).query(truth)[0].mean()) < 1.5  # and every true boundary is found
+
+
+@pytest.mark.slow
+def test_run_folder(fitted):
+    _, summary, run = fitted
+    for name in ("fit.png", "phase.npy", "fit_phase.npy", "params.json", "log.csv", "convergence.png",
+                 "orientation.png", "magnitude.png", "phase.png", "ring_overlay.png", "board_estimate.json",
+                 "model.json", "model.pt", "fit_vs_photo.png", "phase_error.png", "summary.json"):
+        assert (run / name).exists(), name
+    assert np.load(run / "phase.npy").shape == (256, 256) and np.load(run / "fit_phase.npy").shape == (256, 256)
+    header = open(run / "log.csv").readline().strip().split(",")
+    assert header[:5] == ["stage", "epoch", "wall_s", "phase_loss", "color_loss"]
+    assert 0.5 < summary["ssim_fit_vs_photo"] <= 1.0
+    assert not [f for f in os.listdir(run) if f.endswith(".tmp")]
+
+
+@pytest.mark.parametrize("overrides,match", [
+    (dict(pixel_size_mm=0.0), "pixel_size_mm: expected"),
+    (dict(pixel_size_mm=-1.0), "pixel_size_mm: expected"),
+    (dict(p=0), "p: expected an int >= 1"),
+    (dict(q=0), "q: expected an int >= 1"),
+    (dict(epochs=-1), "epochs: expected"),
+    (dict(distortion="spiral"), "distortion: expected"),
+])
+def test_bad_config(tmp_path, overrides, match):
+    ta_io.write_png(str(tmp_path / "x.png"), np.full((16, 16, 3), 0.5, np.float32))
+    kw = dict(photo=str(tmp_path / "x.png"), out=str(tmp_path / "run"))
+    kw.update(overrides)
+    with pytest.raises(ValueError, match=match):
+        fit_wood(WoodFitConfig(**kw), progress=False, log=lambda *_: None)
+
+
+def test_bad_photos(tmp_path):
+    with pytest.raises(ValueError, match="photo: expected an image file"):
+        load_photo(str(tmp_path / "missing.png"))
+    (tmp_path / "junk.png").write_bytes(b"not a png")
+    with pytest.raises(ValueError, match="photo: could not read"):
+        load_photo(str(tmp_path / "junk.png"))
+    ta_io.write_png(str(tmp_path / "tiny.png"), np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(ValueError, match="photo: expected at least 8×8"):
+        load_photo(str(tmp_path / "tiny.png"))
+    ta_io.write_png(str(tmp_path / "flat.png"), np.full((64, 64, 3), 0.5, np.float32))
+    with pytest.raises(ValueError, match="photo: found"):
+        fit_wood(WoodFitConfig(photo=str(tmp_path / "flat.png"), out=str(tmp_path / "run"), p=8, q=8),
+                 progress=False, log=lambda *_: None)
