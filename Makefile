@@ -40,7 +40,7 @@ render-demo: build
 	$(PY) scripts/demo.py --out results/render-demo
 
 test: build
-	$(PY) -m pytest -n 2 $(PYTEST_ARGS)
+	$(PY) -m pytest -n 2 --dist loadfile $(PYTEST_ARGS)
 
 bench: build
 	$(PY) scripts/bench_volpath.py

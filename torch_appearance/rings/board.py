@@ -313,19 +313,26 @@ def _assign_rings(rbar, side_major, s_r, phi):
     return np.rint(rbar / s_r - ph).astype(np.int64)
 
 
-def _spacing(rbar):
-    """Robust ring spacing from sorted mean radii (legs of the same ring, nearly equal radii, are merged)."""
+def _spacing_gaps(rbar):
+    """Gaps between sorted mean radii that are single ring widths (legs of the same ring, with nearly equal radii,
+    are merged; a missed ring shows up as a double gap and is dropped)."""
     r = np.sort(rbar)
     d = np.diff(r)
     if len(d) == 0:
-        return None
+        return np.zeros(0)
     scale = np.median(d[d > 0]) if (d > 0).any() else 0.0
     d = d[d > 0.35 * scale]
     if len(d) == 0:
-        return None
+        return d
     med = np.median(d)
-    single = d[d < 1.5 * med]     # a missed ring shows up as a double gap
-    return float(np.median(single)) if len(single) else float(med)
+    single = d[d < 1.5 * med]
+    return single if len(single) else d
+
+
+def _spacing(rbar):
+    """Robust ring spacing from sorted mean radii (median single gap), None if there is no gap."""
+    d = _spacing_gaps(rbar)
+    return float(np.median(d)) if len(d) else None
 
 
 def _fit_phase_offsets(rbar, weights, side_major, s_r):
@@ -523,9 +530,10 @@ def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
     rbar = ring_means(r)
     # spacing per side of the centre line: the traced level may sit half a ring apart on the two sides
     side_major = np.where(ring_means(np.where(wp >= x[1], 1.0, -1.0)) >= 0, 1, -1)
-    found = [_spacing(rbar[present & (side_major == sgn)]) for sgn in (1, -1)]
-    found = [v for v in found if v is not None and np.isfinite(v) and v > 0]
-    if not found:
+    # (the gaps of both sides are pooled: a side with only two rings must not weigh as much as one with ten)
+    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)]) for sgn in (1, -1)])
+    found = found[np.isfinite(found) & (found > 0)]
+    if len(found) == 0:
         return None
     s_r = float(np.median(found))
     if s_r < 0.2 * s_r0:
@@ -543,11 +551,17 @@ def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
         def residuals(y):
             _, _, rr = geometry(y[:4])
             ph = y[5:7][side_idx]
-            return ((rr - y[4] * (k[ring_of] + ph)) / s_r0)[pt_keep]
+            # in ring widths (phase units): a residual in mm would favour ever flatter geometries (axis far away,
+            # tiny s_r, large φ0) that shrink all radius differences together
+            return (rr / y[4] - k[ring_of] - ph)[pt_keep]
 
         y0 = np.concatenate([x, [s_r], phi])
+        lower = np.array([-np.inf, -np.inf, -np.inf, -1.0, 0.2 * s_r0, -1.0, -1.0])
+        upper = np.array([np.inf, np.inf, np.inf, 1.0, 5.0 * s_r0, 2.0, 2.0])
+        y0 = np.clip(y0, lower + 1e-9, upper - 1e-9)
         try:
-            sol = optimize.least_squares(residuals, y0, loss="soft_l1", f_scale=0.1, x_scale="jac", max_nfev=100)
+            sol = optimize.least_squares(residuals, y0, loss="soft_l1", f_scale=0.1, x_scale="jac", max_nfev=100,
+                                         bounds=(lower, upper))
         except (ValueError, np.linalg.LinAlgError):
             return out
         y = sol.x

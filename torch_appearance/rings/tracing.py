@@ -362,9 +362,13 @@ def trace_rings(phase, theta, magnitude=None, level=math.pi / 2, step=0.5, min_l
     cross_mask[spix] = True
     labels, n_labels = ndimage.label(cross_mask.reshape(h, w), structure=np.ones((3, 3), dtype=bool))
     seed_label = labels.reshape(-1)[spix]
-    seed_score = -np.abs(err.reshape(-1)[spix])  # prefer crossings at the middle of a pixel pair? prefer clean ones
+    seed_score = -np.abs(err.reshape(-1)[spix])  # prefer clean crossings (phase close to the level at the pixel)
     if mag is not None:
         seed_score = seed_score + mag.reshape(-1)[spix] / (np.abs(mag).max() + 1e-12)
+    # the filter responses are least reliable in the outermost pixels: seed there only as a last resort
+    border = np.minimum(np.minimum(sx, w - 1 - sx), np.minimum(sy, h - 1 - sy))
+    seed_score = seed_score - 2.0 * (border < 2.0)
+    tried = np.zeros(len(sx), dtype=bool)   # crossings already used as a seed (never seeded twice)
 
     max_steps = int(math.ceil((max_length if max_length is not None else 4.0 * (h + w)) / step))
     occupancy = _Occupancy(h, w, dedup_radius)
@@ -372,7 +376,7 @@ def trace_rings(phase, theta, magnitude=None, level=math.pi / 2, step=0.5, min_l
     closed_flags = []
 
     for _ in range(int(max_rounds)):
-        free = occupancy.query(sx, sy) < 0
+        free = (occupancy.query(sx, sy) < 0) & ~tried
         if not free.any():
             break
         # one seed per component: the best-scoring free crossing
@@ -386,10 +390,18 @@ def trace_rings(phase, theta, magnitude=None, level=math.pi / 2, step=0.5, min_l
         seeds = seeds[counts[seed_label[seeds]] >= 2]  # a lone crossing pixel is noise
         if len(seeds) == 0:
             break
+        tried[seeds] = True
         xy = np.stack([sx[seeds], sy[seeds]], axis=1)
         c2, s2 = fields.sample(xy[:, 0], xy[:, 1])[:2]
         ang = 0.5 * np.arctan2(s2, c2)
         t0 = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        # snap the seeds onto the level along the ring normal: a crossing interpolated between neighbours that lie
+        # nearly along the ring is off the level set by up to a pixel, and the first walker step would then turn
+        # by more than max_turn and stop both walkers at once
+        xy, ok = _snap_seeds(fields, xy, t0, level, int(newton_steps), snap_tol_px)
+        xy, t0, seeds = xy[ok], t0[ok], seeds[ok]
+        if len(seeds) == 0:
+            continue
         both_xy = np.concatenate([xy, xy])
         both_dir = np.concatenate([t0, -t0])
         paths, closed = _walk(fields, both_xy, both_dir, level=level, step=step, max_steps=max_steps,
@@ -407,15 +419,32 @@ def trace_rings(phase, theta, magnitude=None, level=math.pi / 2, step=0.5, min_l
                 is_closed = False
             new_lines.append(line)
             new_closed.append(is_closed)
-        n_before = len(accepted)
         _accept(new_lines, new_closed, accepted, closed_flags, occupancy, min_length, step)
-        if len(accepted) == n_before and not (occupancy.query(sx, sy) < 0).sum() < free.sum():
-            break  # no progress
 
     order = np.argsort([-polyline_length(p) for p in accepted], kind="stable")
     polylines = [accepted[i] for i in order]
     closed_out = [closed_flags[i] for i in order]
     return (polylines, closed_out) if return_closed else polylines
+
+
+def _snap_seeds(fields, xy, tangent, level, newton_steps, snap_tol_px):
+    """Newton steps (along the normal of ``tangent``) moving seeds onto the level; returns (xy, ok)."""
+    cl, sl = math.cos(level), math.sin(level)
+    nrm = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    p = xy.copy()
+    for _ in range(max(newton_steps, 1)):
+        c, s, gx, gy = fields.sample(p[:, 0], p[:, 1])[2:6]
+        err = np.arctan2(s * cl - c * sl, c * cl + s * sl)
+        g = gx * nrm[:, 0] + gy * nrm[:, 1]
+        g = np.where(np.abs(g) < 1e-6, np.copysign(1e-6, g), g)
+        p = p + np.clip(-err / g, -0.5, 0.5)[:, None] * nrm
+    c, s, gx, gy = fields.sample(p[:, 0], p[:, 1])[2:6]
+    err = np.arctan2(s * cl - c * sl, c * cl + s * sl)
+    gn = np.abs(gx * nrm[:, 0] + gy * nrm[:, 1])
+    ok = (np.abs(err) < snap_tol_px * np.maximum(gn, 1e-6)) & (gn > 1e-3)
+    ok &= np.linalg.norm(p - xy, axis=1) < 1.5
+    ok &= (p[:, 0] >= 0) & (p[:, 0] <= fields.w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= fields.h - 1)
+    return np.where(ok[:, None], p, xy), ok
 
 
 def _runs(mask):
