@@ -29,7 +29,8 @@ import torch
 
 from .color import linear_to_srgb, srgb_to_linear
 
-__all__ = ["write_exr", "read_exr", "write_png", "read_png", "write_json", "atomic_write_bytes"]
+__all__ = ["write_exr", "read_exr", "write_png", "read_png", "write_json", "write_csv", "save_figure",
+           "atomic_write_bytes"]
 
 # Permissions that a plain open() would give a new file (mkstemp creates 0600 files).
 _UMASK = os.umask(0)
@@ -299,3 +300,25 @@ def write_json(path, obj, *, indent=2):
         raise ValueError(f"obj cannot be written as strict JSON (NaN or infinity?): {error}") from None
     atomic_write_bytes(path, (text + "\n").encode("utf-8"))
 
+
+
+def write_csv(path, rows, fields):
+    """Atomically write ``rows`` (dicts) as CSV with the header ``fields``; missing or None values are empty."""
+    import csv
+
+    buffer = _stdio.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(fields))
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in fields})
+    atomic_write_bytes(path, buffer.getvalue().encode())
+
+
+def save_figure(fig, path, dpi=120):
+    """Atomically save a matplotlib figure as PNG and close it."""
+    import matplotlib.pyplot as plt
+
+    buffer = _stdio.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())

@@ -10,7 +10,6 @@ SSIM, E3 3D Sobel) → ``loss.backward()`` → Adagrad/Adam step. Every ``eval_e
 ``eval_spp`` with a fixed seed is scored with CIEDE2000. After the loop: probabilistic quantisation (one ink per
 printer micro-voxel) and an evaluation render of the *quantised* volume at the printer resolution.
 """
-import csv
 import dataclasses
 import io as _io
 import math
@@ -245,13 +244,6 @@ def _save_image(folder, stem, rgb):
     ta_io.write_png(os.path.join(folder, f"{stem}.png"), np.clip(rgb, 0, 1))
 
 
-def _write_log(path, rows):
-    buffer = _io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=LOG_FIELDS)
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in LOG_FIELDS})
-    ta_io.atomic_write_bytes(path, buffer.getvalue().encode())
 
 
 def _atomic_torch_save(obj, path):
@@ -285,7 +277,7 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
     ax[1].set(xlabel="wall-clock time [s]", ylabel="CIEDE2000", title=f"evaluation at {cfg.eval_spp} spp")
     ax[1].legend(fontsize=7)
     fig.tight_layout()
-    _save_fig(fig, os.path.join(folder, "convergence.png"))
+    ta_io.save_figure(fig, os.path.join(folder, "convergence.png"))
 
     # ink usage by depth: mean mixture per layer, from the top face down
     w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
@@ -297,7 +289,7 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
            ylim=(0, 1), title="ink usage by depth")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    _save_fig(fig, os.path.join(folder, "ink_usage_by_depth.png"))
+    ta_io.save_figure(fig, os.path.join(folder, "ink_usage_by_depth.png"))
 
     de = delta_e_2000(torch.as_tensor(final["image"]), torch.as_tensor(target))
     de = np.asarray(de, np.float64)
@@ -307,15 +299,9 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
     ax.set(title=f"final (quantised) vs target: mean {de.mean():.2f}, p95 {np.percentile(de, 95):.2f}")
     ax.axis("off")
     fig.tight_layout()
-    _save_fig(fig, os.path.join(folder, "dE00_heatmap.png"))
+    ta_io.save_figure(fig, os.path.join(folder, "dE00_heatmap.png"))
 
 
-def _save_fig(fig, path):
-    import matplotlib.pyplot as plt
-    buffer = _io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
-    plt.close(fig)
-    ta_io.atomic_write_bytes(path, buffer.getvalue())
 
 
 def _score(image, target):
@@ -446,13 +432,13 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
             _atomic_torch_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "rows": rows,
                                 "iteration": it + 1, "wall_s": row["wall_s"], "baseline": baseline,
                                 "grid_dhw": [cfg.depth, h, w], "inks": list(inks.names)}, ckpt_path)
-            _write_log(os.path.join(folder, "log.csv"), rows)
+            ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
     if bar is not None:
         bar.close()
-    _write_log(os.path.join(folder, "log.csv"), rows)
+    ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
 
     # ---- results: continuous, quantised, exports
     weights = model.weights().detach()

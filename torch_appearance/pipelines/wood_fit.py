@@ -6,7 +6,6 @@ from the traced rings) → stage 1: cyclic phase loss E = wrap(J_φ − I_φ)² 
 board transform, ring scale and distortion → stage 2: colour map with the geometry frozen → run folder.
 ``scripts/fit_wood.py`` is the command-line front end.
 """
-import csv
 import dataclasses
 import io as _io
 import math
@@ -128,12 +127,6 @@ def _save_gray(path, x, lo=None, hi=None, cmap="gray"):
     ta_io.write_png(path, srgb_to_linear(torch.from_numpy(rgb.astype(np.float32))).numpy())
 
 
-def _save_fig(fig, path):
-    import matplotlib.pyplot as plt
-    buffer = _io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    ta_io.atomic_write_bytes(path, buffer.getvalue())
 
 
 def _overlay(folder, rgb, rings, estimate):
@@ -154,7 +147,7 @@ def _overlay(folder, rgb, rings, estimate):
     ax.set(xlim=(0, rgb.shape[1]), ylim=(rgb.shape[0], 0), title=f"{len(rings)} traced rings")
     ax.axis("off")
     fig.tight_layout()
-    _save_fig(fig, os.path.join(folder, "ring_overlay.png"))
+    ta_io.save_figure(fig, os.path.join(folder, "ring_overlay.png"), dpi=110)
 
 
 def _cube_preview(model, shape, pixel_size, path, resolution=96):
@@ -187,13 +180,6 @@ def _cube_preview(model, shape, pixel_size, path, resolution=96):
     ta_io.write_png(path, srgb_to_linear(torch.from_numpy(image[..., :3].astype(np.float32) / 255)).numpy())
 
 
-def _write_log(path, rows):
-    buffer = _io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=LOG_FIELDS)
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in LOG_FIELDS})
-    ta_io.atomic_write_bytes(path, buffer.getvalue().encode())
 
 
 def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
@@ -306,7 +292,7 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     if bar is not None:
         bar.close()
     timings["stage2_s"] = time.perf_counter() - t1
-    _write_log(os.path.join(folder, "log.csv"), rows)
+    ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
 
     # ---- outputs
     with torch.no_grad():
@@ -457,7 +443,7 @@ def _figures(folder, rows, rgb, fit_rgb, err):
     ax[1].plot([r["wall_s"] for r in s2], [r["color_loss"] for r in s2], color="C1")
     ax[1].set(xlabel="wall-clock time [s]", ylabel="colour MSE (linear RGB)", yscale="log", title="stage 2: colour map")
     fig.tight_layout()
-    _save_fig(fig, os.path.join(folder, "convergence.png"))
+    ta_io.save_figure(fig, os.path.join(folder, "convergence.png"), dpi=110)
 
     fig, ax = plt.subplots(1, 3, figsize=(12, 4))
     ax[0].imshow(np.clip(rgb, 0, 1) ** (1 / 2.2))
@@ -470,5 +456,5 @@ def _figures(folder, rows, rgb, fit_rgb, err):
     for a in ax:
         a.axis("off")
     fig.tight_layout()
-    _save_fig(fig, os.path.join(folder, "fit_vs_photo.png"))
+    ta_io.save_figure(fig, os.path.join(folder, "fit_vs_photo.png"), dpi=110)
     _save_gray(os.path.join(folder, "phase_error.png"), np.abs(err), 0, math.pi, cmap="magma")
