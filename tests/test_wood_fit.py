@@ -55,7 +55,7 @@ def test_run_folder(fitted):
     assert np.load(run / "phase.npy").shape == (256, 256) and np.load(run / "fit_phase.npy").shape == (256, 256)
     header = open(run / "log.csv").readline().strip().split(",")
     assert header[:5] == ["stage", "epoch", "wall_s", "phase_loss", "color_loss"]
-    assert 0.5 < summary["ssim_fit_vs_photo"] <= 1.0
+    assert 0.5 < summary["ssim_fit_vs_photo"] <= 1.0 and summary["fit_ok"]
     assert not [f for f in os.listdir(run) if f.endswith(".tmp")]
 
 

@@ -24,6 +24,7 @@ __all__ = ["WoodFitConfig", "fit_wood", "load_photo", "phase_loss", "wrap", "eff
            "boundary_lateness", "model_boundaries", "LOG_FIELDS"]
 
 LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms"]
+POOR_FIT_PHASE_RMS = 0.8  # rad; fits above it are flagged (summary["fit_ok"] = False) and warned about
 
 
 @dataclass
@@ -325,8 +326,14 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         "final_phase_rms": rows[cfg.epochs]["phase_rms"], "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),
         "fraction_initial_error_below_half_pi": info.get("fraction_below_half_pi"),
         "ssim_fit_vs_photo": ssim, "timings_s": timings, "epochs": cfg.epochs, "color_epochs": cfg.color_epochs,
+        # a wrapped-phase RMS near π/√3 ≈ 1.8 rad is chance level; above ~0.8 rad the rings are not followed
+        "fit_ok": bool(rows[cfg.epochs]["phase_rms"] < POOR_FIT_PHASE_RMS),
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
+    if not summary["fit_ok"]:
+        log(f"fit_wood: warning: the fitted rings do not follow the photo (phase RMS {summary['final_phase_rms']:.2f} "
+            f"rad > {POOR_FIT_PHASE_RMS}); is this a tangential board face (rings as arches or bands), not an end "
+            f"grain or radial face?")
     log(f"fit_wood: {len(rings)} rings, s_r {summary['ring_scale_mm']:.3f} mm, phase RMS "
         f"{summary['initial_phase_rms']:.3f} -> {summary['final_phase_rms']:.3f} rad, SSIM {ssim:.3f}; Gabor "
         f"{timings['gabor_s']:.1f} s, fit {timings['stage1_s'] + timings['stage2_s']:.1f} s -> {folder}")
