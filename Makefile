@@ -9,7 +9,7 @@ BUILD_STAMP := .build-stamp
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: demo render-demo test build bench clean venv
+.PHONY: demo render-demo test build bench bench-peer clean venv
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -44,6 +44,12 @@ test: build
 
 bench: build
 	$(PY) scripts/bench_volpath.py
+
+# Side by side with Mitsuba 3 (optional peer, never needed by the tests): its CPU backend needs Debian's libLLVM-15.
+bench-peer: build
+	$(PIP) install --quiet mitsuba==3.5.2 drjit==0.4.6
+	@ldconfig -p | grep -q 'libLLVM-15.so' || (apt-get update -q && apt-get install -y -q libllvm15)
+	DRJIT_LIBLLVM_PATH=$$(ldconfig -p | awk '/libLLVM-15.so/ {print $$NF; exit}') $(PY) scripts/bench_peer.py
 
 clean:
 	rm -rf build $(BUILD_STAMP) torch_appearance/_C*.so results

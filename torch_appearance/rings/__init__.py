@@ -8,3 +8,8 @@ from .board import BoardEstimate, estimate_board, initial_wood_model, resolve_ph
 
 __all__ = ["synthetic_board", "orientation_field", "orientation_from_phase", "GaborResult", "curved_gabor",
            "trace_rings", "BoardEstimate", "estimate_board", "initial_wood_model", "resolve_phase_sign"]
+from .dendro import (RingBoundaries, detect_core_boundaries, detect_transect_boundaries, match_boundaries,
+                     ring_widths_mm)
+
+__all__ += ["RingBoundaries", "detect_core_boundaries", "detect_transect_boundaries", "match_boundaries",
+            "ring_widths_mm"]
