@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Full stiff-case sweep of the tracer: σ_t ∈ {0, 1e-6, 1e-2, 1, 1e2, 1e4} mm⁻¹ × albedo ∈ {0, 1e-3, 0.5, 0.9997, 1}
-× g ∈ {−0.99, 0, 0.99} × ior ∈ {None, 1.5, 3.0} × thickness ∈ {1 voxel, 2.5 mm} (540 cases).
+× g ∈ {−0.99, 0, 0.99} × ior ∈ {None, 1 + 1e-6, 1.5, 3.0} × thickness ∈ {1 voxel, 2.5 mm} (720 cases).
 
 Each case renders a uniform 3×3-texel slab forward and backward and checks: finite image and gradients, radiance in
 [0, environment], the white furnace (deficit exactly explained by paths cut at max_depth), Beer–Lambert for albedo 0

@@ -12,7 +12,7 @@ import torch_appearance as ta
 SIGMAS = (0.0, 1e-6, 1e-2, 1.0, 1e2, 1e4)  # mm⁻¹
 ALBEDOS = (0.0, 1e-3, 0.5, 0.9997, 1.0)
 GS = (-0.99, 0.0, 0.99)
-IORS = (None, 1.5, 3.0)
+IORS = (None, 1.0 + 1e-6, 1.5, 3.0)  # 1 + 1e-6: a dielectric that is almost index matched
 THICKNESS = ("1 voxel", "2.5 mm")
 VOXEL = 0.1  # mm
 
