@@ -90,7 +90,7 @@ class PrintConfig:
             raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
         if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
             raise ValueError(f"printer_dpi: expected three positive DPI values (x, y, z), got {self.printer_dpi!r}")
-        if self.voxel_size * 1 > self.thickness_mm * 1.0001:
+        if self.voxel_size > self.thickness_mm * 1.0001:
             raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
                              f"got {self.thickness_mm}")
 
