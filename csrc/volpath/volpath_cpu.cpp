@@ -82,11 +82,10 @@ Params<T> make_params(const TraceOptions& o, const torch::Tensor& sigma_t) {
 // number of chunks (= threads), so sums are deterministic for a given thread count, and strided blocks balance
 // spatially varying path lengths.
 template <typename F>
-void for_each_chunk(int64_t ntexels, int64_t nchunks, const F& body) {
+void for_each_chunk(int64_t nchunks, const F& body) {
   at::parallel_for(0, nchunks, 1, [&](int64_t begin, int64_t end) {
     for (int64_t c = begin; c < end; ++c) body(c);
   });
-  (void)ntexels;
 }
 
 template <typename F>
@@ -106,7 +105,7 @@ ForwardCounts forward_kernel(const Params<T>& P, const Grids<T>& G, T* out) {
   const int64_t nchunks = num_chunks(ntex);
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
-  for_each_chunk(ntex, nchunks, [&](int64_t c) {
+  for_each_chunk(nchunks, [&](int64_t c) {
     int64_t ev = 0, cut = 0;
     for_texels_of_chunk(c, nchunks, ntex, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
@@ -156,7 +155,7 @@ int64_t backward_kernel(const Params<T>& P, const Grids<T>& G, const T* grad_out
   // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
   std::vector<std::vector<T>> bufs_s(gs ? nchunks - 1 : 0), bufs_a(ga ? nchunks - 1 : 0);
   std::vector<int64_t> events(nchunks, 0);
-  for_each_chunk(ntex, nchunks, [&](int64_t c) {
+  for_each_chunk(nchunks, [&](int64_t c) {
     Adjoint<T> A;
     if (gs) {
       if (c == 0) A.grad_sigma_t = gs;

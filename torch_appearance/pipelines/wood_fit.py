@@ -304,10 +304,10 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     _save_png(os.path.join(folder, "fit.png"), fit_rgb)
     np.save(os.path.join(folder, "fit_phase.npy"), fit_phase)
     model.cpu().save(os.path.join(folder, "model"))
+    ring_width, boundary = effective_ring_width(model, h, w, cfg.pixel_size_mm), boundary_lateness(model)
     params = {"rotation_axis_angle_rad": model.rotation.tolist(), "translation_mm": model.translation.tolist(),
               "ring_scale_mm": float(model.ring_scale),
-              "mean_ring_width_mm": effective_ring_width(model, h, w, cfg.pixel_size_mm),
-              "boundary_lateness": boundary_lateness(model), "distortion": cfg.distortion,
+              "mean_ring_width_mm": ring_width, "boundary_lateness": boundary, "distortion": cfg.distortion,
               "distortion_rms_mm": float(model.m_r.pow(2).mean().sqrt()) if model.m_r is not None else 0.0,
               "pixel_size_mm": cfg.pixel_size_mm, "image_hw": [h, w]}
     ta_io.write_json(os.path.join(folder, "params.json"), params)
@@ -321,8 +321,7 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     summary = {
         "photo": os.path.abspath(cfg.photo), "image_hw": [h, w], "rings_traced": len(rings),
         "ring_scale_mm": float(model.ring_scale),
-        "mean_ring_width_mm": effective_ring_width(model, h, w, cfg.pixel_size_mm),
-        "boundary_lateness": boundary_lateness(model), "initial_phase_rms": rows[0]["phase_rms"],
+        "mean_ring_width_mm": ring_width, "boundary_lateness": boundary, "initial_phase_rms": rows[0]["phase_rms"],
         "final_phase_rms": rows[cfg.epochs]["phase_rms"], "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),
         "fraction_initial_error_below_half_pi": info.get("fraction_below_half_pi"),
         "ssim_fit_vs_photo": ssim, "timings_s": timings, "epochs": cfg.epochs, "color_epochs": cfg.color_epochs,
