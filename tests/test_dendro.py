@@ -1,4 +1,5 @@
 """Dendrochronology: ring boundaries on synthetic cores, the matching metric, and the CLI's bad-input handling."""
+import importlib.util
 import os
 import subprocess
 import sys
@@ -136,8 +137,40 @@ def test_ring_widths_mm():
 # CLI
 # ---------------------------------------------------------------------------------------------------------------
 def run(script, *args):
+    """Run a CLI script in a fresh interpreter (as a user would): CompletedProcess."""
     return subprocess.run([sys.executable, os.path.join(ROOT, "scripts", script), *map(str, args)],
                           capture_output=True, text=True, timeout=120)
+
+
+def _load_script(script):
+    spec = importlib.util.spec_from_file_location(script[:-3], os.path.join(ROOT, "scripts", script))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def run_inproc():
+    """Run a CLI script's ``main(argv)`` in this process (no interpreter start-up: the bad-input cases are many).
+
+    Returns ``run(script, *args) -> (returncode, stdout, stderr)``; argparse errors (SystemExit) give their code.
+    """
+    import contextlib
+    import io
+
+    mods = {}
+
+    def run_(script, *args):
+        mod = mods.setdefault(script, _load_script(script))
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                rc = mod.main([str(a) for a in args])
+            except SystemExit as e:
+                rc = e.code
+        return rc, out.getvalue(), err.getvalue()
+
+    return run_
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +197,7 @@ def test_cli_detect_and_eval(core_png, tmp_path):
     assert "sensitivity" in r.stdout and "F1" in r.stdout
 
 
-def test_cli_bad_inputs(core_png, tmp_path):
+def test_cli_bad_inputs(core_png, tmp_path, run_inproc):
     path, _ = core_png
     out, ovl = tmp_path / "o.csv", tmp_path / "o.png"
     bad = tmp_path / "broken.png"
@@ -177,22 +210,19 @@ def test_cli_bad_inputs(core_png, tmp_path):
              ((path, "--out", out, "--transect", "1,2,3"), "four numbers"),
              ((path, "--out", out, "--dpi", "0"), "--dpi")]
     for args, msg in cases:
-        r = run("detect_rings.py", *args)
-        assert r.returncode != 0 and msg in r.stderr, (args, r.stderr)
+        rc, _, err = run_inproc("detect_rings.py", *args)
+        assert rc not in (0, None) and msg in err, (args, err)
         assert not out.exists() and not ovl.exists(), args
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.png"]  # no partial or temporary files
 
 
-def test_cli_eval_bad_inputs(tmp_path):
+def test_cli_eval_bad_inputs(tmp_path, run_inproc):
     good = tmp_path / "d.csv"
     good.write_text("index,x_px,y_px\n0,1,1\n")
     nocol = tmp_path / "l.csv"
     nocol.write_text("year,position\n2000,5\n")
-    r = run("eval_rings.py", good, good, "--tolerance-px", 0)
-    assert r.returncode != 0 and "tolerance" in r.stderr
-    r = run("eval_rings.py", good, good, "--tolerance-px", -2)
-    assert r.returncode != 0 and "tolerance" in r.stderr
-    r = run("eval_rings.py", good, nocol)
-    assert r.returncode != 0 and "x_px" in r.stderr
-    r = run("eval_rings.py", good, tmp_path / "missing.csv")
-    assert r.returncode != 0 and "cannot read" in r.stderr
+    cases = [((good, good, "--tolerance-px", 0), "tolerance"), ((good, good, "--tolerance-px", -2), "tolerance"),
+             ((good, nocol), "x_px"), ((good, tmp_path / "missing.csv"), "cannot read")]
+    for args, msg in cases:
+        rc, out, err = run_inproc("eval_rings.py", *args)
+        assert rc not in (0, None) and msg in err and out == "", (args, err)
