@@ -6,10 +6,13 @@ Core mode (default): rings cross the core's long axis; the bark (youngest rings)
 the pith towards the bark. The boundary is the sharp latewood -> earlywood transition
 (torch_appearance.rings.dendro). Writes a CSV with columns index,x_px,y_px,width_px,width_mm ordered pith -> bark
 (width to the previous boundary; empty for the first, width_mm empty without --dpi / --pixel-size-mm).
+Section mode (--mode section): a stained microscopy cross-section; writes the boundary polyline (index,x_px,y_px,
+about 1 px apart; header only if none was found); --cell-px is the typical cell diameter in pixels.
 
 Examples:
     python scripts/detect_rings.py core.png --bark left --dpi 1200 --out rings.csv --overlay rings.png
     python scripts/detect_rings.py disc.jpg --transect 512,500,980,130 --pixel-size-mm 0.05 --out disc.csv
+    python scripts/detect_rings.py section.png --mode section --out boundary.csv --overlay boundary.png
 """
 import argparse
 import os
@@ -25,7 +28,8 @@ import cv2
 import numpy as np
 
 from torch_appearance.io import atomic_write_bytes, read_png, write_csv
-from torch_appearance.rings.dendro import detect_core_boundaries, detect_transect_boundaries
+from torch_appearance.rings.dendro import (detect_core_boundaries, detect_section_boundaries,
+                                           detect_transect_boundaries)
 
 PROG = "detect_rings.py"
 
@@ -43,6 +47,9 @@ def parse_args(argv=None):
     size.add_argument("--dpi", type=float, default=None, help="scan resolution (pixel size 25.4 / dpi mm)")
     size.add_argument("--pixel-size-mm", type=float, default=None, help="pixel size in mm")
     p.add_argument("--width-px", type=int, default=32, help="core mode: uniform core width (default: %(default)s)")
+    p.add_argument("--mode", choices=("core", "section"), default="core",
+                   help="core (also transect with --transect) or section (microscopy); default: %(default)s")
+    p.add_argument("--cell-px", type=float, default=8.0, help="section mode: cell diameter in px (default: %(default)s)")
     return p.parse_args(argv)
 
 
@@ -51,10 +58,15 @@ def _fail(msg):
     return 2
 
 
-def overlay_png(rgb, points, transect=None):
-    """uint8 BGR-encoded PNG bytes of the image with boundary ticks (red) and the transect (cyan)."""
+def overlay_png(rgb, points, transect=None, polyline=False):
+    """uint8 BGR-encoded PNG bytes of the image with boundary ticks (red) and the transect (cyan), or the boundary
+    polyline (red) when ``polyline``."""
     img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
     h, w = img.shape[:2]
+    if polyline:
+        if len(points) >= 2:
+            cv2.polylines(img, [np.round(np.asarray(points)).astype(np.int32)], False, (0, 0, 255), 1)
+        points = []
     if transect is not None:
         x0, y0, x1, y1 = transect
         cv2.line(img, (int(round(x0)), int(round(y0))), (int(round(x1)), int(round(y1))), (255, 255, 0), 1)
@@ -93,6 +105,21 @@ def main(argv=None):
                 raise ValueError
         except ValueError:
             return _fail(f"--transect must be X0,Y0,X1,Y1 (four numbers); got {args.transect!r}")
+    if args.mode == "section" and (transect is not None or args.bark is not None):
+        return _fail("--transect / --bark do not apply to --mode section")
+    try:
+        if args.mode == "section":
+            sec = detect_section_boundaries(rgb, cell_px=args.cell_px)
+            rows = [dict(index=i, x_px=f"{x:.2f}", y_px=f"{y:.2f}") for i, (x, y) in enumerate(sec.points)]
+            png = overlay_png(rgb, sec.points, polyline=True) if args.overlay else None
+    except ValueError as e:
+        return _fail(str(e))
+    if args.mode == "section":
+        write_csv(args.out, rows, ["index", "x_px", "y_px"])
+        if png is not None:
+            atomic_write_bytes(args.overlay, png)
+        print(f"boundary polyline of {len(rows)} points -> {args.out}")
+        return 0
     try:
         if transect is not None:
             res = detect_transect_boundaries(rgb, transect, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm)

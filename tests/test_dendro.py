@@ -348,3 +348,20 @@ def test_section_bad_inputs():
         boundary_f_measure([[0, 0], [1, 1]], [[0, 0]], 0)
     with pytest.raises(ValueError, match="detected"):
         boundary_f_measure([[0, 0, 0]], [[0, 0]], 3)
+
+
+def test_cli_section_mode(tmp_path, run_inproc):
+    img = os.path.join(DATA, "input_00002_preview.png")
+    out, ovl = tmp_path / "b.csv", tmp_path / "b.png"
+    rc, stdout, err = run_inproc("detect_rings.py", img, "--mode", "section", "--out", out, "--overlay", ovl)
+    assert rc == 0, err
+    lines = out.read_text().splitlines()
+    assert lines[0] == "index,x_px,y_px" and len(lines) > 200 and ovl.stat().st_size > 0
+    pts = np.array([[float(v) for v in ln.split(",")[1:]] for ln in lines[1:]])
+    mask = cv2.imread(os.path.join(DATA, "mask_00002.png"), cv2.IMREAD_GRAYSCALE)
+    assert boundary_f_measure(pts, mask_centerline(mask), 3)["f1"] >= 0.9
+    out.unlink(), ovl.unlink()
+    for args, msg in [(("--cell-px", 0), "cell_px"), (("--bark", "left"), "do not apply")]:
+        rc, _, err = run_inproc("detect_rings.py", img, "--mode", "section", "--out", out, "--overlay", ovl, *args)
+        assert rc not in (0, None) and msg in err, (args, err)
+        assert not out.exists() and not ovl.exists()
