@@ -437,8 +437,7 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
     span = float(np.ptp(wp))
     psi_grid = psi + np.radians(np.linspace(-12.0, 12.0, 7))
     d_grid = s_r0 * np.geomspace(0.2, 60.0, 20)
-    g_max = math.sin(math.radians(float(max_tilt_deg)))
-    g_grid = np.linspace(-g_max, g_max, 21)
+    g_grid = np.sin(np.radians(_tilt_grid(float(max_tilt_deg))))
     starts = []
     for psi_k in psi_grid:
         ap_k, wp_k = _board_coords(p_mm[sub], psi_k, centre)
@@ -510,6 +509,15 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
         translation=translation, fit_rms_mm=float(best["rms"]), ring_index=ring_index,
         ring_radius_mm=ring_radius, ring_order=ring_order, neighbour_distances_mm=neighbour,
         rings=[np.array(p) for p in rings])
+
+
+def _tilt_grid(max_tilt_deg):
+    """Signed tilt angles (deg) of the brute-force search: 2° steps up to 20° (tangential boards, where the ring
+    pattern is most sensitive to the tilt), 5° steps beyond, up to ``max_tilt_deg`` (90°: end grain)."""
+    fine = np.linspace(0.0, min(max_tilt_deg, 20.0), int(round(min(max_tilt_deg, 20.0) / 2)) + 1)
+    coarse = np.arange(25.0, max_tilt_deg + 1e-9, 5.0) if max_tilt_deg > 20 else np.zeros(0)
+    pos = np.concatenate([fine[1:], coarse])
+    return np.concatenate([-pos[::-1], [0.0], pos])
 
 
 def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
