@@ -52,6 +52,7 @@ FIELDS = [  # (key, header, format)
     ("status", "status", "{}"),
     ("rings_visible", "rings true", "{}"),
     ("rings_traced", "traced", "{}"),
+    ("scale_reliable", "scale flagged reliable", "{}"),
     ("distance_mm", "dist mm", "{:.1f}"),
     ("tilt_deg", "tilt °", "{:+.1f}"),
     ("ring_scale_true_mm", "s_r true", "{:.3f}"),
@@ -145,7 +146,8 @@ def evaluate_seed(seed, args, log):
                boundary_fit_to_true_px=fit_to_true, boundary_true_to_fit_px=true_to_fit,
                boundary_lateness=summary["boundary_lateness"], fit_phase_rms_initial=summary["initial_phase_rms"],
                fit_phase_rms_final=summary["final_phase_rms"], ssim_fit_vs_photo=summary["ssim_fit_vs_photo"],
-               timings_s=summary["timings_s"], wall_s=wall, fit_ok=summary["fit_ok"])
+               timings_s=summary["timings_s"], wall_s=wall, fit_ok=summary["fit_ok"],
+               scale_reliable=summary["ring_scale_reliable"])
     return row
 
 
@@ -173,6 +175,11 @@ def summarise(rows):
         "median_abs_ring_width_rel_error": float(np.median(w_err)) if len(fitted) else None,
         "fraction_ring_width_within_5pct": float((w_err <= BAND).sum() / n) if n else None,
         "fraction_phase_rms_below_0.3": float((rms < GOOD_PHASE_RMS).sum() / n) if n else None,
+        # the fit's own warning (summary["ring_scale_reliable"]: enough rings on the board): is it trustworthy?
+        "flagged_reliable": int(sum(bool(r.get("scale_reliable")) for r in fitted)),
+        "fraction_ring_scale_within_5pct_when_flagged_reliable": (
+            float(np.mean([abs(r["ring_scale_rel_error"]) <= BAND for r in fitted if r.get("scale_reliable")]))
+            if any(r.get("scale_reliable") for r in fitted) else None),
         "median_phase_rms_vs_true": float(np.median(rms)) if len(fitted) else None,
     }
 
@@ -185,7 +192,9 @@ def summary_line(s):
             f"s_r within 5 % {s['fraction_ring_scale_within_5pct']:.0%}; median |ring width error| "
             f"{s['median_abs_ring_width_rel_error']:.1%}, within 5 % {s['fraction_ring_width_within_5pct']:.0%}; "
             f"phase RMS vs true < 0.3 rad {s['fraction_phase_rms_below_0.3']:.0%} "
-            f"(median {s['median_phase_rms_vs_true']:.3f} rad); fractions over all seeds (refused count as misses)")
+            f"(median {s['median_phase_rms_vs_true']:.3f} rad); fractions over all seeds (refused count as misses); "
+            f"{s['flagged_reliable']} flagged scale-reliable, of which within 5 %: "
+            f"{s['fraction_ring_scale_within_5pct_when_flagged_reliable']}")
 
 
 def markdown_table(rows):

@@ -70,6 +70,8 @@ def test_run_folder(fitted):
     header = open(run / "log.csv").readline().strip().split(",")
     assert header[:5] == ["stage", "epoch", "wall_s", "phase_loss", "color_loss"]
     assert 0.5 < summary["ssim_fit_vs_photo"] <= 1.0 and summary["fit_ok"]
+    # seed 3 has 9 distinct rings (integer G levels) on the board
+    assert summary["visible_rings"] in (8, 9, 10) and summary["ring_scale_reliable"]
     assert not [f for f in os.listdir(run) if f.endswith(".tmp")]
 
 

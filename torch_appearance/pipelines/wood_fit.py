@@ -25,6 +25,10 @@ __all__ = ["WoodFitConfig", "fit_wood", "load_photo", "phase_loss", "wrap", "eff
 
 LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms"]
 POOR_FIT_PHASE_RMS = 0.8  # rad; fits above it are flagged (summary["fit_ok"] = False) and warned about
+# Fewer distinct rings than this on the board leave the ring scale poorly determined (the number of rings between
+# the pith and the board trades against the axis distance); measured on synthetic boards (eval_wood_synthetic.py):
+# s_r errors of 8-127 % with 2-4 visible rings, 3-7 % with 6-9.
+MIN_RINGS_FOR_SCALE = 6
 
 
 @dataclass
@@ -299,6 +303,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     with torch.no_grad():
         out = model.render_board(h, w, cfg.pixel_size_mm)
     fit_rgb = out["image"].clamp(0, 1).cpu().numpy()
+    g_fit = out["G"].cpu()
+    visible_rings = int(math.floor(float(g_fit.max())) - math.ceil(float(g_fit.min())) + 1)
     fit_phase = out["phase"].cpu().numpy().astype(np.float32)
     err = np.angle(np.exp(1j * (photo_phase - fit_phase)))
     _save_png(os.path.join(folder, "fit.png"), fit_rgb)
@@ -327,12 +333,20 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         "ssim_fit_vs_photo": ssim, "timings_s": timings, "epochs": cfg.epochs, "color_epochs": cfg.color_epochs,
         # a wrapped-phase RMS near π/√3 ≈ 1.8 rad is chance level; above ~0.8 rad the rings are not followed
         "fit_ok": bool(rows[cfg.epochs]["phase_rms"] < POOR_FIT_PHASE_RMS),
+        # ring boundaries (integer G) crossing the board; below MIN_RINGS_FOR_SCALE the scale is a rough guess
+        "visible_rings": visible_rings,
+        "ring_scale_reliable": bool(visible_rings >= MIN_RINGS_FOR_SCALE),
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
     if not summary["fit_ok"]:
         log(f"fit_wood: warning: the fitted rings do not follow the photo (phase RMS {summary['final_phase_rms']:.2f} "
             f"rad > {POOR_FIT_PHASE_RMS}); is this a tangential board face (rings as arches or bands), not an end "
             f"grain or radial face?")
+    if not summary["ring_scale_reliable"]:
+        log(f"fit_wood: warning: only {visible_rings} ring boundaries cross the board; the ring scale "
+            f"({summary['ring_scale_mm']:.3f} mm) is poorly determined below {MIN_RINGS_FOR_SCALE} (the number of "
+            f"rings between the pith and the board trades against the axis distance); the ring pattern on the "
+            f"board itself is still fitted")
     log(f"fit_wood: {len(rings)} rings, s_r {summary['ring_scale_mm']:.3f} mm, phase RMS "
         f"{summary['initial_phase_rms']:.3f} -> {summary['final_phase_rms']:.3f} rad, SSIM {ssim:.3f}; Gabor "
         f"{timings['gabor_s']:.1f} s, fit {timings['stage1_s'] + timings['stage2_s']:.1f} s -> {folder}")
