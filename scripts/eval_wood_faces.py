@@ -44,6 +44,7 @@ import numpy as np
 
 from torch_appearance import io as ta_io
 from torch_appearance.pipelines.wood_fit import WoodFitConfig
+from torch_appearance.rings.dendro import boundary_f_measure
 
 PROG = "eval_wood_faces.py"
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -87,33 +88,6 @@ def arl_skeleton(arl):
     return np.stack([xs, ys], 1).astype(np.float64), mask > 0
 
 
-def polyline_points(lines, step_px):
-    """All polylines resampled every ``step_px`` of arc length and concatenated to one ``(N, 2)`` point set."""
-    from torch_appearance.rings.dendro import resample_polyline
-
-    pts = [resample_polyline(line, step_px) for line in lines if len(line)]
-    return np.concatenate(pts) if pts else np.zeros((0, 2))
-
-
-def f_measure(detected_lines, label_pts, tolerance_px=3.0):
-    """Boundary F-measure of several detected polylines against label pixels (the rule of
-    torch_appearance.rings.dendro.boundary_f_measure, which takes one polyline): sensitivity over the labels
-    (distance to the polylines sampled at 0.25 px), precision over the polylines sampled at 1 px."""
-    from scipy.spatial import cKDTree
-
-    det = polyline_points(detected_lines, 1.0)
-    fine = polyline_points(detected_lines, 0.25)
-    lab = np.asarray(label_pts, np.float64).reshape(-1, 2)
-    if len(det) == 0 or len(lab) == 0:
-        return dict(sensitivity=0.0, precision=0.0, f1=0.0, mean_error_px=None, detected=len(det), labelled=len(lab))
-    d_lab = cKDTree(fine).query(lab)[0]
-    d_det = cKDTree(lab).query(det)[0]
-    sens, prec = float((d_lab <= tolerance_px).mean()), float((d_det <= tolerance_px).mean())
-    f1 = 2 * sens * prec / (sens + prec) if sens + prec > 0 else 0.0
-    return dict(sensitivity=sens, precision=prec, f1=f1, mean_error_px=float(d_det.mean()), detected=len(det),
-                labelled=len(lab))
-
-
 # ------------------------------------------------------------------------------------------------------------
 # one face
 # ------------------------------------------------------------------------------------------------------------
@@ -153,7 +127,7 @@ def evaluate_face(data, face, out, args, log):
     with torch.no_grad():
         G = model.render_board(h, w, args.pixel_size_mm)["G"].numpy()
     lines = model_boundaries(G, summary["boundary_lateness"])
-    fm = f_measure(lines, label, args.tolerance_px)
+    fm = boundary_f_measure(lines, label, args.tolerance_px)
     t = summary["timings_s"]
     row.update(
         status="ok" if summary["fit_ok"] else "poor fit",

@@ -594,10 +594,11 @@ def resample_polyline(points, step_px: float = 1.0) -> np.ndarray:
 
 
 def boundary_f_measure(detected, labels, tolerance_px: float = 3.0) -> dict:
-    """Boundary F-measure of a detected polyline against labelled curve pixels (module docstring).
+    """Boundary F-measure of detected polyline(s) against labelled curve pixels (module docstring).
 
     Args:
-        detected: ``(N, 2)`` ``(x, y)`` polyline (consecutive points are joined; resampled at 1 px steps).
+        detected: ``(N, 2)`` ``(x, y)`` polyline (consecutive points are joined; resampled at 1 px steps), or a
+            list of such polylines (e.g. several ring boundaries), pooled.
         labels: ``(M, 2)`` ``(x, y)`` label curve pixels (e.g. :func:`mask_centerline`).
         tolerance_px: distance tolerance (inclusive), > 0.
 
@@ -611,8 +612,9 @@ def boundary_f_measure(detected, labels, tolerance_px: float = 3.0) -> dict:
     tol = float(tolerance_px) if not isinstance(tolerance_px, bool) else float("nan")
     if not math.isfinite(tol) or tol <= 0:
         raise ValueError(f"tolerance_px must be a finite number > 0; got {tolerance_px!r}")
-    arrs = []
-    for name, x in (("detected", detected), ("labels", labels)):
+    lines = list(detected) if isinstance(detected, (list, tuple)) else [detected]
+    checked = []
+    for name, x in [("detected", line) for line in lines] + [("labels", labels)]:
         a = np.asarray(x, dtype=np.float64)
         if a.size == 0:
             a = a.reshape(0, 2)
@@ -620,13 +622,18 @@ def boundary_f_measure(detected, labels, tolerance_px: float = 3.0) -> dict:
             raise ValueError(f"{name} must have shape (N, 2); got {np.asarray(x).shape}")
         if not np.isfinite(a).all():
             raise ValueError(f"{name} contains NaN or infinite coordinates")
-        arrs.append(a)
-    det, lab = resample_polyline(arrs[0], 1.0), arrs[1]
+        checked.append(a)
+    lab = checked.pop()
+
+    def samples(step):
+        pts = [resample_polyline(a, step) for a in checked if len(a)]
+        return np.concatenate(pts) if pts else np.zeros((0, 2))
+
+    det = samples(1.0)
     if len(det) == 0 or len(lab) == 0:
         return dict(sensitivity=0.0, precision=0.0, f1=0.0, mean_error_px=float("nan"), detected=len(det),
                     labelled=len(lab))
-    fine = resample_polyline(arrs[0], 0.25)
-    d_lab = cKDTree(fine).query(lab)[0]
+    d_lab = cKDTree(samples(0.25)).query(lab)[0]
     d_det = cKDTree(lab).query(det)[0]
     sens, prec = float((d_lab <= tol).mean()), float((d_det <= tol).mean())
     f1 = 2 * sens * prec / (sens + prec) if sens + prec > 0 else 0.0
