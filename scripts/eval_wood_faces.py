@@ -150,28 +150,6 @@ def evaluate_face(data, face, out, args, log):
 # ------------------------------------------------------------------------------------------------------------
 # output
 # ------------------------------------------------------------------------------------------------------------
-def _finite(obj):
-    """NaN / inf → None (strict JSON), recursively."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
-        return None
-    return obj
-
-
-def markdown_table(rows):
-    lines = ["| " + " | ".join(h for _, h, _ in FIELDS) + " |", "|" + "|".join("---" for _ in FIELDS) + "|"]
-    for r in rows:
-        cells = []
-        for key, _, fmt in FIELDS:
-            v = r.get(key)
-            cells.append("–" if v is None else fmt.format(v).replace("|", "/"))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
 def montage(rows, panels, path):
     import matplotlib
     matplotlib.use("Agg")
@@ -262,10 +240,10 @@ def main(argv=None):
     rows, panels = [], []
     for face in tqdm(faces, desc="faces", unit="face"):
         row, pan = evaluate_face(args.data, face, args.out, args, log=tqdm.write)
-        rows.append(_finite(row))
+        rows.append(ta_io.nan_to_none(row))
         panels.append(pan)
 
-    table = markdown_table(rows)
+    table = ta_io.markdown_table(rows, FIELDS)
     settings = (f"pixel size {args.pixel_size_mm:g} mm (assumed), epochs {args.epochs} + colour "
                 f"{args.color_epochs}, F-measure tolerance {args.tolerance_px:g} px vs Otsu-thresholded, thinned "
                 f"arl-unet map (weak label)")

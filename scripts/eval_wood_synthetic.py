@@ -151,17 +151,6 @@ def evaluate_seed(seed, args, log):
     return row
 
 
-def _finite(obj):
-    """NaN / inf → None (strict JSON), recursively."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
-        return None
-    return obj
-
-
 def summarise(rows):
     fitted = [r for r in rows if r.get("ring_scale_rel_error") is not None]
     s_err = np.abs([r["ring_scale_rel_error"] for r in fitted])
@@ -195,17 +184,6 @@ def summary_line(s):
             f"(median {s['median_phase_rms_vs_true']:.3f} rad); fractions over all seeds (refused count as misses); "
             f"{s['flagged_reliable']} flagged scale-reliable, of which within 5 %: "
             f"{s['fraction_ring_scale_within_5pct_when_flagged_reliable']}")
-
-
-def markdown_table(rows):
-    lines = ["| " + " | ".join(h for _, h, _ in FIELDS) + " |", "|" + "|".join("---" for _ in FIELDS) + "|"]
-    for r in rows:
-        cells = []
-        for key, _, fmt in FIELDS:
-            v = r.get(key)
-            cells.append("–" if v is None else fmt.format(v).replace("|", "/"))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
 
 
 def scatter(rows, path):
@@ -267,10 +245,10 @@ def main(argv=None):
     from tqdm import tqdm
     rows = []
     for seed in tqdm(seeds, desc="seeds", unit="board"):
-        rows.append(_finite(evaluate_seed(seed, args, log=tqdm.write)))
+        rows.append(ta_io.nan_to_none(evaluate_seed(seed, args, log=tqdm.write)))
 
     summ = summarise(rows)
-    table = markdown_table(rows)
+    table = ta_io.markdown_table(rows, FIELDS)
     line = summary_line(summ)
     settings = (f"{args.size}×{args.size} px at {args.pixel_size_mm:g} mm, epochs {args.epochs} + colour "
                 f"{args.color_epochs}, seeds {args.seeds}")
@@ -278,7 +256,7 @@ def main(argv=None):
     print(line)
     print(settings)
     ta_io.write_json(os.path.join(args.out, "synthetic.json"),
-                     _finite({"size": args.size, "pixel_size_mm": args.pixel_size_mm, "epochs": args.epochs,
+                     ta_io.nan_to_none({"size": args.size, "pixel_size_mm": args.pixel_size_mm, "epochs": args.epochs,
                               "color_epochs": args.color_epochs, "seeds": seeds, "summary": summ, "rows": rows}))
     ta_io.atomic_write_bytes(os.path.join(args.out, "synthetic.md"),
                              f"# Wood fit on synthetic boards\n\n{settings}\n\n{table}\n\n{line}\n".encode())

@@ -326,3 +326,14 @@ def test_bad_inputs(tmp_path, call, error, match):
     with pytest.raises(error, match=match):
         call(tmp_path)
     assert _leftovers(tmp_path) == []
+
+
+def test_nan_to_none_recurses():
+    obj = {"a": float("nan"), "b": [1.0, np.float32("inf"), (2, -float("inf"))], "c": "x", "d": 3}
+    assert ta_io.nan_to_none(obj) == {"a": None, "b": [1.0, None, [2, None]], "c": "x", "d": 3}
+
+
+def test_markdown_table():
+    fields = [("k", "key", "{}"), ("e", "err", "{:+.1%}")]
+    text = ta_io.markdown_table([{"k": "a|b", "e": 0.0312}, {"k": 7}], fields)
+    assert text.split("\n") == ["| key | err |", "|---|---|", "| a/b | +3.1% |", "| 7 | – |"]

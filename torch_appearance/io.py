@@ -18,6 +18,7 @@ Conventions:
 import contextlib
 import io as _stdio
 import json
+import math
 import os
 import pathlib
 import tempfile
@@ -30,7 +31,7 @@ import torch
 from .color import linear_to_srgb, srgb_to_linear
 
 __all__ = ["write_exr", "read_exr", "write_png", "read_png", "write_json", "write_csv", "save_figure",
-           "atomic_write_bytes"]
+           "atomic_write_bytes", "nan_to_none", "markdown_table"]
 
 # Permissions that a plain open() would give a new file (mkstemp creates 0600 files).
 _UMASK = os.umask(0)
@@ -300,6 +301,28 @@ def write_json(path, obj, *, indent=2):
         raise ValueError(f"obj cannot be written as strict JSON (NaN or infinity?): {error}") from None
     atomic_write_bytes(path, (text + "\n").encode("utf-8"))
 
+
+
+def nan_to_none(obj):
+    """``obj`` with every NaN / infinite float replaced by None, recursively through dicts, lists and tuples (for
+    :func:`write_json`, which refuses non-finite values; e.g. metrics that are undefined for a refused run)."""
+    if isinstance(obj, dict):
+        return {k: nan_to_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [nan_to_none(v) for v in obj]
+    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
+        return None
+    return obj
+
+
+def markdown_table(rows, fields):
+    """A Markdown table of ``rows`` (dicts) with columns ``fields``: ``(key, header, format)`` triples, e.g.
+    ``("err", "s_r err", "{:+.1%}")``. Missing or None values print as "–"; "|" in a cell becomes "/"."""
+    lines = ["| " + " | ".join(h for _, h, _ in fields) + " |", "|" + "|".join("---" for _ in fields) + "|"]
+    for r in rows:
+        cells = ["–" if r.get(key) is None else fmt.format(r[key]).replace("|", "/") for key, _, fmt in fields]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def write_csv(path, rows, fields):
