@@ -24,7 +24,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "torch_appearance"))
 from _buildinfo import source_hash  # noqa: E402  (plain-python helper, no torch import)
 
-# The tracing core (csrc/volpath/tracer.h) is plain C++17; the glue follows the C++ standard torch itself requires
+# The tracing core (csrc/core/*.h) is plain C++17 and host/device clean; the glue follows the C++ standard torch itself requires
 # (C++20 since torch 2.10), which CppExtension selects.
 sources = sorted(glob.glob(os.path.join("csrc", "**", "*.cpp"), recursive=True))
 cxx_flags = ["-O3", "-fopenmp", "-ffp-contract=off", "-Wall", "-Wno-unused-function",

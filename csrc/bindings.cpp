@@ -31,6 +31,55 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("rr_depth", &TraceOptions::rr_depth)
       .def_readwrite("lanes", &TraceOptions::lanes);
 
+  using ta::volpath::BoundaryOptions;
+  using ta::volpath::EmitterOptions;
+  using ta::volpath::SceneOptions;
+  using ta::volpath::SensorOptions;
+  // General scenes: one struct per piece (see torch_appearance/render/*.py for the dataclass of each).
+  py::class_<BoundaryOptions>(m, "BoundaryOptions")
+      .def(py::init<>())
+      .def_readwrite("kind", &BoundaryOptions::kind)
+      .def_readwrite("ior", &BoundaryOptions::ior)
+      .def_readwrite("sdf", &BoundaryOptions::sdf);
+  py::class_<SensorOptions>(m, "SensorOptions")
+      .def(py::init<>())
+      .def_readwrite("kind", &SensorOptions::kind)
+      .def_readwrite("face", &SensorOptions::face)
+      .def_readwrite("points", &SensorOptions::points)
+      .def_readwrite("normals", &SensorOptions::normals)
+      .def_readwrite("radius", &SensorOptions::radius)
+      .def_readwrite("lift", &SensorOptions::lift)
+      .def_readwrite("origin", &SensorOptions::origin)
+      .def_readwrite("forward", &SensorOptions::forward)
+      .def_readwrite("right", &SensorOptions::right)
+      .def_readwrite("up", &SensorOptions::up)
+      .def_readwrite("rows", &SensorOptions::rows)
+      .def_readwrite("cols", &SensorOptions::cols)
+      .def_readwrite("width", &SensorOptions::width)
+      .def_readwrite("height", &SensorOptions::height)
+      .def_readwrite("tan_half_fov", &SensorOptions::tan_half_fov);
+  py::class_<EmitterOptions>(m, "EmitterOptions")
+      .def(py::init<>())
+      .def_readwrite("kind", &EmitterOptions::kind)
+      .def_readwrite("radiance", &EmitterOptions::radiance)
+      .def_readwrite("ambient", &EmitterOptions::ambient)
+      .def_readwrite("direction", &EmitterOptions::direction)
+      .def_readwrite("cos_max", &EmitterOptions::cos_max)
+      .def_readwrite("map", &EmitterOptions::map);
+  py::class_<SceneOptions>(m, "SceneOptions")
+      .def(py::init<>())
+      .def_readwrite("voxel_size", &SceneOptions::voxel_size)
+      .def_readwrite("origin", &SceneOptions::origin)
+      .def_readwrite("g", &SceneOptions::g)
+      .def_readwrite("boundary", &SceneOptions::boundary)
+      .def_readwrite("sensor", &SceneOptions::sensor)
+      .def_readwrite("emitter", &SceneOptions::emitter)
+      .def_readwrite("spp", &SceneOptions::spp)
+      .def_readwrite("seed", &SceneOptions::seed)
+      .def_readwrite("max_depth", &SceneOptions::max_depth)
+      .def_readwrite("rr_depth", &SceneOptions::rr_depth)
+      .def_readwrite("lanes", &SceneOptions::lanes);
+
   py::class_<ta::volpath::ForwardCounts>(m, "ForwardCounts")
       .def_readonly("scatter_events", &ta::volpath::ForwardCounts::scatter_events)
       .def_readonly("truncated_paths", &ta::volpath::ForwardCounts::truncated_paths);
@@ -43,4 +92,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
         py::arg("need_albedo"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
         "Radiative backpropagation by path replay: (grad_sigma_t, grad_albedo, scatter events).");
+  m.def("scene_forward", &ta::volpath::scene_forward_cpu, py::arg("sigma_t"), py::arg("albedo"),
+        py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("ratio"), py::arg("options"),
+        py::call_guard<py::gil_scoped_release>(),
+        "General-scene radiance ((H, W, 3) image, (N, 3) texels, ...) and ForwardCounts.");
+  m.def("scene_backward", &ta::volpath::scene_backward_cpu, py::arg("grad_output"), py::arg("sigma_t"),
+        py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
+        py::arg("need_albedo"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
+        "General-scene path replay: (grad_sigma_t, grad_albedo, scatter events).");
 }

@@ -1,19 +1,24 @@
-// Differentiable heterogeneous-volume path tracer (slab scenes, texel sensor): forward + radiative backpropagation.
+// Differentiable heterogeneous-volume path tracer: forward + radiative backpropagation (path replay).
 //
-// Scene: a grid of D×H×W voxels with edges voxel_size = (sx, sy, sz) mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz]
-// (x ↔ W, y ↔ H, z ↔ D). Piecewise-constant σ_t (mm⁻¹) and single-scattering albedo per voxel and RGB channel, Henyey–Greenstein
-// phase g, index-matched (ior <= 0) or smooth-dielectric (ior >= 1) box boundary, uniform environment radiance.
-// Texel sensor on face 0 = top (z = D·s), 1 = bottom (z = 0), 2 = both; texel [j, i] is voxel column (j, i).
+// Two entry points share one core (csrc/core/integrator.h):
+//
+//   forward_cpu / backward_cpu              the slab of the first wave (render_texels): box boundary, face texels,
+//                                           constant environment, options in TraceOptions.
+//   scene_forward_cpu / scene_backward_cpu  general scenes (render_scene): the pieces in SceneOptions.
+//
+// Medium: a grid of D×H×W voxels with edges voxel_size = (sx, sy, sz) mm occupying
+// origin + [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W, y ↔ H, z ↔ D). Piecewise-constant σ_t (mm⁻¹) and single-scattering
+// albedo per voxel and RGB channel, Henyey–Greenstein phase g.
 //
 // Tensors (CPU, contiguous, float32 or float64, all of one dtype):
 //   sigma_t, albedo               (3, D, H, W)  the parameters θ
 //   ref_sigma_t, ref_albedo       (3, D, H, W)  the sampling (reference) medium; paths are drawn from it and
 //                                               weighted by f(θ)/p_ref when `ratio` is true. Must be > 0 wherever
 //                                               the parameters are > 0 for the estimator to be unbiased.
-//   grad_output                   (F, H, W, 3)  F = 1 (one face) or 2 (both faces)
-// Scalars: environment (3 floats), spp >= 1, seed, max_depth >= 1 and rr_depth >= 0 (interactions: scatterings
-// plus internal reflections), `lanes` 3 = one walk for all channels (requires an achromatic ref_sigma_t),
-// 1 = one walk per channel.
+//   grad_output                   the shape of the forward's image
+// Scalars: spp >= 1, seed, max_depth >= 1 and rr_depth >= 0 (interactions: scatterings plus internal
+// reflections; SDF boundaries also count crossings), `lanes` 3 = one walk for all channels (requires an achromatic
+// ref_sigma_t), 1 = one walk per channel.
 #pragma once
 
 #include <torch/extension.h>
@@ -24,12 +29,52 @@
 namespace ta {
 namespace volpath {
 
+// The slab of the first wave.
 struct TraceOptions {
   std::vector<double> voxel_size{1.0, 1.0, 1.0};  // voxel edges (x, y, z), mm
-  int face = 0;
+  int face = 0;                                    // 0 top, 1 bottom, 2 both
   double g = 0.0;
   double ior = -1.0;  // <= 0: index matched
   std::vector<double> environment{1.0, 1.0, 1.0};
+  int64_t spp = 1;
+  int64_t seed = 0;
+  int64_t max_depth = 1;
+  int64_t rr_depth = 0;
+  int64_t lanes = 1;
+};
+
+// ---- general scenes: one struct per piece, flattened from the Python dataclass of the same role
+struct BoundaryOptions {
+  int kind = 0;        // 0 box, 1 signed-distance grid
+  double ior = -1.0;   // <= 0: index matched, else smooth dielectric (>= 1)
+  torch::Tensor sdf;   // kind 1: (D+1, H+1, W+1) mm at voxel corners, < 0 inside, > 0 on the grid's outer corners
+};
+
+struct SensorOptions {
+  int kind = 0;  // 0 face texels, 1 surface texels, 2 orthographic camera, 3 perspective camera
+  int face = 0;  // kind 0: 0 top, 1 bottom, 2 both
+  torch::Tensor points, normals, radius;  // kind 1: (N, 3) mm, (N, 3) unit, (N,) mm
+  double lift = 0.0;                      // kind 1: start offset along the normal, mm
+  std::vector<double> origin{0, 0, 0}, forward{0, 0, -1}, right{1, 0, 0}, up{0, 1, 0};  // cameras (orthonormal)
+  int64_t rows = 0, cols = 0;
+  double width = 0.0, height = 0.0;  // kind 2: mm
+  double tan_half_fov = 0.0;         // kind 3
+};
+
+struct EmitterOptions {
+  int kind = 0;  // 0 constant, 1 lat-long environment map, 2 distant disc light (+ ambient)
+  std::vector<double> radiance{1, 1, 1}, ambient{0, 0, 0}, direction{0, 0, 1};
+  double cos_max = 1.0;
+  torch::Tensor map;  // kind 1: (Hm, Wm, 3) linear RGB
+};
+
+struct SceneOptions {
+  std::vector<double> voxel_size{1.0, 1.0, 1.0};
+  std::vector<double> origin{0.0, 0.0, 0.0};
+  double g = 0.0;
+  BoundaryOptions boundary;
+  SensorOptions sensor;
+  EmitterOptions emitter;
   int64_t spp = 1;
   int64_t seed = 0;
   int64_t max_depth = 1;
@@ -44,14 +89,26 @@ struct ForwardCounts {
 
 // Returns (image (F, H, W, 3) or (H, W, 3) for one face, counts).
 std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-                                               const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
-                                               bool ratio, const TraceOptions& opt);
+                                                     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
+                                                     bool ratio, const TraceOptions& opt);
 
 // Path replay. Returns (grad_sigma_t or undefined, grad_albedo or undefined, scatter events of both replays).
 std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
     const TraceOptions& opt);
+
+// General scenes. The image is (F, H, W, 3)/(H, W, 3) for face texels, (N, 3) for surface texels,
+// (rows, cols, 3) for cameras.
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                                                           const torch::Tensor& ref_sigma_t,
+                                                           const torch::Tensor& ref_albedo, bool ratio,
+                                                           const SceneOptions& opt);
+
+std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
+    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
+    const SceneOptions& opt);
 
 }  // namespace volpath
 }  // namespace ta

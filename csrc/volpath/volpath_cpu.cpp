@@ -1,4 +1,5 @@
-// Glue between PyTorch tensors and the tracing core (tracer.h): checks, template dispatch, threading.
+// Glue between PyTorch tensors and the torch-free tracing core (csrc/core/): checks, flattening of the scene
+// pieces into core structs, template dispatch, threading.
 #include "volpath/volpath.h"
 
 #include <ATen/Parallel.h>
@@ -8,13 +9,17 @@
 #include <string>
 #include <vector>
 
-#include "volpath/tracer.h"
+#include "core/integrator.h"
 
 namespace ta {
 namespace volpath {
 namespace {
 
-constexpr int64_t kTexelBlock = 8;  // texels handed out together (limits false sharing of output rows)
+using core::Adjoint;
+using core::PathResult;
+using core::Scene;
+
+constexpr int64_t kTexelBlock = 8;  // sensor elements handed out together (limits false sharing of output rows)
 
 void check_grid(const torch::Tensor& x, const char* name, const torch::Tensor& like) {
   TORCH_CHECK(x.defined(), name, ": expected a tensor, got None");
@@ -40,45 +45,215 @@ void check_values(const torch::Tensor& x, const char* name, T lo, T hi) {
   TORCH_CHECK(ok, name, ": expected finite values in [", lo, ", ", hi, "]");
 }
 
-void check_options(const TraceOptions& o, int64_t D, int64_t H, int64_t W) {
+void check_vec(const std::vector<double>& v, const char* name, double lo, double hi) {
+  TORCH_CHECK(v.size() == 3, name, ": expected 3 values, got ", v.size());
+  for (double x : v) TORCH_CHECK(std::isfinite(x) && x >= lo && x <= hi, name, ": expected finite values in [", lo,
+                                 ", ", hi, "], got ", x);
+}
+
+void check_unit(const std::vector<double>& v, const char* name) {
+  check_vec(v, name, -1.0, 1.0);
+  const double n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+  TORCH_CHECK(std::abs(n2 - 1.0) < 1e-6, name, ": expected a unit vector, got squared length ", n2);
+}
+
+// A (rows..., cols) float tensor that the glue converts to the grid's dtype.
+void check_float_tensor(const torch::Tensor& x, const char* name, std::vector<int64_t> shape) {
+  TORCH_CHECK(x.defined(), name, ": expected a tensor, got None");
+  TORCH_CHECK(x.device().is_cpu(), name, ": expected a CPU tensor, got device ", x.device());
+  TORCH_CHECK(x.is_floating_point(), name, ": expected a floating-point tensor, got ", x.scalar_type());
+  TORCH_CHECK(x.dim() == int64_t(shape.size()), name, ": expected ", shape.size(), " dimensions, got ", x.sizes());
+  for (size_t i = 0; i < shape.size(); ++i)
+    TORCH_CHECK(shape[i] < 0 || x.size(i) == shape[i], name, ": expected size ", shape[i], " in dimension ", i,
+                ", got ", x.sizes());
+  TORCH_CHECK(torch::isfinite(x).all().item<bool>(), name, ": expected finite values");
+}
+
+void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
   TORCH_CHECK(D >= 1 && H >= 1 && W >= 1, "sigma_t: expected a non-empty grid, got (3, ", D, ", ", H, ", ", W, ")");
-  TORCH_CHECK(D * H * W < (int64_t(1) << 40) && 2 * H * W < (int64_t(1) << 32),
-              "sigma_t: grid too large for 32-bit texel counters");
+  TORCH_CHECK(D * H * W < (int64_t(1) << 40), "sigma_t: grid too large");
   TORCH_CHECK(o.voxel_size.size() == 3, "voxel_size: expected 3 edges (x, y, z), got ", o.voxel_size.size());
   for (double s : o.voxel_size)
     TORCH_CHECK(std::isfinite(s) && s > 0, "voxel_size: expected finite edges > 0, got ", s);
-  TORCH_CHECK(o.face >= 0 && o.face <= 2, "face: expected 0 (top), 1 (bottom) or 2 (both), got ", o.face);
+  check_vec(o.origin, "origin", -1e30, 1e30);
   TORCH_CHECK(std::isfinite(o.g) && std::abs(o.g) < 1, "g: expected -1 < g < 1, got ", o.g);
-  TORCH_CHECK(o.ior <= 0 || (std::isfinite(o.ior) && o.ior >= 1), "ior: expected >= 1 (or <= 0 for index matched), got ",
-              o.ior);
-  TORCH_CHECK(o.environment.size() == 3, "environment: expected 3 values, got ", o.environment.size());
-  for (double e : o.environment)
-    TORCH_CHECK(std::isfinite(e) && e >= 0, "environment: expected finite values >= 0, got ", e);
   TORCH_CHECK(o.spp >= 1 && o.spp < (int64_t(1) << 32), "spp: expected 1 <= spp < 2^32, got ", o.spp);
   TORCH_CHECK(o.max_depth >= 1, "max_depth: expected >= 1, got ", o.max_depth);
   TORCH_CHECK(o.rr_depth >= 0, "rr_depth: expected >= 0, got ", o.rr_depth);
   TORCH_CHECK(o.lanes == 1 || o.lanes == 3, "lanes: expected 1 or 3, got ", o.lanes);
+  // boundary
+  const auto& b = o.boundary;
+  TORCH_CHECK(b.kind == 0 || b.kind == 1, "boundary: expected kind 0 (box) or 1 (sdf), got ", b.kind);
+  TORCH_CHECK(b.ior <= 0 || (std::isfinite(b.ior) && b.ior >= 1),
+              "ior: expected >= 1 (or <= 0 for index matched), got ", b.ior);
+  if (b.kind == 1) {
+    check_float_tensor(b.sdf, "sdf", {D + 1, H + 1, W + 1});
+    const auto s = b.sdf.to(at::kDouble).contiguous();
+    const auto outer = torch::cat({s.select(0, 0).flatten(), s.select(0, D).flatten(), s.select(1, 0).flatten(),
+                                   s.select(1, H).flatten(), s.select(2, 0).flatten(), s.select(2, W).flatten()});
+    TORCH_CHECK((outer > 0).all().item<bool>(),
+                "sdf: expected > 0 on the grid's outer corners (the object must lie strictly inside the grid)");
+  }
+  // sensor
+  const auto& se = o.sensor;
+  TORCH_CHECK(se.kind >= 0 && se.kind <= 3, "sensor: expected kind 0..3, got ", se.kind);
+  if (se.kind == 0) {
+    TORCH_CHECK(b.kind == 0, "sensor: face texels need the box boundary");
+    TORCH_CHECK(se.face >= 0 && se.face <= 2, "face: expected 0 (top), 1 (bottom) or 2 (both), got ", se.face);
+    TORCH_CHECK(2 * H * W < (int64_t(1) << 32), "sigma_t: grid too large for 32-bit texel counters");
+  } else if (se.kind == 1) {
+    check_float_tensor(se.points, "points", {-1, 3});
+    const int64_t n = se.points.size(0);
+    TORCH_CHECK(n >= 1 && n < (int64_t(1) << 32), "points: expected 1 <= N < 2^32 texels, got ", n);
+    check_float_tensor(se.normals, "normals", {n, 3});
+    check_float_tensor(se.radius, "footprint", {n});
+    const auto nn = se.normals.to(at::kDouble);
+    TORCH_CHECK(((nn * nn).sum(1) - 1).abs().max().item<double>() < 1e-4, "normals: expected unit vectors");
+    TORCH_CHECK((se.radius >= 0).all().item<bool>(), "footprint: expected radii >= 0");
+    TORCH_CHECK(std::isfinite(se.lift) && se.lift >= 0, "lift: expected a finite value >= 0, got ", se.lift);
+  } else {
+    check_vec(se.origin, "camera origin", -1e30, 1e30);
+    check_unit(se.forward, "camera forward");
+    check_unit(se.right, "camera right");
+    check_unit(se.up, "camera up");
+    TORCH_CHECK(se.rows >= 1 && se.cols >= 1 && se.rows * se.cols < (int64_t(1) << 32),
+                "resolution: expected 1 <= rows, cols and rows·cols < 2^32, got (", se.rows, ", ", se.cols, ")");
+    if (se.kind == 2) {
+      TORCH_CHECK(std::isfinite(se.width) && se.width > 0 && std::isfinite(se.height) && se.height > 0,
+                  "extent_mm: expected finite values > 0, got (", se.width, ", ", se.height, ")");
+    } else {
+      TORCH_CHECK(std::isfinite(se.tan_half_fov) && se.tan_half_fov > 0,
+                  "fov_y_deg: expected a field of view in (0, 180) degrees");
+    }
+  }
+  // emitter
+  const auto& e = o.emitter;
+  TORCH_CHECK(e.kind >= 0 && e.kind <= 2, "emitter: expected kind 0..2, got ", e.kind);
+  check_vec(e.radiance, "radiance", 0.0, 1e30);
+  check_vec(e.ambient, "ambient", 0.0, 1e30);
+  if (e.kind == 1) {
+    check_float_tensor(e.map, "image", {-1, -1, 3});
+    TORCH_CHECK(e.map.size(0) >= 1 && e.map.size(1) >= 1, "image: expected a non-empty (H, W, 3) map");
+    TORCH_CHECK((e.map >= 0).all().item<bool>(), "image: expected radiance >= 0");
+  }
+  if (e.kind == 2) {
+    check_unit(e.direction, "direction");
+    TORCH_CHECK(std::isfinite(e.cos_max) && e.cos_max >= -1 && e.cos_max <= 1,
+                "angular_radius_deg: expected cos in [-1, 1], got ", e.cos_max);
+  }
+}
+
+SceneOptions slab_scene(const TraceOptions& t) {
+  SceneOptions o;
+  o.voxel_size = t.voxel_size;
+  o.g = t.g;
+  o.boundary.kind = 0;
+  o.boundary.ior = t.ior;
+  o.sensor.kind = 0;
+  o.sensor.face = t.face;
+  o.emitter.kind = 0;
+  o.emitter.radiance = t.environment;
+  o.spp = t.spp;
+  o.seed = t.seed;
+  o.max_depth = t.max_depth;
+  o.rr_depth = t.rr_depth;
+  o.lanes = t.lanes;
+  return o;
+}
+
+// Keeps the converted tensors alive while a Scene<T> points into them.
+struct SceneStorage {
+  torch::Tensor sdf, points, normals, radius, map;
+  std::vector<uint8_t> cells;
+};
+
+template <typename T>
+void copy3(const std::vector<double>& v, T out[3]) {
+  for (int k = 0; k < 3; ++k) out[k] = T(v[k]);
 }
 
 template <typename T>
-Params<T> make_params(const TraceOptions& o, const torch::Tensor& sigma_t) {
-  Params<T> P;
-  P.D = sigma_t.size(1);
-  P.H = sigma_t.size(2);
-  P.W = sigma_t.size(3);
-  for (int a = 0; a < 3; ++a) P.voxel[a] = T(o.voxel_size[a]);
-  P.g = T(o.g);
-  P.ior = T(o.ior > 0 ? o.ior : 1.0);
-  for (int c = 0; c < 3; ++c) P.env[c] = T(o.environment[c]);
-  P.spp = o.spp;
-  P.seed = uint64_t(o.seed);
-  P.max_depth = o.max_depth;
-  P.rr_depth = o.rr_depth;
-  P.face = o.face;
-  return P;
+Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store) {
+  Scene<T> S;
+  auto& M = S.medium;
+  M.D = sigma_t.size(1);
+  M.H = sigma_t.size(2);
+  M.W = sigma_t.size(3);
+  copy3(o.voxel_size, M.voxel);
+  copy3(o.origin, M.origin);
+  M.sigma_t = sigma_t.data_ptr<T>();
+  M.albedo = albedo.data_ptr<T>();
+  M.ref_sigma_t = ref_sigma_t.data_ptr<T>();
+  M.ref_albedo = ref_albedo.data_ptr<T>();
+  const auto dtype = sigma_t.scalar_type();
+  if (o.boundary.kind == 1) {
+    store.sdf = o.boundary.sdf.to(dtype).contiguous();
+    const T* s = store.sdf.data_ptr<T>();
+    store.cells.assign(M.voxels(), 0);
+    const int64_t W1 = M.W + 1, HW1 = (M.H + 1) * W1;
+    uint8_t* cells = store.cells.data();
+    at::parallel_for(0, M.D, 1, [&](int64_t k0, int64_t k1) {
+      for (int64_t k = k0; k < k1; ++k)
+        for (int64_t j = 0; j < M.H; ++j)
+          for (int64_t i = 0; i < M.W; ++i) {
+            const T* b = s + k * HW1 + j * W1 + i;
+            const T c[8] = {b[0], b[1], b[W1], b[W1 + 1], b[HW1], b[HW1 + 1], b[HW1 + W1], b[HW1 + W1 + 1]};
+            bool all_neg = true, all_pos = true;
+            for (T x : c) {
+              all_neg &= x < T(0);
+              all_pos &= x > T(0);
+            }
+            cells[(k * M.H + j) * M.W + i] = all_neg ? core::kCellInside : (all_pos ? core::kCellOutside : core::kCellMixed);
+          }
+    });
+    S.sdf.sdf = s;
+    S.sdf.cell = cells;
+  }
+  S.ior = T(o.boundary.ior > 0 ? o.boundary.ior : 1.0);
+  auto& se = S.sensor;
+  se.kind = o.sensor.kind;
+  se.face = o.sensor.face;
+  if (se.kind == core::kSurfaceTexels) {
+    store.points = o.sensor.points.to(dtype).contiguous();
+    store.normals = o.sensor.normals.to(dtype).contiguous();
+    store.radius = o.sensor.radius.to(dtype).contiguous();
+    se.points = store.points.data_ptr<T>();
+    se.normals = store.normals.data_ptr<T>();
+    se.radius = store.radius.data_ptr<T>();
+    se.count = store.points.size(0);
+    se.lift = T(o.sensor.lift);
+  }
+  copy3(o.sensor.origin, se.origin);
+  copy3(o.sensor.forward, se.forward);
+  copy3(o.sensor.right, se.right);
+  copy3(o.sensor.up, se.up);
+  se.rows = o.sensor.rows;
+  se.cols = o.sensor.cols;
+  se.width = T(o.sensor.width);
+  se.height = T(o.sensor.height);
+  se.tan_half_fov = T(o.sensor.tan_half_fov);
+  auto& e = S.emitter;
+  e.kind = o.emitter.kind;
+  copy3(o.emitter.radiance, e.radiance);
+  copy3(o.emitter.ambient, e.ambient);
+  copy3(o.emitter.direction, e.direction);
+  e.cos_max = T(o.emitter.cos_max);
+  if (e.kind == core::kEnvMap) {
+    store.map = o.emitter.map.to(dtype).contiguous();
+    e.map = store.map.data_ptr<T>();
+    e.map_h = store.map.size(0);
+    e.map_w = store.map.size(1);
+  }
+  S.g = T(o.g);
+  S.spp = o.spp;
+  S.seed = uint64_t(o.seed);
+  S.max_depth = o.max_depth;
+  S.rr_depth = o.rr_depth;
+  return S;
 }
 
-// Static, strided work split: chunk c owns texel blocks c, c + n, c + 2n, ... . The split depends only on the
+// Static, strided work split: chunk c owns element blocks c, c + n, c + 2n, ... . The split depends only on the
 // number of chunks (= threads), so sums are deterministic for a given thread count, and strided blocks balance
 // spatially varying path lengths.
 template <typename F>
@@ -89,42 +264,56 @@ void for_each_chunk(int64_t nchunks, const F& body) {
 }
 
 template <typename F>
-void for_texels_of_chunk(int64_t c, int64_t nchunks, int64_t ntexels, const F& body) {
-  for (int64_t b0 = c * kTexelBlock; b0 < ntexels; b0 += nchunks * kTexelBlock)
-    for (int64_t t = b0, e = std::min(ntexels, b0 + kTexelBlock); t < e; ++t) body(t);
+void for_elements_of_chunk(int64_t c, int64_t nchunks, int64_t n, const F& body) {
+  for (int64_t b0 = c * kTexelBlock; b0 < n; b0 += nchunks * kTexelBlock)
+    for (int64_t t = b0, e = std::min(n, b0 + kTexelBlock); t < e; ++t) body(t);
 }
 
-int64_t num_chunks(int64_t ntexels) {
-  const int64_t blocks = (ntexels + kTexelBlock - 1) / kTexelBlock;
+int64_t num_chunks(int64_t n) {
+  const int64_t blocks = (n + kTexelBlock - 1) / kTexelBlock;
   return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), blocks));
 }
 
-template <typename T, int LANES, bool DIEL, bool RATIO>
-ForwardCounts forward_kernel(const Params<T>& P, const Grids<T>& G, T* out) {
-  const int64_t ntex = P.faces() * P.texels_per_face();
-  const int64_t nchunks = num_chunks(ntex);
+template <typename T, int LANES, int B, bool DIEL, bool RATIO>
+ForwardCounts forward_kernel(const Scene<T>& S, T* out) {
+  const int64_t n = S.elements();
+  const int64_t nchunks = num_chunks(n);
+  const bool constant = S.emitter.kind == core::kConstant;
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
   for_each_chunk(nchunks, [&](int64_t c) {
     int64_t ev = 0, cut = 0;
-    for_texels_of_chunk(c, nchunks, ntex, [&](int64_t t) {
+    for_elements_of_chunk(c, nchunks, n, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
-      for (int64_t s = 0; s < P.spp; ++s) {
+      T Le[3];
+      for (int64_t s = 0; s < S.spp; ++s) {
         if (LANES == 3) {
-          const auto r = trace_path<T, 3, DIEL, RATIO, false>(P, G, t, s, 0, nullptr, nullptr, none);
+          const auto r = core::trace_path<T, 3, B, DIEL, RATIO, false>(S, t, s, 0, nullptr, nullptr, none);
           ev += r.scatter_events;
           cut += r.truncated;
-          for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]);
+          if (constant) {
+            for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]);
+          } else if (r.escaped) {
+            S.emitter.eval(r.direction, Le);
+            for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]) * double(Le[l]);
+          }
         } else {
           for (int ch = 0; ch < 3; ++ch) {
-            const auto r = trace_path<T, 1, DIEL, RATIO, false>(P, G, t, s, ch, nullptr, nullptr, none);
+            const auto r = core::trace_path<T, 1, B, DIEL, RATIO, false>(S, t, s, ch, nullptr, nullptr, none);
             ev += r.scatter_events;
             cut += r.truncated;
-            acc[ch] += double(r.value[0]);
+            if (constant) {
+              acc[ch] += double(r.value[0]);
+            } else if (r.escaped) {
+              S.emitter.eval(r.direction, Le);
+              acc[ch] += double(r.value[0]) * double(Le[ch]);
+            }
           }
         }
       }
-      for (int ch = 0; ch < 3; ++ch) out[t * 3 + ch] = T(acc[ch] * double(P.env[ch]) / double(P.spp));
+      for (int ch = 0; ch < 3; ++ch)
+        out[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
+                                   : T(acc[ch] / double(S.spp));
     });
     counts[c] = {ev, cut};
   });
@@ -136,25 +325,35 @@ ForwardCounts forward_kernel(const Params<T>& P, const Grids<T>& G, T* out) {
   return total;
 }
 
-// Replays one path twice: first for its final weight, then depositing ∂/∂θ (only escaped paths carry any).
-template <typename T, int LANES, bool DIEL>
-inline int64_t replay(const Params<T>& P, const Grids<T>& G, int64_t t, int64_t s, int ch, const T* adj,
-                      const Adjoint<T>& A) {
+// Replays one path twice: first for its final weight and escape direction, then depositing ∂/∂θ (only escaped
+// paths that see a non-zero emitter carry any). `g` is grad_output of the element (3 channels).
+template <typename T, int LANES, int B, bool DIEL>
+inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* g, const Adjoint<T>& A) {
   const Adjoint<T> none;
-  const auto r1 = trace_path<T, LANES, DIEL, true, false>(P, G, t, s, ch, nullptr, nullptr, none);
+  const auto r1 = core::trace_path<T, LANES, B, DIEL, true, false>(S, t, s, ch, nullptr, nullptr, none);
   if (!r1.escaped) return r1.scatter_events;
-  const auto r2 = trace_path<T, LANES, DIEL, true, true>(P, G, t, s, ch, &r1, adj, A);
+  T Le[3], adj[LANES];
+  S.emitter.eval(r1.direction, Le);
+  bool any = false;
+  for (int l = 0; l < LANES; ++l) {
+    const int c = LANES == 1 ? ch : l;
+    adj[l] = g[c] * Le[c] / T(S.spp);
+    any |= adj[l] != T(0);
+  }
+  if (!any) return r1.scatter_events;
+  const auto r2 = core::trace_path<T, LANES, B, DIEL, true, true>(S, t, s, ch, &r1, adj, A);
   return r1.scatter_events + r2.scatter_events;
 }
 
-template <typename T, int LANES, bool DIEL>
-int64_t backward_kernel(const Params<T>& P, const Grids<T>& G, const T* grad_out, T* gs, T* ga) {
-  const int64_t ntex = P.faces() * P.texels_per_face();
+template <typename T, int LANES, int B, bool DIEL>
+int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga) {
+  const int64_t ntex = S.elements();
   const int64_t nchunks = num_chunks(ntex);
-  const int64_t n = 3 * P.voxels();
+  const int64_t n = 3 * S.medium.voxels();
   // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
   std::vector<std::vector<T>> bufs_s(gs ? nchunks - 1 : 0), bufs_a(ga ? nchunks - 1 : 0);
   std::vector<int64_t> events(nchunks, 0);
+  const bool constant = S.emitter.kind == core::kConstant;
   for_each_chunk(nchunks, [&](int64_t c) {
     Adjoint<T> A;
     if (gs) {
@@ -166,20 +365,20 @@ int64_t backward_kernel(const Params<T>& P, const Grids<T>& G, const T* grad_out
       else { bufs_a[c - 1].assign(n, T(0)); A.grad_albedo = bufs_a[c - 1].data(); }
     }
     int64_t ev = 0;
-    for_texels_of_chunk(c, nchunks, ntex, [&](int64_t t) {
-      T adj[3];
-      bool any = false;
+    for_elements_of_chunk(c, nchunks, ntex, [&](int64_t t) {
+      const T* g = grad_out + t * 3;
+      bool live[3], any = false;  // channels whose paths can carry a derivative
       for (int ch = 0; ch < 3; ++ch) {
-        adj[ch] = grad_out[t * 3 + ch] * P.env[ch] / T(P.spp);
-        any |= adj[ch] != T(0);
+        live[ch] = g[ch] != T(0) && !(constant && S.emitter.radiance[ch] == T(0));
+        any |= live[ch];
       }
       if (!any) return;
-      for (int64_t s = 0; s < P.spp; ++s) {
+      for (int64_t s = 0; s < S.spp; ++s) {
         if (LANES == 3) {
-          ev += replay<T, 3, DIEL>(P, G, t, s, 0, adj, A);
+          ev += replay<T, 3, B, DIEL>(S, t, s, 0, g, A);
         } else {
           for (int ch = 0; ch < 3; ++ch)
-            if (adj[ch] != T(0)) ev += replay<T, 1, DIEL>(P, G, t, s, ch, &adj[ch], A);
+            if (live[ch]) ev += replay<T, 1, B, DIEL>(S, t, s, ch, g, A);
         }
       }
     });
@@ -200,24 +399,28 @@ int64_t backward_kernel(const Params<T>& P, const Grids<T>& G, const T* grad_out
   return total;
 }
 
-// Runtime flags → template instance.
+// Runtime flags → template instance: f(lanes, boundary kind, dielectric).
 template <typename F>
-void dispatch_scene(int64_t lanes, bool dielectric, const F& f) {
-  auto with_diel = [&](auto lanes_c) {
-    if (dielectric) f(lanes_c, std::true_type{});
-    else f(lanes_c, std::false_type{});
+void dispatch_scene(int64_t lanes, int boundary, bool dielectric, const F& f) {
+  auto with_diel = [&](auto lanes_c, auto bound_c) {
+    if (dielectric) f(lanes_c, bound_c, std::true_type{});
+    else f(lanes_c, bound_c, std::false_type{});
   };
-  if (lanes == 3) with_diel(std::integral_constant<int, 3>{});
-  else with_diel(std::integral_constant<int, 1>{});
+  auto with_bound = [&](auto lanes_c) {
+    if (boundary == core::kSDFBoundary) with_diel(lanes_c, std::integral_constant<int, core::kSDFBoundary>{});
+    else with_diel(lanes_c, std::integral_constant<int, core::kBoxBoundary>{});
+  };
+  if (lanes == 3) with_bound(std::integral_constant<int, 3>{});
+  else with_bound(std::integral_constant<int, 1>{});
 }
 
 void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const torch::Tensor& ref_sigma_t,
-               const torch::Tensor& ref_albedo, const TraceOptions& opt) {
+               const torch::Tensor& ref_albedo, const SceneOptions& opt) {
   check_grid(sigma_t, "sigma_t", sigma_t);
   check_grid(albedo, "albedo", sigma_t);
   check_grid(ref_sigma_t, "sampling_sigma_t", sigma_t);
   check_grid(ref_albedo, "sampling_albedo", sigma_t);
-  check_options(opt, sigma_t.size(1), sigma_t.size(2), sigma_t.size(3));
+  check_scene(opt, sigma_t.size(1), sigma_t.size(2), sigma_t.size(3));
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_check", [&] {
     const scalar_t inf = std::numeric_limits<scalar_t>::max();
     check_values<scalar_t>(sigma_t, "sigma_t", 0, inf);
@@ -234,41 +437,50 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
   });
 }
 
+std::vector<int64_t> image_shape(const SceneOptions& o, const torch::Tensor& sigma_t) {
+  switch (o.sensor.kind) {
+    case core::kFaceTexels:
+      if (o.sensor.face == core::kFaceBoth) return {2, sigma_t.size(2), sigma_t.size(3), 3};
+      return {sigma_t.size(2), sigma_t.size(3), 3};
+    case core::kSurfaceTexels: return {o.sensor.points.size(0), 3};
+    default: return {o.sensor.rows, o.sensor.cols, 3};
+  }
+}
+
 }  // namespace
 
-std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-                                               const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
-                                               bool ratio, const TraceOptions& opt) {
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                                                           const torch::Tensor& ref_sigma_t,
+                                                           const torch::Tensor& ref_albedo, bool ratio,
+                                                           const SceneOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
-  const int64_t F = opt.face == Face::Both ? 2 : 1;
-  auto out = torch::empty({F, sigma_t.size(2), sigma_t.size(3), 3}, sigma_t.options());
+  auto out = torch::empty(image_shape(opt, sigma_t), sigma_t.options());
   ForwardCounts counts;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
-    const Params<T> P = make_params<T>(opt, sigma_t);
-    const Grids<T> G{sigma_t.data_ptr<T>(), albedo.data_ptr<T>(), ref_sigma_t.data_ptr<T>(),
-                     ref_albedo.data_ptr<T>()};
-    dispatch_scene(opt.lanes, opt.ior > 0, [&](auto lanes_c, auto diel_c) {
+    SceneStorage store;
+    const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
       constexpr int L = decltype(lanes_c)::value;
+      constexpr int B = decltype(bound_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
-      counts = ratio ? forward_kernel<T, L, DIEL, true>(P, G, out.data_ptr<T>())
-                     : forward_kernel<T, L, DIEL, false>(P, G, out.data_ptr<T>());
+      counts = ratio ? forward_kernel<T, L, B, DIEL, true>(S, out.data_ptr<T>())
+                     : forward_kernel<T, L, B, DIEL, false>(S, out.data_ptr<T>());
     });
   });
-  if (F == 1) out = out.squeeze(0);
   return {out, counts};
 }
 
-std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
+std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const TraceOptions& opt) {
+    const SceneOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
-  const int64_t F = opt.face == Face::Both ? 2 : 1;
+  int64_t expected = 1;
+  for (int64_t s : image_shape(opt, sigma_t)) expected *= s;
   TORCH_CHECK(grad_output.device().is_cpu() && grad_output.scalar_type() == sigma_t.scalar_type(),
               "grad_output: expected a CPU tensor of dtype ", sigma_t.scalar_type());
-  TORCH_CHECK(grad_output.numel() == F * sigma_t.size(2) * sigma_t.size(3) * 3,
-              "grad_output: expected ", F * sigma_t.size(2) * sigma_t.size(3) * 3, " elements, got ",
+  TORCH_CHECK(grad_output.numel() == expected, "grad_output: expected ", expected, " elements, got ",
               grad_output.numel());
   const auto go = grad_output.contiguous();
   torch::Tensor gs, ga;
@@ -282,18 +494,35 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
     const T* g = go.data_ptr<T>();
     for (int64_t i = 0; i < go.numel(); ++i) finite &= std::isfinite(g[i]);
     TORCH_CHECK(finite, "grad_output: expected finite values");
-    const Params<T> P = make_params<T>(opt, sigma_t);
-    const Grids<T> G{sigma_t.data_ptr<T>(), albedo.data_ptr<T>(), ref_sigma_t.data_ptr<T>(),
-                     ref_albedo.data_ptr<T>()};
+    SceneStorage store;
+    const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
-    dispatch_scene(opt.lanes, opt.ior > 0, [&](auto lanes_c, auto diel_c) {
+    dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
       constexpr int L = decltype(lanes_c)::value;
+      constexpr int B = decltype(bound_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
-      events = backward_kernel<T, L, DIEL>(P, G, g, pgs, pga);
+      events = backward_kernel<T, L, B, DIEL>(S, g, pgs, pga);
     });
   });
   return {gs, ga, events};
+}
+
+std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                                                     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
+                                                     bool ratio, const TraceOptions& opt) {
+  TORCH_CHECK(opt.environment.size() == 3, "environment: expected 3 values, got ", opt.environment.size());
+  for (double e : opt.environment)
+    TORCH_CHECK(std::isfinite(e) && e >= 0, "environment: expected finite values >= 0, got ", e);
+  return scene_forward_cpu(sigma_t, albedo, ref_sigma_t, ref_albedo, ratio, slab_scene(opt));
+}
+
+std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
+    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
+    const TraceOptions& opt) {
+  return scene_backward_cpu(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo, need_sigma_t, need_albedo,
+                            slab_scene(opt));
 }
 
 }  // namespace volpath

@@ -1,0 +1,58 @@
+// Shared definitions of the torch-free tracing core: the host/device marker and the few math helpers the core
+// uses, written so that a CUDA build can compile the same headers later (no std:: algorithms in device code).
+#pragma once
+
+#include <math.h>
+#include <stdint.h>
+
+#if defined(__CUDACC__)
+#define TA_HD __host__ __device__
+#else
+#define TA_HD
+#endif
+
+namespace ta {
+namespace core {
+
+template <typename T>
+TA_HD inline T tmin(T a, T b) { return (b < a) ? b : a; }  // same tie rule as std::min
+template <typename T>
+TA_HD inline T tmax(T a, T b) { return (a < b) ? b : a; }  // same tie rule as std::max
+
+TA_HD inline float tsqrt(float x) { return sqrtf(x); }
+TA_HD inline double tsqrt(double x) { return sqrt(x); }
+TA_HD inline float texp(float x) { return expf(x); }
+TA_HD inline double texp(double x) { return exp(x); }
+TA_HD inline float tlog(float x) { return logf(x); }
+TA_HD inline double tlog(double x) { return log(x); }
+TA_HD inline float tsin(float x) { return sinf(x); }
+TA_HD inline double tsin(double x) { return sin(x); }
+TA_HD inline float tcos(float x) { return cosf(x); }
+TA_HD inline double tcos(double x) { return cos(x); }
+TA_HD inline float tabs(float x) { return fabsf(x); }
+TA_HD inline double tabs(double x) { return fabs(x); }
+TA_HD inline float tcopysign(float x, float y) { return copysignf(x, y); }
+TA_HD inline double tcopysign(double x, double y) { return copysign(x, y); }
+TA_HD inline float tatan2(float y, float x) { return atan2f(y, x); }
+TA_HD inline double tatan2(double y, double x) { return atan2(y, x); }
+TA_HD inline float tacos(float x) { return acosf(x); }
+TA_HD inline double tacos(double x) { return acos(x); }
+TA_HD inline float tfloor(float x) { return floorf(x); }
+TA_HD inline double tfloor(double x) { return floor(x); }
+
+template <typename T>
+TA_HD inline T tinf() { return T(INFINITY); }
+
+template <typename T>
+TA_HD inline T dot3(const T a[3], const T b[3]) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+template <typename T>
+TA_HD inline void normalize3(T a[3]) {
+  const T inv = T(1) / tsqrt(dot3(a, a));
+  for (int k = 0; k < 3; ++k) a[k] *= inv;
+}
+
+constexpr double kPi = 3.14159265358979323846;
+
+}  // namespace core
+}  // namespace ta

@@ -1,0 +1,85 @@
+// Sensors: where paths start. Consulted once per path, so a tagged struct dispatched by `switch`.
+//
+//   Face           one texel per voxel column of the box's top (z = D·sz) and/or bottom (z = 0) face; a sample
+//                  starts at a uniform point of the texel's square footprint, along the inward normal.
+//   SurfaceTexels  an arbitrary list of texels: surface point P, outward unit normal n, footprint radius r. A
+//                  sample is a uniform point of the disc of radius r around P in the tangent plane, lifted
+//                  outwards by `lift` mm, shot along −n; the texel value is the radiance leaving along n.
+//   Orthographic   pixel (r, c) starts at origin + right·((c + ξ1)/cols − ½)·width + up·(½ − (r + ξ2)/rows)·height,
+//                  direction forward.
+//   Perspective    pinhole at origin; direction normalise(forward + x·right + y·up) with
+//                  x = (2(c + ξ1)/cols − 1)·tan(fov_y/2)·cols/rows, y = (1 − 2(r + ξ2)/rows)·tan(fov_y/2).
+// Row 0 of an image is the `up` side, column 0 the left side. Positions are world mm.
+#pragma once
+
+#include "core/defs.h"
+#include "core/optics.h"
+
+namespace ta {
+namespace core {
+
+enum SensorKind : int { kFaceTexels = 0, kSurfaceTexels = 1, kOrthographic = 2, kPerspective = 3 };
+enum Face : int { kFaceTop = 0, kFaceBottom = 1, kFaceBoth = 2 };
+
+template <typename T>
+struct Sensor {
+  int kind = kFaceTexels;
+  int face = kFaceTop;         // kFaceTexels
+  const T* points = nullptr;   // kSurfaceTexels: (N, 3) world mm
+  const T* normals = nullptr;  //                 (N, 3) outward unit normals
+  const T* radius = nullptr;   //                 (N,) footprint radius, mm
+  int64_t count = 0;           // kSurfaceTexels: N
+  T lift = 0;                  //                 start offset along n, mm
+  T origin[3] = {0, 0, 0};     // cameras: eye position (world mm) and orthonormal frame
+  T forward[3] = {0, 0, -1};
+  T right[3] = {1, 0, 0};
+  T up[3] = {0, 1, 0};
+  int64_t rows = 0, cols = 0;  // cameras: image size
+  T width = 0, height = 0;     // kOrthographic: image extent, mm
+  T tan_half_fov = 0;          // kPerspective: tan(fov_y / 2)
+
+  // World-space start ray of element `e` (not for kFaceTexels, which the walk starts itself), from the
+  // uniforms u[0], u[1] (u[2] is left for the first Fresnel event).
+  TA_HD inline void generate(int64_t e, const T u[4], T o[3], T d[3]) const {
+    switch (kind) {
+      case kSurfaceTexels: {
+        const T* P = points + 3 * e;
+        const T* n = normals + 3 * e;
+        T b1[3], b2[3];
+        tangent_frame(n, b1, b2);
+        const T rho = radius[e] * tsqrt(u[0]);
+        const T phi = T(2 * kPi) * u[1];
+        const T cx = rho * tcos(phi), cy = rho * tsin(phi);
+        for (int k = 0; k < 3; ++k) {
+          o[k] = P[k] + cx * b1[k] + cy * b2[k] + lift * n[k];
+          d[k] = -n[k];
+        }
+        return;
+      }
+      case kOrthographic: {
+        const int64_t r = e / cols, c = e % cols;
+        const T sx = ((T(c) + u[0]) / T(cols) - T(0.5)) * width;
+        const T sy = (T(0.5) - (T(r) + u[1]) / T(rows)) * height;
+        for (int k = 0; k < 3; ++k) {
+          o[k] = origin[k] + right[k] * sx + up[k] * sy;
+          d[k] = forward[k];
+        }
+        return;
+      }
+      default: {  // kPerspective
+        const int64_t r = e / cols, c = e % cols;
+        const T x = (T(2) * (T(c) + u[0]) / T(cols) - T(1)) * tan_half_fov * T(cols) / T(rows);
+        const T y = (T(1) - T(2) * (T(r) + u[1]) / T(rows)) * tan_half_fov;
+        for (int k = 0; k < 3; ++k) {
+          o[k] = origin[k];
+          d[k] = forward[k] + x * right[k] + y * up[k];
+        }
+        normalize3(d);
+        return;
+      }
+    }
+  }
+};
+
+}  // namespace core
+}  // namespace ta
