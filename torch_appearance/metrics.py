@@ -83,7 +83,7 @@ def linear_rgb_to_lab(rgb):
         ``(..., 3)`` L*a*b*; a tensor (input's dtype and device) for tensor input, else a float64 ndarray.
 
     Example:
-        >>> linear_rgb_to_lab(np.array([1.0, 1.0, 1.0])).round(6).tolist()
+        >>> (linear_rgb_to_lab(np.array([1.0, 1.0, 1.0])).round(6) + 0.0).tolist()   # + 0.0: no −0.0
         [100.0, 0.0, 0.0]
     """
     return _like(_lab(_as_rgb_array("rgb", rgb)), rgb)

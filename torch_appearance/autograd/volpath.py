@@ -1,7 +1,7 @@
 """``VolumePathTrace``: the C++ volume path tracer as a ``torch.autograd.Function``.
 
-Forward renders texel radiance; backward is radiative backpropagation by path replay (csrc/volpath/tracer.h):
-each path is regenerated from its counter-based random numbers and ∂(path contribution)/∂θ is deposited into the
+Forward renders the radiance seen by the sensor (texels or pixels); backward is radiative backpropagation by path
+replay (csrc/core/integrator.h): each path is regenerated from its counter-based random numbers and ∂(path contribution)/∂θ is deposited into the
 voxels it touched. Linear time, no tape, memory independent of path length; gradient work only for inputs
 with ``requires_grad``.
 """
@@ -50,21 +50,22 @@ def reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo, sigma_t
 
 
 class VolumePathTrace(torch.autograd.Function):
-    """Texel radiance of a voxel slab; differentiable in ``sigma_t`` and ``albedo``.
+    """Radiance seen by a scene's sensor; differentiable in ``sigma_t`` and ``albedo``.
 
-    Inputs are validated by :func:`torch_appearance.render_texels`, which is the function to call.
-    ``scene`` is a :class:`torch_appearance.render.SlabScene`; ``stats`` an optional dict that receives
-    ``forward_s``, ``scatter_events`` and, after backward, ``backward_s``, ``backward_scatter_events``.
+    Inputs are validated by :func:`torch_appearance.render_texels` or :func:`torch_appearance.render_scene`, which
+    are the functions to call. ``job`` is a :class:`torch_appearance.render.SlabScene` or a scene with its per-call
+    settings (spp, seed, seed_grad); ``stats`` an optional dict that receives ``forward_s``, ``scatter_events``
+    and, after backward, ``backward_s``, ``backward_scatter_events``.
     """
 
     @staticmethod
-    def forward(ctx, sigma_t, albedo, sampling_sigma_t, sampling_albedo, scene, stats):
+    def forward(ctx, sigma_t, albedo, sampling_sigma_t, sampling_albedo, job, stats):
         sigma_t = sigma_t.contiguous()
         albedo = albedo.contiguous()
         ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
-        options = scene.trace_options(sampling_lanes(ref_s))
+        options = job.scene_options(sampling_lanes(ref_s), job.seed, tuple(sigma_t.shape[1:]), sigma_t.dtype)
         start = time.perf_counter()
-        image, counts = _C.volpath_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
+        image, counts = _C.scene_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
         if stats is not None:
             stats["forward_s"] = time.perf_counter() - start
             stats["scatter_events"] = counts.scatter_events
@@ -72,12 +73,11 @@ class VolumePathTrace(torch.autograd.Function):
             stats["lanes"] = options.lanes
         walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
         if counts.truncated_paths > _TRUNCATION_WARN * walks:
-            warnings.warn(f"render_texels: {counts.truncated_paths} of {walks} paths were cut at max_depth="
+            warnings.warn(f"{job.name}: {counts.truncated_paths} of {walks} paths were cut at max_depth="
                           f"{options.max_depth} interactions; the image is biased dark by up to that fraction. "
                           f"Raise max_depth (optically very thick, bright media have heavy-tailed path lengths).",
                           RuntimeWarning, stacklevel=3)
-        ctx.scene, ctx.stats = scene, stats
-        ctx.explicit = (sampling_sigma_t is not None, sampling_albedo is not None)
+        ctx.job, ctx.stats = job, stats
         ctx.save_for_backward(sigma_t, albedo,
                               sampling_sigma_t if sampling_sigma_t is not None else None,
                               sampling_albedo if sampling_albedo is not None else None)
@@ -90,13 +90,14 @@ class VolumePathTrace(torch.autograd.Function):
         if not (need_s or need_a):
             return None, None, None, None, None, None
         sigma_t, albedo, samp_s, samp_a = ctx.saved_tensors
-        scene = ctx.scene
+        job = ctx.job
         ref_s, ref_a, _ = reference_medium(sigma_t, albedo, samp_s, samp_a,
-                                           sigma_t_floor=scene.sigma_t_floor(sigma_t.shape), albedo_floor=scene.settings.albedo_floor)
-        options = scene.trace_options(sampling_lanes(ref_s))
+                                           sigma_t_floor=job.sigma_t_floor(sigma_t.shape),
+                                           albedo_floor=job.settings.albedo_floor)
+        options = job.scene_options(sampling_lanes(ref_s), job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype)
         start = time.perf_counter()
-        grad_s, grad_a, events = _C.volpath_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),
-                                                     albedo.detach(), ref_s, ref_a, need_s, need_a, options)
+        grad_s, grad_a, events = _C.scene_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),
+                                                   albedo.detach(), ref_s, ref_a, need_s, need_a, options)
         if ctx.stats is not None:
             ctx.stats["backward_s"] = time.perf_counter() - start
             ctx.stats["backward_scatter_events"] = int(events)
@@ -104,5 +105,5 @@ class VolumePathTrace(torch.autograd.Function):
                 grad_a if need_a else None,
                 None,  # sampling_sigma_t: detached by definition
                 None,  # sampling_albedo
-                None,  # scene
+                None,  # job
                 None)  # stats

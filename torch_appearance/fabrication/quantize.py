@@ -173,8 +173,11 @@ def quantize_mixture(weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0):
         TypeError, ValueError: naming the argument.
 
     Example:
+        >>> from torch_appearance.fabrication import InkSet
+        >>> from torch_appearance.nn import MaterialMixture
         >>> rho = MaterialMixture(InkSet.from_names(), (12, 16, 16)).weights()
-        >>> indices = quantize_mixture(rho, 25.4 / 300)   # (37, 16, 32) at 600 × 300 × 940 DPI
+        >>> quantize_mixture(rho, 25.4 / 300).shape     # at 600 × 300 × 940 DPI
+        (38, 16, 32)
     """
     w = _weights_numpy(weights)
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:

@@ -118,7 +118,7 @@ class FixedFraction:
 
     Example:
         >>> core = torch.zeros(12, 32, 32, dtype=torch.bool); core[:6] = True
-        >>> FixedFraction(core, "transparent", 0.8)      # 80 % clear in the bottom half
+        >>> clear = FixedFraction(core, "transparent", 0.8)      # 80 % clear in the bottom half
     """
     mask: Any
     ink: str

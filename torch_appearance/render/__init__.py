@@ -1,7 +1,12 @@
-"""Scene description and rendering entry points."""
-from .scene import (ConstantEnvironment, Dielectric, HenyeyGreenstein, IndexMatched, PathSettings, SlabScene,
-                    TexelSensor, default_max_depth, default_rr_depth)
-from .volpath import render_texels
+"""Scene description and rendering entry points (one file per scene piece)."""
+from .boundary import BoxBoundary, Dielectric, IndexMatched, SDFBoundary
+from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
+from .phase import HenyeyGreenstein
+from .scene import PathSettings, Scene, SlabScene, default_max_depth, default_rr_depth, derive_seed_grad
+from .sensor import FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels, TexelSensor
+from .volpath import render_scene, render_texels
 
-__all__ = ["render_texels", "SlabScene", "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment",
-           "TexelSensor", "PathSettings", "default_max_depth", "default_rr_depth"]
+__all__ = ["render_texels", "render_scene", "Scene", "BoxBoundary", "SDFBoundary", "FaceTexels", "SurfaceTexels",
+           "OrthographicCamera", "PerspectiveCamera", "ConstantEnvironment", "EnvironmentMap", "DiscLight",
+           "HenyeyGreenstein", "PathSettings", "derive_seed_grad", "SlabScene", "Dielectric", "IndexMatched",
+           "TexelSensor", "default_max_depth", "default_rr_depth"]

@@ -1,26 +1,35 @@
-"""Scene description for the volume path tracer: medium grids, phase, boundary, emitter, sensor, integrator.
+"""Scenes of the volume path tracer: the medium's placement and the pieces around it.
 
-Each piece is a small frozen dataclass that validates itself, so later scene kinds (trilinear grids with a
-majorant, SDF boundaries, cameras, other emitters) are new pieces rather than new flags on one big struct.
-:func:`SlabScene.trace_options` turns a slab scene into the options struct of the C++ core.
+A scene holds everything but the medium grids (σ_t and albedo are the differentiable inputs): the voxel size and
+origin, the boundary (boundary.py), the sensor (sensor.py), the emitter (emitter.py), the phase function
+(phase.py) and the integrator settings. Each piece is a frozen dataclass that validates itself and flattens once
+to the C++ struct of the same role (``to_cpp``); :meth:`Scene.scene_options` assembles them.
+
+:class:`SlabScene` is the slab of :func:`render_texels` (box boundary, face texels, constant environment);
+:class:`Scene` is the general scene of :func:`render_scene`.
 
 Conventions (DESIGN.md): lengths in mm, σ in mm⁻¹, linear RGB. A grid of D×H×W voxels with edges
-``voxel_size`` = (sx, sy, sz) occupies [0, W·sx]×[0, H·sy]×[0, D·sz]; D is the printing (z) axis, "top" is
-z = D·sz, "bottom" is z = 0.
+``voxel_size`` = (sx, sy, sz) occupies origin + [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W, y ↔ H, z ↔ D); D is the
+printing (z) axis, "top" is z = D·sz, "bottom" is z = 0.
 """
 from dataclasses import dataclass, field
 import math
-import numbers
 from typing import Optional, Tuple
 
 import torch
 
-__all__ = [
-    "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment", "TexelSensor", "PathSettings",
-    "SlabScene", "voxel_edges", "check_grid", "check_medium", "default_max_depth", "default_rr_depth", "FACES",
-]
+from .boundary import BoxBoundary, Dielectric, IndexMatched, SDFBoundary
+from .checks import check_int, check_real, is_int
+from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
+from .phase import HenyeyGreenstein
+from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels, TexelSensor
 
-FACES = {"top": 0, "bottom": 1, "both": 2}
+__all__ = [
+    "Scene", "SlabScene", "PathSettings", "voxel_edges", "check_grid", "check_medium", "default_max_depth",
+    "default_rr_depth", "derive_seed_grad",
+    # the pieces, re-exported for older imports
+    "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment", "TexelSensor", "FACES",
+]
 
 #: Default interaction limit (scatterings + internal reflections). Path lengths in a dense white slab have a
 #: heavy tail. Measured on a white-furnace slab 2.5 mm thick at σ_t = 24 mm⁻¹ (60 mean free paths), ior 1.5,
@@ -28,97 +37,6 @@ FACES = {"top": 0, "bottom": 1, "both": 2}
 default_max_depth = 65536
 #: Russian roulette starts after this many interactions; it acts on the reference throughput only.
 default_rr_depth = 32
-
-
-def _is_real(x):
-    return isinstance(x, numbers.Real) and not isinstance(x, bool)
-
-
-def _is_int(x):
-    return isinstance(x, numbers.Integral) and not isinstance(x, bool)
-
-
-def _real(name, value, *, lo=-math.inf, hi=math.inf, lo_open=False, hi_open=False):
-    if isinstance(value, torch.Tensor) and value.numel() == 1:
-        value = value.item()
-    if not _is_real(value):
-        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
-    value = float(value)
-    bad_lo = value <= lo if lo_open else value < lo
-    bad_hi = value >= hi if hi_open else value > hi
-    if not math.isfinite(value) or bad_lo or bad_hi:
-        lo_s = ("(" if lo_open else "[") + f"{lo:g}"
-        hi_s = f"{hi:g}" + (")" if hi_open else "]")
-        raise ValueError(f"{name}: expected a finite value in {lo_s}, {hi_s}, got {value!r}")
-    return value
-
-
-def _int(name, value, *, lo):
-    if not _is_int(value):
-        raise TypeError(f"{name}: expected an int, got {type(value).__name__}")
-    if value < lo:
-        raise ValueError(f"{name}: expected an int >= {lo}, got {value}")
-    return int(value)
-
-
-@dataclass(frozen=True)
-class HenyeyGreenstein:
-    """Henyey–Greenstein phase function with mean cosine ``g`` in (−1, 1); sampled exactly."""
-    g: float = 0.4
-
-    def __post_init__(self):
-        object.__setattr__(self, "g", _real("g", self.g, lo=-1, hi=1, lo_open=True, hi_open=True))
-
-
-@dataclass(frozen=True)
-class IndexMatched:
-    """No boundary: paths cross the slab faces unchanged."""
-
-
-@dataclass(frozen=True)
-class Dielectric:
-    """Smooth dielectric on all six faces: exact unpolarised Fresnel, total internal reflection."""
-    ior: float = 1.5
-
-    def __post_init__(self):
-        object.__setattr__(self, "ior", _real("ior", self.ior, lo=1.0))
-
-
-@dataclass(frozen=True)
-class ConstantEnvironment:
-    """Uniform environment radiance (linear RGB) received by every path that escapes."""
-    radiance: Tuple[float, float, float] = (1.0, 1.0, 1.0)
-
-    @staticmethod
-    def from_value(value):
-        """Build from a scalar, a length-3 sequence or a 1- or 3-element tensor."""
-        if isinstance(value, torch.Tensor):
-            value = value.detach().flatten().tolist()
-        if _is_real(value):
-            value = (value,) * 3
-        if not isinstance(value, (tuple, list)) or len(value) not in (1, 3):
-            raise ValueError(f"environment: expected a scalar or 3 RGB values, got {value!r}")
-        if len(value) == 1:
-            value = tuple(value) * 3
-        return ConstantEnvironment(tuple(_real("environment", v, lo=0.0) for v in value))
-
-
-@dataclass(frozen=True)
-class TexelSensor:
-    """One texel per voxel column of ``face`` ("top", "bottom" or "both"), ``spp`` jittered samples each.
-
-    A sample starts just outside the face at a uniform point of the texel's square footprint and points along
-    the inward normal; the texel value is the radiance leaving the face along the normal (linear RGB).
-    """
-    face: str = "top"
-    spp: int = 16
-
-    def __post_init__(self):
-        if not isinstance(self.face, str) or self.face not in FACES:
-            raise ValueError(f"face: expected one of {sorted(FACES)}, got {self.face!r}")
-        object.__setattr__(self, "spp", _int("spp", self.spp, lo=1))
-        if self.spp >= 2 ** 32:
-            raise ValueError(f"spp: expected < 2**32, got {self.spp}")
 
 
 @dataclass(frozen=True)
@@ -138,15 +56,15 @@ class PathSettings:
     albedo_floor: float = 0.05
 
     def __post_init__(self):
-        if not _is_int(self.seed):
+        if not is_int(self.seed):
             raise TypeError(f"seed: expected an int, got {type(self.seed).__name__}")
         if not -2 ** 63 <= self.seed < 2 ** 64:
             raise ValueError(f"seed: expected a 64-bit integer, got {self.seed}")
-        object.__setattr__(self, "max_depth", _int("max_depth", self.max_depth, lo=1))
-        object.__setattr__(self, "rr_depth", _int("rr_depth", self.rr_depth, lo=0))
+        object.__setattr__(self, "max_depth", check_int("max_depth", self.max_depth, lo=1))
+        object.__setattr__(self, "rr_depth", check_int("rr_depth", self.rr_depth, lo=0))
         if self.sigma_t_floor is not None:
-            object.__setattr__(self, "sigma_t_floor", _real("sigma_t_floor", self.sigma_t_floor, lo=0.0))
-        object.__setattr__(self, "albedo_floor", _real("albedo_floor", self.albedo_floor, lo=0.0, hi=1.0))
+            object.__setattr__(self, "sigma_t_floor", check_real("sigma_t_floor", self.sigma_t_floor, lo=0.0))
+        object.__setattr__(self, "albedo_floor", check_real("albedo_floor", self.albedo_floor, lo=0.0, hi=1.0))
 
 
 @dataclass(frozen=True)
@@ -199,21 +117,174 @@ class SlabScene:
         sx, sy, sz = self.voxel_size
         return 0.5 / math.sqrt((w * sx) ** 2 + (h * sy) ** 2 + (d * sz) ** 2)
 
-    def trace_options(self, lanes, seed=None):
-        """The C++ ``TraceOptions`` for this scene (``lanes`` = 3 when one walk serves all channels)."""
-        from .._ext import _C
-        opt = _C.TraceOptions()
-        opt.voxel_size = list(self.voxel_size)
-        opt.face = FACES[self.sensor.face]
-        opt.g = self.phase.g
-        opt.ior = self.boundary.ior if isinstance(self.boundary, Dielectric) else -1.0
-        opt.environment = list(self.emitter.radiance)
-        opt.spp = self.sensor.spp
-        seed = self.settings.seed if seed is None else seed
-        opt.seed = seed if seed < 2 ** 63 else seed - 2 ** 64  # the same 64 bits, as a signed int64
-        opt.max_depth = self.settings.max_depth
-        opt.rr_depth = self.settings.rr_depth
-        opt.lanes = lanes
+    # ---- what the autograd Function asks of a render job (see _TraceJob)
+    name = "render_texels"
+
+    @property
+    def spp(self):
+        return self.sensor.spp
+
+    @property
+    def seed(self):
+        return self.settings.seed
+
+    @property
+    def seed_grad(self):
+        return self.settings.seed  # render_texels replays the forward's own paths (unchanged since the first wave)
+
+    def scene_options(self, lanes, seed, grid_shape, dtype):
+        """The C++ ``SceneOptions``: box boundary, face texels, constant environment."""
+        boundary = BoxBoundary(self.boundary.ior if isinstance(self.boundary, Dielectric) else None)
+        return _assemble(self.voxel_size, (0.0, 0.0, 0.0), self.phase.g, boundary.to_cpp(grid_shape, dtype),
+                         FaceTexels(self.sensor.face).to_cpp(self, grid_shape, dtype), self.emitter.to_cpp(dtype),
+                         self.sensor.spp, seed, self.settings, lanes)
+
+
+def derive_seed_grad(seed):
+    """The default gradient seed of a forward seed: a fixed bijection of the 64-bit seeds (odd multiplier and
+    offset, as in SplitMix64), so that the gradient replay draws paths independent of the forward's noise."""
+    return (int(seed) * 0x9E3779B97F4A7C15 + 0x632BE59BD9B4E019) % 2 ** 64
+
+
+def _signed64(seed):
+    seed = int(seed) % 2 ** 64
+    return seed if seed < 2 ** 63 else seed - 2 ** 64  # the same 64 bits, as a signed int64
+
+
+def _check_seed(name, seed):
+    if not is_int(seed):
+        raise TypeError(f"{name}: expected an int, got {type(seed).__name__}")
+    if not -2 ** 63 <= seed < 2 ** 64:
+        raise ValueError(f"{name}: expected a 64-bit integer, got {seed}")
+    return int(seed)
+
+
+def _assemble(voxel_size, origin, g, boundary, sensor, emitter, spp, seed, settings, lanes):
+    from .._ext import _C
+    opt = _C.SceneOptions()
+    opt.voxel_size = list(voxel_size)
+    opt.origin = list(origin)
+    opt.g = g
+    opt.boundary = boundary
+    opt.sensor = sensor
+    opt.emitter = emitter
+    opt.spp = spp
+    opt.seed = _signed64(seed)
+    opt.max_depth = settings.max_depth
+    opt.rr_depth = settings.rr_depth
+    opt.lanes = lanes
+    return opt
+
+
+_BOUNDARIES = (BoxBoundary, SDFBoundary)
+_SENSORS = (FaceTexels, SurfaceTexels, OrthographicCamera, PerspectiveCamera)
+_EMITTERS = (ConstantEnvironment, EnvironmentMap, DiscLight)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A voxel medium placed in world space with a boundary, a sensor and an emitter (the medium grids are the
+    differentiable inputs of :func:`render_scene`).
+
+    Args:
+        voxel_size: voxel edge in mm, or the three edges (x, y, z).
+        origin: world position (mm) of the grid corner: the grid spans origin + (W, H, D)·voxel_size.
+        boundary: :class:`BoxBoundary` (default, dielectric 1.5) or :class:`SDFBoundary`.
+        sensor: :class:`FaceTexels` (default "top"; box only), :class:`SurfaceTexels`,
+            :class:`OrthographicCamera` or :class:`PerspectiveCamera`.
+        emitter: :class:`ConstantEnvironment` (default 1), :class:`EnvironmentMap` or :class:`DiscLight`.
+        g: Henyey–Greenstein mean cosine in (−1, 1).
+        max_depth, rr_depth: interaction limit and start of Russian roulette (see :class:`PathSettings`); SDF
+            boundaries count surface crossings as interactions too.
+        sigma_t_floor, albedo_floor: floors of the default gradient sampling (see :class:`PathSettings`).
+
+    Example:
+        >>> import torch
+        >>> from torch_appearance.render import Scene, SDFBoundary, OrthographicCamera
+        >>> k, j, i = torch.meshgrid(*(torch.arange(9.0),) * 3, indexing="ij")
+        >>> sdf = ((i - 4) ** 2 + (j - 4) ** 2 + (k - 4) ** 2).sqrt() * 0.1 - 0.3
+        >>> scene = Scene(voxel_size=0.1, origin=(-0.4, -0.4, -0.4), boundary=SDFBoundary(sdf, ior=1.5),
+        ...               sensor=OrthographicCamera(origin=(0, 0, 2), target=(0, 0, 0), up=(0, 1, 0),
+        ...                                         extent_mm=(0.8, 0.8), resolution=(8, 8)))
+        >>> scene.output_shape((8, 8, 8))
+        (8, 8, 3)
+    """
+    voxel_size: Tuple[float, float, float]
+    origin: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    boundary: object = field(default_factory=BoxBoundary)
+    sensor: object = field(default_factory=FaceTexels)
+    emitter: object = field(default_factory=ConstantEnvironment)
+    g: float = 0.4
+    max_depth: int = default_max_depth
+    rr_depth: int = default_rr_depth
+    sigma_t_floor: Optional[float] = None
+    albedo_floor: float = 0.05
+
+    def __post_init__(self):
+        from .checks import check_vector3
+        object.__setattr__(self, "voxel_size", voxel_edges(self.voxel_size))
+        object.__setattr__(self, "origin", check_vector3("origin", self.origin))
+        object.__setattr__(self, "g", HenyeyGreenstein(self.g).g)
+        for name, value, kinds in (("boundary", self.boundary, _BOUNDARIES), ("sensor", self.sensor, _SENSORS),
+                                   ("emitter", self.emitter, _EMITTERS)):
+            if not isinstance(value, kinds):
+                raise TypeError(f"{name}: expected one of {', '.join(k.__name__ for k in kinds)}, "
+                                f"got {type(value).__name__}")
+        if isinstance(self.sensor, FaceTexels) and not isinstance(self.boundary, BoxBoundary):
+            raise ValueError("sensor: FaceTexels read the faces of the grid box and need boundary=BoxBoundary(...); "
+                             "use SurfaceTexels for an SDF boundary")
+        settings = PathSettings(max_depth=self.max_depth, rr_depth=self.rr_depth, sigma_t_floor=self.sigma_t_floor,
+                                albedo_floor=self.albedo_floor)
+        object.__setattr__(self, "settings", settings)
+
+    def extent(self, grid_shape):
+        """(x, y, z) size of the grid box in mm for a (D, H, W) grid."""
+        d, h, w = grid_shape
+        sx, sy, sz = self.voxel_size
+        return (w * sx, h * sy, d * sz)
+
+    def output_shape(self, grid_shape):
+        """Shape of the rendered image for a (D, H, W) grid."""
+        return self.sensor.output_shape(tuple(grid_shape))
+
+    def check_grid_shape(self, grid_shape):
+        """Refuse pieces that do not fit a (D, H, W) grid (SDF shape, texels outside the grid)."""
+        if isinstance(self.boundary, SDFBoundary) and tuple(grid_shape) != self.boundary.grid_shape:
+            raise ValueError(f"sdf: expected shape (D+1, H+1, W+1) = {tuple(n + 1 for n in grid_shape)} for the "
+                             f"(D, H, W) = {tuple(grid_shape)} medium grid, got {tuple(self.boundary.sdf.shape)}")
+        if isinstance(self.sensor, SurfaceTexels):
+            self.sensor.check_inside(self.origin, self.extent(grid_shape))
+
+    def scene_options(self, lanes, seed, grid_shape, dtype):
+        """The C++ ``SceneOptions`` of this scene for a (D, H, W) grid of ``dtype``."""
+        return _assemble(self.voxel_size, self.origin, self.g, self.boundary.to_cpp(grid_shape, dtype),
+                         self.sensor.to_cpp(self, grid_shape, dtype), self.emitter.to_cpp(dtype), 1, seed,
+                         self.settings, lanes)
+
+
+@dataclass(frozen=True)
+class _TraceJob:
+    """A scene with the per-call settings of :func:`render_scene` (what the autograd Function needs)."""
+    scene: Scene
+    spp: int
+    seed: int
+    seed_grad: int
+    name: str = "render_scene"
+
+    @property
+    def settings(self):
+        return self.scene.settings
+
+    @property
+    def voxel_size(self):
+        return self.scene.voxel_size
+
+    def sigma_t_floor(self, grid_shape):
+        return SlabScene.sigma_t_floor(self, grid_shape)
+
+    def scene_options(self, lanes, seed, grid_shape, dtype):
+        opt = self.scene.scene_options(lanes, seed, grid_shape, dtype)
+        opt.spp = self.spp
         return opt
 
 
@@ -225,8 +296,8 @@ def voxel_edges(voxel_size):
     if isinstance(voxel_size, (tuple, list)):
         if len(voxel_size) != 3:
             raise ValueError(f"voxel_size: expected one edge or three edges (x, y, z) in mm, got {voxel_size!r}")
-        return tuple(_real("voxel_size", v, lo=0.0, lo_open=True) for v in voxel_size)
-    edge = _real("voxel_size", voxel_size, lo=0.0, lo_open=True)
+        return tuple(check_real("voxel_size", v, lo=0.0, lo_open=True) for v in voxel_size)
+    edge = check_real("voxel_size", voxel_size, lo=0.0, lo_open=True)
     return (edge, edge, edge)
 
 

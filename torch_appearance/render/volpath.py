@@ -1,8 +1,9 @@
-"""``render_texels``: texel-space radiance of a heterogeneous voxel slab, differentiable by path replay."""
+"""The tracer's entry points, differentiable by path replay: ``render_texels`` (a voxel slab's face texels) and
+``render_scene`` (any :class:`Scene`: box or SDF boundary, surface texels or cameras, any emitter)."""
 
-from .scene import SlabScene, check_grid, check_medium
+from .scene import Scene, SlabScene, _TraceJob, _check_seed, check_grid, check_medium, derive_seed_grad
 
-__all__ = ["render_texels"]
+__all__ = ["render_texels", "render_scene"]
 
 
 def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0,
@@ -68,6 +69,11 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
     scene = SlabScene.create(voxel_size, face=face, g=g, ior=ior, environment=environment, spp=spp, seed=seed,
                              max_depth=max_depth, rr_depth=rr_depth, sigma_t_floor=sigma_t_floor,
                              albedo_floor=albedo_floor)
+    samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
+    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, scene, stats)
+
+
+def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
     if sampling_sigma_t is not None:
         check_grid("sampling_sigma_t", sampling_sigma_t, like=sigma_t)
         if bool(((sampling_sigma_t.detach() <= 0) & (sigma_t.detach() > 0)).any()):
@@ -80,4 +86,68 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         raise TypeError(f"stats: expected a dict or None, got {type(stats).__name__}")
     samp_s = None if sampling_sigma_t is None else sampling_sigma_t.detach()
     samp_a = None if sampling_albedo is None else sampling_albedo.detach()
-    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, scene, stats)
+    return samp_s, samp_a
+
+
+def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, sampling_sigma_t=None,
+                 sampling_albedo=None, stats=None):
+    """Render what ``scene``'s sensor sees of a heterogeneous voxel medium, differentiably.
+
+    The medium (per-voxel, per-channel σ_t and albedo, piecewise constant, exact regular tracking) fills the grid
+    placed at ``scene.origin`` and counts only inside the scene's boundary (the grid box, or the zero set of an SDF
+    grid); the boundary is index matched or a smooth dielectric. Paths start at the sensor (face or surface texels,
+    orthographic or perspective camera pixels) and receive the emitter's radiance in the direction they escape.
+
+    The backward pass is radiative backpropagation by path replay, as for :func:`render_texels`: linear time, no
+    tape; gradients only for inputs that require them. The replay samples a detached reference medium with
+    density floors and draws its paths with ``seed_grad``, independent of the forward's noise (as Mitsuba's
+    ``render(seed, seed_grad)``). With explicit ``sampling_sigma_t``/``sampling_albedo`` and ``seed_grad=seed`` the
+    image is a smooth function of the parameters for a fixed seed and the backward its exact derivative
+    (``torch.autograd.gradcheck`` passes in float64).
+
+    Args:
+        scene: a :class:`torch_appearance.render.Scene`.
+        sigma_t: (3, D, H, W) extinction coefficient in mm⁻¹, >= 0, float32 or float64, CPU.
+        albedo: (3, D, H, W) single-scattering albedo in [0, 1], same dtype.
+        spp: samples per sensor element (per channel when σ_t is chromatic), >= 1.
+        seed: 64-bit seed of the forward pass; results are reproducible for a seed, independent of threads.
+        seed_grad: 64-bit seed of the gradient replay; default :func:`derive_seed_grad` (seed).
+        sampling_sigma_t, sampling_albedo: optional detached (3, D, H, W) sampling medium (see render_texels).
+        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes`` and, after backward,
+            ``backward_s`` and ``backward_scatter_events``.
+
+    Returns:
+        Linear RGB radiance: (rows, cols, 3) for a camera (row 0 is the camera's up side), (N, 3) for surface texels,
+        (H, W, 3) or (2, H, W, 3) for face texels.
+
+    Raises:
+        TypeError, ValueError: naming the argument, what was expected and what was received.
+
+    Example:
+        >>> import torch, torch_appearance as ta
+        >>> from torch_appearance.render import Scene, SDFBoundary, OrthographicCamera
+        >>> k, j, i = torch.meshgrid(*(torch.arange(9.0),) * 3, indexing="ij")
+        >>> sdf = ((i - 4) ** 2 + (j - 4) ** 2 + (k - 4) ** 2).sqrt() * 0.1 - 0.3      # sphere, r = 0.3 mm
+        >>> scene = Scene(voxel_size=0.1, origin=(-0.4, -0.4, -0.4), boundary=SDFBoundary(sdf, ior=1.5),
+        ...               sensor=OrthographicCamera(origin=(0, 0, 2), target=(0, 0, 0), up=(0, 1, 0),
+        ...                                         extent_mm=(0.8, 0.8), resolution=(8, 8)))
+        >>> sigma_t = torch.full((3, 8, 8, 8), 10.0, requires_grad=True)
+        >>> albedo = torch.full((3, 8, 8, 8), 1.0)
+        >>> image = ta.render_scene(scene, sigma_t, albedo, spp=4)
+        >>> image.shape, bool(torch.allclose(image, torch.ones(()), atol=1e-5))     # white furnace
+        (torch.Size([8, 8, 3]), True)
+        >>> image.sum().backward()      # fills sigma_t.grad
+    """
+    from ..autograd.volpath import VolumePathTrace
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
+    check_medium(sigma_t, albedo)
+    scene.check_grid_shape(tuple(sigma_t.shape[1:]))
+    from .sensor import _spp
+    spp = _spp(spp)
+    seed = _check_seed("seed", seed)
+    seed_grad = derive_seed_grad(seed) if seed_grad is None else _check_seed("seed_grad", seed_grad)
+    samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
+    job = _TraceJob(scene, spp, seed, seed_grad)
+    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
