@@ -5,8 +5,8 @@ pass is radiative backpropagation by path replay; see :func:`render_texels` (sla
 (general scenes).
 """
 from ._ext import _C  # noqa: F401  (fails with a message saying how to build, if missing or stale)
-from . import autograd, nn, render
+from . import autograd, geometry, nn, render
 from .render import render_scene, render_texels
 
 __version__ = "0.1.0"
-__all__ = ["render_texels", "render_scene", "autograd", "nn", "render", "__version__"]
+__all__ = ["render_texels", "render_scene", "autograd", "geometry", "nn", "render", "__version__"]
