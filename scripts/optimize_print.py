@@ -65,6 +65,9 @@ def parse_args(argv=None):
                    help="native printer resolution x,y,z for quantisation (default: 600,300,940)")
     p.add_argument("--ior", type=float, default=d.ior, help="refractive index of the print (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed, help="(default: %(default)s)")
+    p.add_argument("--gradient-seed", choices=("same", "independent"), default=d.gradient_seed,
+                   help="gradient replay: retrace the forward's paths ('same') or draw independent ones with "
+                        "seed_grad ('independent', as Mitsuba's render(seed, seed_grad)) (default: %(default)s)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--out", default=d.out,
                    help="run folder: config.json, log.csv, convergence.png, target/baseline/initial/optimized/final "
@@ -87,7 +90,7 @@ def main(argv=None):
                       gamma=args.gamma, spp=args.spp, eval_spp=args.eval_spp, eval_every=args.eval_every,
                       iterations=args.iterations, optimizer=args.optimizer, lr=args.lr,
                       parameterization=args.parameterization, printer_dpi=args.printer_dpi, ior=args.ior,
-                      seed=args.seed, out=args.out, resume=args.resume)
+                      seed=args.seed, gradient_seed=args.gradient_seed, out=args.out, resume=args.resume)
     try:
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

@@ -29,6 +29,7 @@ from ..fabrication.quantize import PRINTER_DPI, micro_grid_pitch, quantize_mixtu
 from ..metrics import color_report, delta_e_2000
 from ..nn.losses import AppearanceLoss
 from ..nn.mixture import MaterialMixture, mix_inks
+from ..render.scene import derive_seed_grad
 from ..render.volpath import render_texels
 from .targets import load_target
 
@@ -61,6 +62,7 @@ class PrintConfig:
     lr: float = 1.0
     parameterization: str = "sigmoid"
     seed: int = 0
+    gradient_seed: str = "same"  # "same": the replay retraces the forward's paths; "independent": seed_grad
     ior: Optional[float] = 1.5
     g: Optional[float] = None  # HG parameter; default: the inks' common g (0.4 for the built-in inks)
     printer_dpi: Tuple[float, float, float] = PRINTER_DPI
@@ -84,6 +86,8 @@ class PrintConfig:
         for name in ("width_mm", "height_mm"):
             if getattr(self, name) is not None:
                 positive(name, getattr(self, name))
+        if self.gradient_seed not in ("same", "independent"):
+            raise ValueError(f"gradient_seed: expected 'same' or 'independent', got {self.gradient_seed!r}")
         if self.optimizer not in ("adagrad", "adam"):
             raise ValueError(f"optimizer: expected 'adagrad' or 'adam', got {self.optimizer!r}")
         if len(tuple(self.gamma)) != 3 or min(self.gamma) < 0 or sum(self.gamma) <= 0:
@@ -128,8 +132,10 @@ def slab_texel_grid(faces_rgb, depth):
 
 def _render_faces(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None):
     g = inks.g if cfg.g is None else cfg.g  # the inks' common HG g unless the run overrides it
+    seed_grad = derive_seed_grad(seed) if cfg.gradient_seed == "independent" else None
     image = render_texels(sigma_t, albedo, voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
-                          face="both" if faces == 2 else "top", g=g, ior=cfg.ior, spp=spp, seed=seed)
+                          face="both" if faces == 2 else "top", g=g, ior=cfg.ior, spp=spp, seed=seed,
+                          seed_grad=seed_grad)
     return image if faces == 2 else image.unsqueeze(0)
 
 

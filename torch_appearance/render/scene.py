@@ -80,15 +80,18 @@ class SlabScene:
     emitter: ConstantEnvironment = field(default_factory=ConstantEnvironment)
     sensor: TexelSensor = field(default_factory=TexelSensor)
     settings: PathSettings = field(default_factory=PathSettings)
+    gradient_seed: Optional[int] = None  # seed of the gradient replay; None: the forward's seed
 
     def __post_init__(self):
         object.__setattr__(self, "voxel_size", voxel_edges(self.voxel_size))
+        if self.gradient_seed is not None:
+            object.__setattr__(self, "gradient_seed", _check_seed("seed_grad", self.gradient_seed))
         if not isinstance(self.boundary, (Dielectric, IndexMatched)):
             raise TypeError(f"boundary: expected Dielectric or IndexMatched, got {type(self.boundary).__name__}")
 
     @staticmethod
     def create(voxel_size, *, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0, max_depth=None,
-               rr_depth=None, sigma_t_floor=None, albedo_floor=0.05):
+               rr_depth=None, sigma_t_floor=None, albedo_floor=0.05, seed_grad=None):
         """The scene of :func:`torch_appearance.render_texels` from its keyword arguments (``ior=None``: index matched)."""
         return SlabScene(
             voxel_size=voxel_size,
@@ -99,7 +102,8 @@ class SlabScene:
             settings=PathSettings(seed=seed,
                                   max_depth=default_max_depth if max_depth is None else max_depth,
                                   rr_depth=default_rr_depth if rr_depth is None else rr_depth,
-                                  sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor))
+                                  sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor),
+            gradient_seed=seed_grad)
 
     def sigma_t_floor(self, grid_shape):
         """Density floor (mm⁻¹) of the default gradient sampling for a (…, D, H, W) grid.
@@ -130,7 +134,8 @@ class SlabScene:
 
     @property
     def seed_grad(self):
-        return self.settings.seed  # render_texels replays the forward's own paths (unchanged since the first wave)
+        # by default render_texels replays the forward's own paths (its behaviour since the first wave)
+        return self.settings.seed if self.gradient_seed is None else self.gradient_seed
 
     def scene_options(self, lanes, seed, grid_shape, dtype):
         """The C++ ``SceneOptions``: box boundary, face texels, constant environment."""

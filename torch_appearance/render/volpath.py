@@ -8,7 +8,7 @@ __all__ = ["render_texels", "render_scene"]
 
 def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0,
                   max_depth=None, rr_depth=None, sampling_sigma_t=None, sampling_albedo=None,
-                  sigma_t_floor=None, albedo_floor=0.05, stats=None):
+                  sigma_t_floor=None, albedo_floor=0.05, stats=None, seed_grad=None):
     """Render the radiance leaving a voxel slab along the face normal, one texel per voxel column.
 
     The slab is D×H×W voxels of edge ``voxel_size`` mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W,
@@ -46,6 +46,9 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         albedo_floor: albedo floor of the default gradient sampling, in [0, 1] (default 0.05).
         stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes`` and, after backward,
             ``backward_s`` and ``backward_scatter_events``.
+        seed_grad: seed of the gradient replay; default None = ``seed`` (the replay retraces the forward's own
+            random numbers, with the floored reference). :func:`torch_appearance.render.derive_seed_grad` gives
+            an independent one (as :func:`render_scene` does by default).
 
     Returns:
         (H, W, 3) linear RGB texel radiance for one face, (2, H, W, 3) for "both" (0 = top, 1 = bottom).
@@ -68,7 +71,7 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
     check_medium(sigma_t, albedo)
     scene = SlabScene.create(voxel_size, face=face, g=g, ior=ior, environment=environment, spp=spp, seed=seed,
                              max_depth=max_depth, rr_depth=rr_depth, sigma_t_floor=sigma_t_floor,
-                             albedo_floor=albedo_floor)
+                             albedo_floor=albedo_floor, seed_grad=seed_grad)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, scene, stats)
 
