@@ -14,6 +14,17 @@ voxels, smooth dielectric boundary with IOR 1.5, HG g = 0.4, top face):
                  long random walks; 4 spp
     thin         D = 12 of almost vacuum (sigma_t = 1e-4 mm^-1, albedo 1) with ~5 % of the voxels dense
                  white ink; 16 spp
+    sphere       (render_scene) a dielectric (IOR 1.5) SDF sphere of radius 1.2 mm in a 32^3 grid of ink-like
+                 chromatic medium, read by 4096 surface texels (Fibonacci points, footprint radius half a voxel),
+                 constant environment; 16 spp
+    camera       (render_scene) the same sphere seen by a 64 x 64 perspective camera under a disc light with
+                 ambient; 16 spp
+
+With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
+into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry
+points (``_C.volpath_forward``/``volpath_backward``, the forward on the parameters, the backward on the floored
+reference as render_texels does), alternating old and new for every repetition, and a JSON line per scene gives
+``ratio_forward`` and ``ratio_backward`` = new / old (medians, and of the fastest repetitions).
 
 One JSON line per scene and thread count is printed (and all of them written atomically to ``--out``),
 with the fields
@@ -31,13 +42,17 @@ and a bar chart of forward/backward seconds per scene is saved beside ``--out`` 
 Usage::
 
     python scripts/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
+    python scripts/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
 """
 import argparse
 import json
+import math
 import os
 import resource
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 import zlib
 
@@ -97,12 +112,56 @@ def scene_thin(generator):
     return sigma_t, albedo, 16
 
 
+SPHERE_N, SPHERE_R = 32, 1.2  # grid voxels per axis, sphere radius (mm)
+
+
+def _sphere_medium(generator):
+    shape = (SPHERE_N,) * 3
+    base = torch.tensor([2.25, 3.75, 19.0], dtype=torch.float64).view(3, 1, 1, 1)
+    sigma_t = base * (0.5 + torch.rand((3, *shape), generator=generator, dtype=torch.float64))
+    albedo = _uniform(generator, (3, *shape), 0.5, 0.9997)
+    return sigma_t, albedo
+
+
+def _sphere_scene(sensor, emitter):
+    from torch_appearance.geometry import sphere_sdf
+    from torch_appearance.render import Scene, SDFBoundary
+    half = SPHERE_N * VOXEL_SIZE / 2
+    origin = (-half, -half, -half)
+    sdf = sphere_sdf((SPHERE_N,) * 3, VOXEL_SIZE, origin, (0, 0, 0), SPHERE_R)
+    return Scene(voxel_size=VOXEL_SIZE, origin=origin, boundary=SDFBoundary(sdf, ior=1.5), sensor=sensor,
+                 emitter=emitter, g=0.4)
+
+
+def scene_sphere(generator):
+    from torch_appearance.render import ConstantEnvironment, SurfaceTexels
+    n = 4096  # Fibonacci sphere
+    k = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * k / n
+    phi = math.pi * (3 - math.sqrt(5)) * k
+    normals = torch.stack([(1 - z * z).sqrt() * phi.cos(), (1 - z * z).sqrt() * phi.sin(), z], dim=1)
+    sensor = SurfaceTexels(SPHERE_R * normals, normals, footprint_mm=VOXEL_SIZE / 2)
+    sigma_t, albedo = _sphere_medium(generator)
+    return sigma_t, albedo, 16, _sphere_scene(sensor, ConstantEnvironment(1.0))
+
+
+def scene_camera(generator):
+    from torch_appearance.render import DiscLight, PerspectiveCamera
+    cam = PerspectiveCamera(origin=(4.0, 2.5, 3.0), target=(0, 0, 0), up=(0, 0, 1), fov_y_deg=28,
+                            resolution=(TEXELS, TEXELS))
+    sigma_t, albedo = _sphere_medium(generator)
+    return sigma_t, albedo, 16, _sphere_scene(cam, DiscLight((1, -1, 2), 15, 20.0, 0.5))
+
+
 SCENES = {
     "ink-slab": scene_ink_slab,
     "achromatic": scene_achromatic,
     "white-dense": scene_white_dense,
     "thin": scene_thin,
+    "sphere": scene_sphere,
+    "camera": scene_camera,
 }
+SLAB_SCENES = ("ink-slab", "achromatic", "white-dense", "thin")
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -138,15 +197,18 @@ def _maxrss_mb():
 # --------------------------------------------------------------------------------------------------------------
 # timing
 # --------------------------------------------------------------------------------------------------------------
-def _run_once(sigma_t, albedo, weights, spp, seed, ior, g):
+def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None):
     """One forward + backward; returns wall seconds and the tracer's stats."""
     st = sigma_t.detach().clone().requires_grad_()
     al = albedo.detach().clone().requires_grad_()
     stats = {}
     start = time.perf_counter()
-    image = torch_appearance.render_texels(
-        st, al, voxel_size=VOXEL_SIZE, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats
-    )
+    if scene is None:
+        image = torch_appearance.render_texels(
+            st, al, voxel_size=VOXEL_SIZE, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats
+        )
+    else:
+        image = torch_appearance.render_scene(scene, st, al, spp=spp, seed=seed, stats=stats)
     forward_s = time.perf_counter() - start
     loss = (image * weights).sum()
     start = time.perf_counter()
@@ -162,15 +224,17 @@ def bench_scene(name, threads, args):
     peak_reset = _reset_peak_rss() and _status_kb("VmHWM") is not None
     baseline_kb = _status_kb("VmRSS")  # after the reset, so that VmHWM >= baseline
     generator = torch.Generator().manual_seed(args.seed + zlib.crc32(name.encode()))
-    sigma_t, albedo, default_spp = SCENES[name](generator)
+    sigma_t, albedo, default_spp, *scene = SCENES[name](generator)
+    scene = scene[0] if scene else None
     sigma_t = sigma_t.to(torch.float32).contiguous()
     albedo = albedo.to(torch.float32).contiguous()
     spp = args.spp if args.spp is not None else default_spp
     _, depth, height, width = sigma_t.shape
-    weights = torch.rand((height, width, 3), generator=generator, dtype=torch.float64).to(torch.float32)
+    out_shape = (height, width, 3) if scene is None else scene.output_shape((depth, height, width))
+    weights = torch.rand(out_shape, generator=generator, dtype=torch.float64).to(torch.float32)
 
-    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g)  # warm-up
-    runs = [_run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g) for _ in range(args.reps)]
+    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene)  # warm-up
+    runs = [_run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene) for _ in range(args.reps)]
     forward_s = statistics.median(r[0] for r in runs)
     backward_s = statistics.median(r[1] for r in runs)
     stats = runs[-1][2]
@@ -187,7 +251,7 @@ def bench_scene(name, threads, args):
         peak_mb = _maxrss_mb()
     return {
         "scene": name,
-        "texels": height * width,
+        "texels": math.prod(out_shape[:-1]),
         "grid_dhw": [depth, height, width],
         "spp": spp,
         "threads": torch.get_num_threads(),
@@ -210,6 +274,100 @@ def bench_scene(name, threads, args):
         "grid_mb": round((sigma_t.numel() + albedo.numel()) * sigma_t.element_size() / 2**20, 3),
         "reps": args.reps,
         "seed": args.seed,
+    }
+
+
+# --------------------------------------------------------------------------------------------------------------
+# old code against new code (--baseline)
+# --------------------------------------------------------------------------------------------------------------
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# Runs in a fresh interpreter: loads one build of the extension (two builds cannot share a process: pybind11
+# registers the option types globally), times one forward and one backward after a warm-up, prints JSON.
+_WORKER = r"""
+import importlib.util, json, sys, time, torch
+so, data, threads = sys.argv[1], sys.argv[2], int(sys.argv[3])
+torch.set_num_threads(threads)
+spec = importlib.util.spec_from_file_location("ta_bench_ext._C", so)
+C = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(C)
+d = torch.load(data)
+o = C.TraceOptions()
+for k, v in d["options"].items():
+    setattr(o, k, v)
+s, a, rs, ra, w = d["sigma_t"], d["albedo"], d["ref_sigma_t"], d["ref_albedo"], d["weights"]
+image, _ = C.volpath_forward(s, a, s, a, False, o)
+C.volpath_backward(w, s, a, rs, ra, True, True, o)
+t0 = time.perf_counter()
+image, counts = C.volpath_forward(s, a, s, a, False, o)
+t1 = time.perf_counter()
+C.volpath_backward(w, s, a, rs, ra, True, True, o)
+t2 = time.perf_counter()
+print(json.dumps({"forward_s": t1 - t0, "backward_s": t2 - t1, "checksum": float(image.double().sum())}))
+"""
+
+
+def build_baseline(rev):
+    """Path of the extension built from git revision ``rev`` (built once into build/baseline-<sha>/)."""
+    import glob
+    import shutil
+    sha = subprocess.check_output(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=ROOT,
+                                  text=True).strip()
+    target = os.path.join(ROOT, "build", f"baseline-{sha[:12]}")
+    found = glob.glob(os.path.join(target, "torch_appearance", "_C*.so"))
+    if found:
+        return found[0], sha
+    partial = target + ".partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    os.makedirs(partial)
+    archive = subprocess.run(["git", "archive", sha], cwd=ROOT, check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", partial], input=archive, check=True)
+    print(f"building the baseline extension of {sha[:12]} (once) ...", file=sys.stderr, flush=True)
+    subprocess.run([sys.executable, "setup.py", "--quiet", "build_ext", "--inplace"], cwd=partial, check=True)
+    os.replace(partial, target)
+    return glob.glob(os.path.join(target, "torch_appearance", "_C*.so"))[0], sha
+
+
+def compare_baseline(name, threads, args, old_so, sha):
+    """new / old time ratios of one slab scene, old and new alternating in worker processes."""
+    from torch_appearance.autograd.volpath import sampling_lanes
+    from torch_appearance.render.scene import SlabScene
+    generator = torch.Generator().manual_seed(args.seed + zlib.crc32(name.encode()))
+    sigma_t, albedo, default_spp = SCENES[name](generator)
+    sigma_t = sigma_t.to(torch.float32).contiguous()
+    albedo = albedo.to(torch.float32).contiguous()
+    spp = args.spp if args.spp is not None else default_spp
+    _, depth, height, width = sigma_t.shape
+    weights = torch.rand((height, width, 3), generator=generator, dtype=torch.float64).to(torch.float32)
+    slab = SlabScene.create(VOXEL_SIZE, g=args.g, ior=args.ior, spp=spp, seed=args.seed)
+    ref_s = sigma_t.clamp_min(slab.sigma_t_floor(sigma_t.shape)).contiguous()
+    ref_a = albedo.clamp_min(slab.settings.albedo_floor).contiguous()
+    options = dict(voxel_size=[VOXEL_SIZE] * 3, face=0, g=args.g, ior=args.ior, environment=[1.0, 1.0, 1.0],
+                   spp=spp, seed=args.seed, max_depth=slab.settings.max_depth, rr_depth=slab.settings.rr_depth,
+                   lanes=sampling_lanes(sigma_t))
+    new_so = torch_appearance._C.__file__
+    with tempfile.TemporaryDirectory() as tmp:
+        data = os.path.join(tmp, "scene.pt")
+        torch.save(dict(sigma_t=sigma_t, albedo=albedo, ref_sigma_t=ref_s, ref_albedo=ref_a, weights=weights,
+                        options=options), data)
+        runs = {"old": [], "new": []}
+        for _ in range(args.reps):
+            for which, so in (("old", old_so), ("new", new_so)):
+                out = subprocess.run([sys.executable, "-c", _WORKER, so, data, str(threads)], check=True,
+                                     capture_output=True, text=True).stdout
+                runs[which].append(json.loads(out.strip().splitlines()[-1]))
+    med = {w: {k: statistics.median(r[k] for r in runs[w]) for k in ("forward_s", "backward_s")} for w in runs}
+    low = {w: {k: min(r[k] for r in runs[w]) for k in ("forward_s", "backward_s")} for w in runs}
+    return {
+        "scene": name, "compare": "new/old", "baseline": sha[:12], "threads": threads, "spp": spp,
+        "old_forward_s": round(med["old"]["forward_s"], 6), "new_forward_s": round(med["new"]["forward_s"], 6),
+        "old_backward_s": round(med["old"]["backward_s"], 6), "new_backward_s": round(med["new"]["backward_s"], 6),
+        "ratio_forward": round(med["new"]["forward_s"] / med["old"]["forward_s"], 4),
+        "ratio_backward": round(med["new"]["backward_s"] / med["old"]["backward_s"], 4),
+        "ratio_forward_min": round(low["new"]["forward_s"] / low["old"]["forward_s"], 4),
+        "ratio_backward_min": round(low["new"]["backward_s"] / low["old"]["backward_s"], 4),
+        "same_image": runs["old"][0]["checksum"] == runs["new"][0]["checksum"],
+        "reps": args.reps,
     }
 
 
@@ -278,6 +436,8 @@ def parse_args(argv=None):
     parser.add_argument("--out", default="results/bench/volpath.jsonl",
                         help="JSON-lines result file; the plot goes beside it (default: %(default)s)")
     parser.add_argument("--no-plot", action="store_true", help="do not draw the bar chart")
+    parser.add_argument("--baseline", metavar="REV", default=None,
+                        help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)
     if args.spp is not None and args.spp < 1:
         parser.error(f"--spp must be >= 1, got {args.spp}")
@@ -302,7 +462,16 @@ def main(argv=None):
                     row["backward_speedup_vs_ink_slab"] = round(chromatic[0]["backward_s"] / row["backward_s"], 3)
             rows.append(row)
             print(json.dumps(row), flush=True)
-    ta_io.atomic_write_bytes(args.out, "".join(json.dumps(r) + "\n" for r in rows).encode())
+    comparisons = []
+    if args.baseline is not None:
+        old_so, sha = build_baseline(args.baseline)
+        for threads in args.threads:
+            for name in args.scenes:
+                if name in SLAB_SCENES:
+                    comparisons.append(compare_baseline(name, threads, args, old_so, sha))
+                    print(json.dumps(comparisons[-1]), flush=True)
+    rows_out = rows + comparisons
+    ta_io.atomic_write_bytes(args.out, "".join(json.dumps(r) + "\n" for r in rows_out).encode())
     if not args.no_plot:
         plot(rows, os.path.join(directory, os.path.splitext(os.path.basename(args.out))[0] + ".png"))
     return 0
