@@ -242,3 +242,26 @@ def test_box_as_sdf_equals_box_boundary(ior):
         a = seeds_mean(lambda k: ta.render_scene(box, sigma_t, albedo, spp=32, seed=k), seeds)
         b = seeds_mean(lambda k: ta.render_scene(sdfs, padded_s, padded_a, spp=32, seed=100 + k), seeds)
         assert_same(a, b, f"box vs box-as-SDF ({type(cam).__name__})", n_tests=2 * a[0].numel())
+
+
+@pytest.mark.parametrize("ior", [None, 1.5])
+def test_degenerate_rays_white_furnace(ior):
+    """Rays exactly along voxel-corner planes and edges, axis-aligned and diagonal, through corner points, and
+    grazing the sphere: no NaN, no stuck or truncated paths, still exactly 1 in the white furnace."""
+    sdf = shape_sdf("sphere")
+    sigma_t = torch.full((3, N, N, N), 6.0)
+    albedo = torch.ones_like(sigma_t)
+    lines = [((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0)),          # along the z axis: a corner line
+             ((0.1, 0.2, 3.0), (0.1, 0.2, 0.0), (0, 1, 0)),          # another corner line
+             ((3.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 0, 1)),          # along x through the centre
+             ((3.0, 3.0, 3.0), (0.0, 0.0, 0.0), (0, 0, 1)),          # the main diagonal through corners
+             ((0.45, 0.0, 3.0), (0.45, 0.0, 0.0), (0, 1, 0)),        # tangent to the analytic sphere
+             ((0.0, 0.4499, -3.0), (0.0, 0.4499, 0.0), (1, 0, 0)),   # grazing from below
+             ((0.6, 0.6, 3.0), (0.6, 0.6, 0.0), (0, 1, 0))]          # along the grid's outer edge
+    for origin, target, up in lines:
+        cam = OrthographicCamera(origin=origin, target=target, up=up, extent_mm=(1e-9, 1e-9), resolution=(1, 2))
+        scene = Scene(voxel_size=H, origin=ORIGIN, boundary=SDFBoundary(sdf, ior=ior), sensor=cam)
+        stats = {}
+        image = ta.render_scene(scene, sigma_t, albedo, spp=64, seed=5, stats=stats)
+        assert stats["truncated_paths"] == 0, origin
+        assert bool(torch.isfinite(image).all()) and float((image - 1).abs().max()) < 1e-5, origin
