@@ -84,7 +84,7 @@ def main(argv=None):
     else:
         sdf = sphere_sdf((n,) * 3, h, origin, (0, 0, 0), r)
     sigma_t, albedo = ink_medium(corner_points((n,) * 3, h, origin), r)
-    emitter = (EnvironmentMap(ta_io.read_exr(args.envmap)) if args.envmap else
+    emitter = (EnvironmentMap.from_exr(args.envmap) if args.envmap else
                DiscLight((0.4, -0.6, 1.0), args.light_deg, 40.0, ambient=0.35))
     cam = PerspectiveCamera(origin=(3.2 * r, -2.4 * r, 2.6 * r), target=(0, 0, 0), up=(0, 0, 1), fov_y_deg=30,
                             resolution=(args.size, args.size))

@@ -152,3 +152,18 @@ def test_cpp_grad_output_checked():
         _C.scene_backward(torch.ones(5), s, a, s, a, True, True, opt)
     with pytest.raises(RuntimeError, match="grad_output: expected finite"):
         _C.scene_backward(torch.full((3, 3, 3), math.nan), s, a, s, a, True, True, opt)
+
+
+def test_environment_map_from_exr(tmp_path):
+    """An EXR written by io.write_exr is read back as the map; a truncated file is refused."""
+    from torch_appearance import io as ta_io
+    image = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(0))
+    path = tmp_path / "sky.exr"
+    ta_io.write_exr(str(path), image)
+    env = EnvironmentMap.from_exr(str(path), scale=2.0)
+    assert env.image.shape == (4, 8, 3) and env.scale == 2.0
+    assert torch.allclose(torch.as_tensor(env.image).float(), image, atol=1e-3)
+    data = path.read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])
+    with pytest.raises((ValueError, OSError)):
+        EnvironmentMap.from_exr(str(tmp_path / "cut.exr"))

@@ -66,6 +66,12 @@ class EnvironmentMap:
         object.__setattr__(self, "image", image)
         object.__setattr__(self, "scale", check_real("scale", self.scale, lo=0.0))
 
+    @staticmethod
+    def from_exr(path, scale=1.0):
+        """Read a lat-long linear-RGB OpenEXR file (corrupt or truncated files are refused by the reader)."""
+        from ..io import read_exr
+        return EnvironmentMap(read_exr(path), scale)
+
     def to_cpp(self, dtype):
         from .._ext import _C
         opt = _C.EmitterOptions()

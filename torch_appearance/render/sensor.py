@@ -159,6 +159,14 @@ class _Camera:
     def output_shape(self, grid_shape):
         return (*self.resolution, 3)
 
+    def _check_frame(self):
+        """Validate origin, target, up (a proper frame) and the resolution; called by each camera."""
+        object.__setattr__(self, "origin", check_vector3("origin", self.origin))
+        object.__setattr__(self, "target", check_vector3("target", self.target))
+        object.__setattr__(self, "up", check_vector3("up", self.up))
+        camera_frame(self.origin, self.target, self.up)
+        object.__setattr__(self, "resolution", _resolution(self.resolution))
+
     def _cpp(self, kind):
         from .._ext import _C
         f, r, u = camera_frame(self.origin, self.target, self.up)
@@ -186,15 +194,11 @@ class OrthographicCamera(_Camera):
     resolution: Tuple[int, int] = (64, 64)
 
     def __post_init__(self):
-        object.__setattr__(self, "origin", check_vector3("origin", self.origin))
-        object.__setattr__(self, "target", check_vector3("target", self.target))
-        object.__setattr__(self, "up", check_vector3("up", self.up))
-        camera_frame(self.origin, self.target, self.up)
+        self._check_frame()
         ext = self.extent_mm
         if not isinstance(ext, (tuple, list)) or len(ext) != 2:
             raise ValueError(f"extent_mm: expected (width, height) in mm, got {ext!r}")
         object.__setattr__(self, "extent_mm", tuple(check_real("extent_mm", v, lo=0.0, lo_open=True) for v in ext))
-        object.__setattr__(self, "resolution", _resolution(self.resolution))
 
     def to_cpp(self, scene, grid_shape, dtype):
         opt = self._cpp(2)
@@ -213,13 +217,9 @@ class PerspectiveCamera(_Camera):
     resolution: Tuple[int, int] = (64, 64)
 
     def __post_init__(self):
-        object.__setattr__(self, "origin", check_vector3("origin", self.origin))
-        object.__setattr__(self, "target", check_vector3("target", self.target))
-        object.__setattr__(self, "up", check_vector3("up", self.up))
-        camera_frame(self.origin, self.target, self.up)
+        self._check_frame()
         object.__setattr__(self, "fov_y_deg", check_real("fov_y_deg", self.fov_y_deg, lo=0.0, hi=180.0,
                                                          lo_open=True, hi_open=True))
-        object.__setattr__(self, "resolution", _resolution(self.resolution))
 
     def to_cpp(self, scene, grid_shape, dtype):
         opt = self._cpp(3)
