@@ -167,3 +167,13 @@ def test_environment_map_from_exr(tmp_path):
     (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])
     with pytest.raises((ValueError, OSError)):
         EnvironmentMap.from_exr(str(tmp_path / "cut.exr"))
+
+
+def test_huge_coordinates_do_not_crash():
+    """A camera so far away that float32 overflows gives finite emitter values or NaN, never a crash."""
+    s, a = medium()
+    cam = OrthographicCamera(origin=(1e30, 0, 0), target=(0, 0, 0), up=(0, 0, 1), extent_mm=(1e30, 1e30),
+                             resolution=(2, 2))
+    for emitter in (EnvironmentMap(torch.ones(3, 4, 3)), DiscLight((1, 0, 0), 10.0)):
+        image = ta.render_scene(scene(sensor=cam, emitter=emitter), s, a, spp=2)
+        assert image.shape == (2, 2, 3)

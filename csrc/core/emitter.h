@@ -32,7 +32,8 @@ struct Emitter {
         const T z = tmin(T(1), tmax(T(-1), d[2]));
         const T theta = tacos(z);
         T phi = tatan2(d[1], d[0]) * T(1.0 / (2 * kPi));
-        phi -= tfloor(phi);  // [0, 1)
+        phi -= tfloor(phi);                               // [0, 1)
+        if (!(phi >= T(0) && phi < T(1))) phi = T(0);     // non-finite direction: never an index out of range
         const T x = phi * T(map_w) - T(0.5);
         const T y = tmin(T(map_h - 1), tmax(T(0), theta * T(1.0 / kPi) * T(map_h) - T(0.5)));
         const T xf = tfloor(x), yf = tfloor(y);

@@ -28,7 +28,7 @@ struct Medium {
     for (int a = 0; a < 3; ++a) {
       const T f = tfloor(p[a] / voxel[a]);
       const int64_t n = dim(a);
-      idx[a] = f < T(0) ? 0 : (f >= T(n) ? n - 1 : int64_t(f));
+      idx[a] = f >= T(0) ? (f < T(n) ? int64_t(f) : n - 1) : 0;  // NaN → 0: never an index out of range
     }
   }
 };
