@@ -323,7 +323,8 @@ def build_baseline(rev):
     archive = subprocess.run(["git", "archive", sha], cwd=ROOT, check=True, capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", partial], input=archive, check=True)
     print(f"building the baseline extension of {sha[:12]} (once) ...", file=sys.stderr, flush=True)
-    subprocess.run([sys.executable, "setup.py", "--quiet", "build_ext", "--inplace"], cwd=partial, check=True)
+    subprocess.run([sys.executable, "setup.py", "--quiet", "build_ext", "--inplace"], cwd=partial, check=True,
+                   stdout=sys.stderr)  # keep stdout for the JSON lines
     os.replace(partial, target)
     return glob.glob(os.path.join(target, "torch_appearance", "_C*.so"))[0], sha
 
