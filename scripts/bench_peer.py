@@ -1,9 +1,9 @@
 #!/usr/bin/env python
 """Side by side with Mitsuba 3 (prbvolpath, path-replay backpropagation): agreement, speed, error against time.
 
-The same scene in both renderers: a slab box of nearest-filtered voxel grids, HG g = 0.4, smooth dielectric
-IOR 1.5, constant environment radiance 1, an orthographic sensor over the top face with one pixel per texel (our
-texel sensor). Prints JSON lines (and writes them to --out):
+The same scene in both renderers (all parts but `sphere`): a slab box of nearest-filtered voxel grids, HG g = 0.4,
+smooth dielectric IOR 1.5, constant environment radiance 1, an orthographic sensor over the top face with one pixel
+per texel (our texel sensor). Prints JSON lines (and writes them to --out):
 
   agreement_grey      grey σ_t (the peer is reliable): per-texel primal z-test (Bonferroni) and per-voxel gradient
                       z-test of a linear objective Σ w·image with fixed random weights, both over independent seeds
@@ -13,6 +13,21 @@ texel sensor). Prints JSON lines (and writes them to --out):
                       medians; ratio_forward and ratio_forward_backward = peer time / our time
   efficiency          RMSE of the primal image and of the gradient against a high-spp reference for a ladder of
                       spp, against wall time, for both renderers (efficiency.png + efficiency.json)
+  sphere              a grey heterogeneous grid medium (σ_t 2..12 mm⁻¹, albedo 0.5..0.99, nearest voxels) inside a
+                      smooth dielectric sphere (IOR 1.5, R = --sphere-radius) under an orthographic camera: the
+                      peer's analytic sphere against our SDFBoundary, the zero set of the trilinear interpolant of
+                      exact corner distances, which lies inside the sphere by at most δ = 3h²/(8(R − h√3)).
+                      Discretisation bound per pixel (and voxel): the larger change of our image when the sphere is
+                      R + δ or R − δ (same seeds). Per-pixel primal z-test (Bonferroni) over independent seeds,
+                      raw and beyond that bound, the number of pixels outside bound + noise, the mean relative
+                      difference (all sphere pixels; interior pixels ≥ 3δ inside the silhouette; our voxels split
+                      to h/2 and h/4, same medium, and the h² extrapolation), the z of a mirrored peer image and of
+                      our medium moved by half a voxel (the test resolves orientation and placement) and background
+                      pixels (exactly 1 in both: no medium outside the sphere); per-voxel gradient z-test of
+                      Σ w·image against the peer with a majorant 1.25 × max σ_t (with the tight majorant its
+                      null-collision gradient is biased at the densest voxels: reported, with finite differences
+                      as arbiter); forward and forward+backward timing at equal spp like `timing`. One line
+                      {"part": "sphere", ...} and sphere.png (ours | Mitsuba | difference) beside --out
 
 Needs the optional peer: `make bench-peer` installs mitsuba==3.5.2 and drjit==0.4.6 into the venv and points
 DRJIT_LIBLLVM_PATH at Debian's libLLVM-15 (package libllvm15). The test suite never needs it.
@@ -66,6 +81,14 @@ def make_scene(kind, size, depth, seed=0):
     return sigma.float(), albedo.float()
 
 
+def gridvolume(x, to_world, extra=None):
+    """A (3, D, H, W) grid as the peer's nearest-filtered raw gridvolume: the unit cube maps onto ``to_world``."""
+    out = {"type": "gridvolume", "data": np.ascontiguousarray(x.numpy().transpose(1, 2, 3, 0)), "raw": True,
+           "filter_type": "nearest", "to_world": to_world}
+    out.update(extra or {})
+    return out
+
+
 def mitsuba_scene(sigma, albedo, s, spp, max_depth, majorant):
     T = mi.ScalarTransform4f
     _, d, h, w = sigma.shape
@@ -73,10 +96,7 @@ def mitsuba_scene(sigma, albedo, s, spp, max_depth, majorant):
     grid_tf = T.scale([X, Y, Z])
 
     def grid(x, extra=None):
-        out = {"type": "gridvolume", "data": np.ascontiguousarray(x.numpy().transpose(1, 2, 3, 0)), "raw": True,
-               "filter_type": "nearest", "to_world": grid_tf}
-        out.update(extra or {})
-        return out
+        return gridvolume(x, grid_tf, extra)
 
     return mi.load_dict({
         "type": "scene",
@@ -99,6 +119,11 @@ def mitsuba_scene(sigma, albedo, s, spp, max_depth, majorant):
 
 class Peer:
     """Mitsuba renders in our conventions: image (H, W, 3) with texel [j, i]; gradient (3, D, H, W)."""
+    key = KEY_SIGMA
+    flip_rows = True  # film rows run top-down, texel rows j run along +y
+
+    def _rows(self, a):
+        return a[::-1] if self.flip_rows else a
 
     def __init__(self, sigma, albedo, s, max_depth):
         self.shape = sigma.shape
@@ -107,19 +132,19 @@ class Peer:
 
     def forward(self, spp, seed):
         img = mi.render(self.scene, spp=spp, seed=seed)
-        return torch.from_numpy(np.array(img)[::-1].copy())  # film rows run top-down: flip to texel j
+        return torch.from_numpy(self._rows(np.array(img)).copy())
 
     def forward_backward(self, spp, seed, weights):
-        dr.enable_grad(self.params[KEY_SIGMA])
+        dr.enable_grad(self.params[self.key])
         self.params.update()
         img = mi.render(self.scene, self.params, spp=spp, seed=seed, seed_grad=seed + 7919)
-        w = mi.TensorXf(np.ascontiguousarray(weights.numpy()[::-1]))
+        w = mi.TensorXf(np.ascontiguousarray(self._rows(weights.numpy())))
         loss = dr.sum(dr.ravel(img * w))
         dr.backward(loss)
-        grad = np.array(dr.grad(self.params[KEY_SIGMA]))  # (D, H, W, 3)
-        dr.disable_grad(self.params[KEY_SIGMA])
+        grad = np.array(dr.grad(self.params[self.key]))  # (D, H, W, 3)
+        dr.disable_grad(self.params[self.key])
         self.params.update()
-        primal = torch.from_numpy(np.array(img)[::-1].copy())
+        primal = torch.from_numpy(self._rows(np.array(img)).copy())
         return primal, torch.from_numpy(grad.transpose(3, 0, 1, 2).copy())
 
 
@@ -163,6 +188,310 @@ def timed(fn, reps):
     return statistics.median(times)
 
 
+# ------------------------------------------------------------------------------------------------ sphere
+KEY_SPHERE_SIGMA = "sphere.interior_medium.sigma_t.data"
+#: The peer's majorant for its gradient: the grid's maximum σ_t times this. With the maximum itself (the slab
+#: part's choice, fine for the primal) the densest voxel has null density ≈ 0, and prbvolpath's gradient samples
+#: the −∂T/∂σ_t term of a voxel only through its null collisions (probability σ_n/σ_maj): near σ_n = 0 that
+#: voxel's gradient is heavy-tailed and in practice biased high (exactly 0 null density: biased).
+SPHERE_MAJORANT_MARGIN = 1.25
+SE_FLOOR = 1e-6  # float32 resolution of a pixel near 1: background pixels (exactly 1 in both) compare as equal
+
+
+class SphereSetup:
+    """The sphere part's scene: a grey heterogeneous medium in a smooth dielectric sphere, orthographic camera.
+
+    The grid is padded by at least one voxel around the sphere (our SDF must be > 0 on its outer corners); its
+    three sides differ (D, H, W) = (n, n + 1, n + 2) and its origin is off zero, so that an axis or placement
+    mix-up between the renderers misplaces the medium. Camera: along −z from 5 mm above the centre, up +y, the
+    image 10 % wider than the sphere's diameter.
+    """
+
+    def __init__(self, radius, s, res, origin=(0.3, -0.4, 0.1)):
+        n = math.ceil(2 * radius / s) + 2
+        self.shape = (n, n + 1, n + 2)
+        self.s, self.radius, self.res, self.origin = s, radius, res, tuple(origin)
+        d, h, w = self.shape
+        self.centre = tuple(o + k * s / 2 for o, k in zip(origin, (w, h, d)))
+        self.eye = (self.centre[0], self.centre[1], self.centre[2] + 5.0)
+        self.extent = 2.2 * radius
+        # trilinear interpolation error of the sphere's distance function, radially (our surface lies inside)
+        self.delta = 3 * s ** 2 / (8 * (radius - s * math.sqrt(3)))
+
+    def medium(self, seed):
+        """σ_t grey in [2, 12] mm⁻¹ and albedo per channel in [0.5, 0.99], nearest-filtered voxels, float32."""
+        g = torch.Generator().manual_seed(seed)
+        sigma = (2 + 10 * torch.rand(1, *self.shape, generator=g)).expand(3, *self.shape).contiguous()
+        albedo = 0.5 + 0.49 * torch.rand(3, *self.shape, generator=g)
+        return sigma.float(), albedo.float()
+
+    def ours_scene(self, max_depth, radius=None, refine=1, shift=(0.0, 0.0, 0.0)):
+        """Our Scene; ``refine`` = f splits each voxel into f³ (the same medium) and samples the SDF at s/f;
+        ``shift`` (mm) moves the grid, hence the medium, but not the sphere (a deliberate misplacement)."""
+        from torch_appearance.geometry import sphere_sdf
+        from torch_appearance.render import ConstantEnvironment, OrthographicCamera, Scene, SDFBoundary
+        shape = tuple(k * refine for k in self.shape)
+        origin = tuple(o + d for o, d in zip(self.origin, shift))
+        sdf = sphere_sdf(shape, self.s / refine, origin, self.centre, radius or self.radius)
+        return Scene(voxel_size=self.s / refine, origin=origin, boundary=SDFBoundary(sdf, ior=1.5),
+                     sensor=OrthographicCamera(origin=self.eye, target=self.centre, up=(0, 1, 0),
+                                               extent_mm=(self.extent, self.extent), resolution=(self.res, self.res)),
+                     emitter=ConstantEnvironment(1.0), g=0.4, max_depth=max_depth)
+
+    def pixel_rho(self):
+        """(rows, cols) distance (mm) of each pixel centre from the sphere's axis, and the pixel's half-diagonal."""
+        p = self.extent / self.res
+        c = (torch.arange(self.res, dtype=torch.float64) + 0.5) * p - self.extent / 2
+        y, x = torch.meshgrid(-c, c, indexing="ij")  # row 0 is the up (+y) side, column 0 the left (−x) side
+        return (x ** 2 + y ** 2).sqrt(), p / math.sqrt(2)
+
+
+def mitsuba_sphere_scene(su, sigma, albedo, max_depth, majorant):
+    """The peer's analytic sphere with the same medium: its gridvolumes cover our grid box, padding included."""
+    T = mi.ScalarTransform4f
+    d, h, w = su.shape
+    grid_tf = T.translate(list(su.origin)) @ T.scale([w * su.s, h * su.s, d * su.s])
+    return mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "prbvolpath", "max_depth": max_depth, "rr_depth": max_depth},
+        "sensor": {"type": "orthographic",
+                   "to_world": T.look_at(origin=list(su.eye), target=list(su.centre), up=[0, 1, 0])
+                   @ T.scale([su.extent / 2, su.extent / 2, 1]),
+                   "film": {"type": "hdrfilm", "width": su.res, "height": su.res, "rfilter": {"type": "box"},
+                            "pixel_format": "rgb"},
+                   "sampler": {"type": "independent", "sample_count": 1}},
+        "emitter": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "sphere": {"type": "sphere", "center": list(su.centre), "radius": su.radius,
+                   "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0},
+                   "interior": {"type": "heterogeneous",
+                                "sigma_t": gridvolume(sigma, grid_tf, {"max_value": float(majorant)}),
+                                "albedo": gridvolume(albedo, grid_tf), "scale": 1.0,
+                                "phase": {"type": "hg", "g": 0.4}, "sample_emitters": False}},
+    })
+
+
+class SpherePeer(Peer):
+    """The peer on the sphere scene: its film rows already run from the up side, as ours."""
+    key = KEY_SPHERE_SIGMA
+    flip_rows = False
+
+    def __init__(self, su, sigma, albedo, max_depth, majorant):
+        self.shape = sigma.shape
+        self.scene = mitsuba_sphere_scene(su, sigma, albedo, max_depth, majorant)
+        self.params = mi.traverse(self.scene)
+
+
+def _refine(x, f):
+    for dim in (1, 2, 3):
+        x = x.repeat_interleave(f, dim)
+    return x.contiguous()
+
+
+class SphereOurs:
+    def __init__(self, su, sigma, albedo, max_depth, radius=None, refine=1, shift=(0.0, 0.0, 0.0)):
+        self.scene = su.ours_scene(max_depth, radius, refine, shift)
+        self.sigma, self.albedo = _refine(sigma, refine), _refine(albedo, refine)
+
+    def forward(self, spp, seed):
+        with torch.no_grad():
+            return ta.render_scene(self.scene, self.sigma, self.albedo, spp=spp, seed=seed)
+
+    def forward_backward(self, spp, seed, weights):
+        s = self.sigma.clone().requires_grad_()
+        img = ta.render_scene(self.scene, s, self.albedo, spp=spp, seed=seed)
+        (img * weights).sum().backward()
+        return img.detach(), s.grad
+
+
+def ztest(a, b, bound=0.0, floor=0.0):
+    """Per element |mean a − mean b| (minus ``bound``, clamped at 0) over the standard error of the difference;
+    a, b are (seeds, …) stacks. 0 where the difference is 0, inf where it is not but both have no variance."""
+    n_a, n_b = a.shape[0], b.shape[0]
+    d = a.mean(0) - b.mean(0)
+    se = (a.var(0) / n_a + b.var(0) / n_b).sqrt().clamp_min(floor)
+    excess = (d.abs() - bound).clamp_min(0)
+    z = torch.where(excess == 0, torch.zeros_like(d), excess / se)
+    return d, se, z
+
+
+def sphere_part(args, emit, folder):
+    su = SphereSetup(args.sphere_radius, args.voxel_size, args.sphere_res)
+    sigma, albedo = su.medium(seed=11)
+    n, spp, md = args.sphere_seeds, args.sphere_spp, args.max_depth
+    smax = float(sigma.max())
+    weights = torch.rand(su.res, su.res, 3, generator=torch.Generator().manual_seed(7))
+    ours = SphereOurs(su, sigma, albedo, md)
+    peer = SpherePeer(su, sigma, albedo, md, smax)  # tight majorant, as the slab part: primal and timing
+    peer_m = SpherePeer(su, sigma, albedo, md, SPHERE_MAJORANT_MARGIN * smax)  # for the gradient
+
+    def runs(r, seed0):
+        pairs = [r.forward_backward(spp, seed0 + k, weights) for k in range(n)]
+        return (torch.stack([p[i].double() for p in pairs]) for i in (0, 1))
+
+    io_, go_ = runs(ours, 1000)
+    # discretisation: our surface is the trilinear zero set, inside the sphere by at most δ; the same walks
+    # (common random numbers) on spheres of radius R ± δ give each pixel's and voxel's sensitivity to it
+    ip_d, gp_d = runs(SphereOurs(su, sigma, albedo, md, su.radius + su.delta), 1000)
+    im_d, gm_d = runs(SphereOurs(su, sigma, albedo, md, su.radius - su.delta), 1000)
+    bound_img = torch.maximum((ip_d - io_).mean(0).abs(), (im_d - io_).mean(0).abs())
+    bound_grad = torch.maximum((gp_d - go_).mean(0).abs(), (gm_d - go_).mean(0).abs())
+    # refinement: voxels split into f³ (the same medium), the SDF sampled at h/f: δ shrinks as 1/f²
+    fine = {f: torch.stack([SphereOurs(su, sigma, albedo, md, refine=f).forward(spp, 1000 * f + 1000 + k).double()
+                            for k in range(n)]) for f in (2, 4)}
+    ipeer, gpeer = runs(peer, 2000)
+    ipeer_m, gpeer_m = runs(peer_m, 4000)
+
+    rho, half_diag = su.pixel_rho()
+    background = (rho - half_diag > su.radius).unsqueeze(-1).expand(-1, -1, 3)  # footprint misses the sphere
+    interior = (rho + half_diag < su.radius - 3 * su.delta).unsqueeze(-1).expand(-1, -1, 3)
+    thr = bonferroni(io_[0].numel())
+    d_img, se_img, z_raw = ztest(io_, ipeer, floor=SE_FLOOR)
+    _, _, z_b = ztest(io_, ipeer, bound_img, floor=SE_FLOOR)
+    _, _, z_bm = ztest(io_, ipeer_m, bound_img, floor=SE_FLOOR)
+    _, _, z_lr = ztest(io_, ipeer.flip(2), floor=SE_FLOOR)
+    _, _, z_ud = ztest(io_, ipeer.flip(1), floor=SE_FLOOR)
+    # sensitivity to placement: our medium moved by half a voxel along x (across the view) or z (along it);
+    # max z beyond the discretisation bound, as for the unmoved medium
+    z_shift = {}
+    for axis, shift in (("x", (su.s / 2, 0.0, 0.0)), ("z", (0.0, 0.0, su.s / 2))):
+        moved = SphereOurs(su, sigma, albedo, md, shift=shift)
+        z_shift[axis] = round(float(ztest(torch.stack([moved.forward(spp, 1000 + k).double() for k in range(n)]),
+                                          ipeer, bound_img, floor=SE_FLOOR)[2].max()), 6)
+
+    def sums(a, mask):  # mean over seeds of the sum over a mask, and the variance of that mean
+        s_ = a[:, mask].sum(1)
+        return s_.mean(), s_.var() / s_.shape[0]
+
+    def rel(num, den):  # relative difference num/den − 1 of independent estimates, standard error by the delta method
+        (a, va), (b, vb) = num, den
+        return [round(float(a / b - 1), 6), round(float((va / b ** 2 + a ** 2 * vb / b ** 4).sqrt()), 6)]
+
+    sphere_px = ~background
+    by_level, by_level_int, z_by_level = {}, {}, {"1": round(float(z_raw.max()), 6)}
+    for f, imgs in ((1, io_), (2, fine[2]), (4, fine[4])):
+        by_level[str(f)] = rel(sums(imgs, sphere_px), sums(ipeer, sphere_px))
+        by_level_int[str(f)] = rel(sums(imgs, interior), sums(ipeer, interior))
+        if f > 1:
+            z_by_level[str(f)] = round(float(ztest(imgs, ipeer, floor=SE_FLOOR)[2].max()), 6)
+    # Richardson (error ∝ h²) from h and h/2: what the difference would be for the exact sphere
+    (o1, v1), (o2, v2) = sums(io_, sphere_px), sums(fine[2], sphere_px)
+    rel_extrap = rel(((4 * o2 - o1) / 3, (16 * v2 + v1) / 9), sums(ipeer, sphere_px))
+    # the same bound on the mean: the larger relative change of our sums at R ± δ (common random numbers)
+    mean_bound = {name: max(abs(float(x[:, m].sum(1).mean() / io_[:, m].sum(1).mean() - 1)) for x in (ip_d, im_d))
+                  for name, m in (("sphere", sphere_px), ("interior", interior))}
+
+    gthr = bonferroni(go_[0].numel())
+    _, _, zg = ztest(go_, gpeer_m)
+    _, _, zg_b = ztest(go_, gpeer_m, bound_grad)
+    _, _, zg_t = ztest(go_, gpeer)
+    sum_o, sum_p = go_.sum((1, 2, 3, 4)), gpeer_m.sum((1, 2, 3, 4))
+    worst_t = np.unravel_index(int(zg_t.argmax()), tuple(zg_t.shape))
+
+    # arbiter: central finite differences of the expectation (our smooth explicit-reference estimator, common
+    # random numbers) at the voxels where the gradients disagree most, against the channel sums of each gradient
+    ref_s, ref_a, h = sigma.double(), albedo.double(), 0.05
+    picks = []
+    for z in (zg_t, zg):  # the worst voxel against the tight-majorant peer, and against the one we compare
+        vox = tuple(int(i) for i in np.unravel_index(int(z.argmax()), tuple(z.shape))[1:])
+        if vox not in picks:
+            picks.append(vox)
+    cases = []
+    for vox in picks:
+        def fd(k, vox=vox):
+            step = torch.zeros_like(ref_s)
+            step[(slice(None),) + vox] = h
+            f = lambda x: float((ta.render_scene(ours.scene, x, ref_a, spp=2 * spp, seed=700 + k,
+                                                 seed_grad=700 + k, sampling_sigma_t=ref_s,
+                                                 sampling_albedo=ref_a) * weights.double()).sum())
+            return torch.tensor((f(ref_s + step) - f(ref_s - step)) / (2 * h))
+        fm, fs = seed_stats(fd, 16)
+        case = {"index_dhw": list(vox), "null_density_tight": smax - float(sigma[0][vox]), "fd": float(fm),
+                "fd_se": float(fs)}
+        for name, g in (("ours", go_), ("peer_tight", gpeer), ("peer_margin", gpeer_m)):
+            v = g[(slice(None), slice(None)) + vox].sum(1)
+            case[name] = float(v.mean())
+            case[name + "_z"] = float((v.mean() - fm).abs() / (v.var() / n + fs ** 2).sqrt())
+        cases.append(case)
+
+    # timing at equal spp after warm-up (the peer JIT-compiles), medians
+    fns = {"ours_forward_s": lambda r: ours.forward(spp, r), "peer_forward_s": lambda r: peer.forward(spp, r),
+           "ours_forward_backward_s": lambda r: ours.forward_backward(spp, r, weights),
+           "peer_forward_backward_s": lambda r: peer.forward_backward(spp, r, weights),
+           "peer_margin_forward_backward_s": lambda r: peer_m.forward_backward(spp, r, weights)}
+    for fn in fns.values():
+        fn(99)
+    times = {k: timed(fn, args.reps) for k, fn in fns.items()}
+
+    fail = (z_b > thr)
+    emit({"part": "sphere", "pixels": su.res ** 2, "grid_dhw": list(su.shape), "voxel_mm": su.s,
+          "radius_mm": su.radius, "seeds": n, "spp": spp, "delta_mm": su.delta,
+          "primal_threshold": thr, "primal_max_z": float(z_raw.max()), "primal_outside_noise": int((z_raw > thr).sum()),
+          "primal_max_z_beyond_bound": float(z_b.max()), "primal_outside_bound_noise": int(fail.sum()),
+          "primal_outside_bound_noise_peer_margin": int((z_bm > thr).sum()),
+          "primal_max_z_interior": float(z_raw[interior].max()), "interior_pixels": int(interior[..., 0].sum()),
+          "primal_max_z_peer_flipped_lr": float(z_lr.max()), "primal_max_z_peer_flipped_ud": float(z_ud.max()),
+          "primal_max_z_beyond_bound_ours_medium_moved_half_voxel": z_shift,
+          "bound_max": float(bound_img.max()), "bound_mean_sphere": float(bound_img[sphere_px].mean()),
+          "se_median_sphere": float(se_img[sphere_px].median()),
+          "mean_rel_diff": by_level["1"][0], "mean_rel_diff_se": by_level["1"][1],
+          "mean_rel_bound": mean_bound["sphere"],
+          "mean_rel_diff_interior": by_level_int["1"][0], "mean_rel_diff_interior_se": by_level_int["1"][1],
+          "mean_rel_bound_interior": mean_bound["interior"],
+          "refine_factors": [1, 2, 4], "mean_rel_diff_by_refine": by_level,
+          "mean_rel_diff_interior_by_refine": by_level_int, "primal_max_z_by_refine": z_by_level,
+          "mean_rel_diff_extrapolated_h0": rel_extrap,
+          "primal_mean_ours": float(io_.mean()), "primal_mean_peer": float(ipeer.mean()),
+          "background_pixels": int(background[..., 0].sum()),
+          "background_max_dev_ours": float((io_[:, background] - 1).abs().max()),
+          "background_max_dev_peer": float((ipeer[:, background] - 1).abs().max()),
+          "grad_majorant_margin": SPHERE_MAJORANT_MARGIN, "grad_threshold": gthr, "grad_max_z": float(zg.max()),
+          "grad_max_z_beyond_bound": float(zg_b.max()), "grad_outside_bound_noise": int((zg_b > gthr).sum()),
+          "grad_frac_z_gt_3": float((zg > 3).double().mean()),
+          "grad_sum_ours": float(sum_o.mean()), "grad_sum_peer": float(sum_p.mean()),
+          "grad_sum_rel_diff": float(sum_o.mean() / sum_p.mean() - 1),
+          "grad_sum_se": [round(float(x.std() / n ** .5), 6) for x in (sum_o, sum_p)],
+          "grad_max_z_peer_tight": float(zg_t.max()), "grad_outside_peer_tight": int((zg_t > gthr).sum()),
+          "grad_worst_peer_tight_cdhw": [int(i) for i in worst_t],
+          "arbiter": [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in c.items()} for c in cases],
+          "threads": torch.get_num_threads(), **times,
+          "ratio_forward": times["peer_forward_s"] / times["ours_forward_s"],
+          "ratio_forward_backward": times["peer_forward_backward_s"] / times["ours_forward_backward_s"]})
+    _plot_sphere(io_.mean(0), ipeer.mean(0), d_img, fail, su, float(z_raw.max()), float(z_b.max()), thr,
+                 os.path.join(folder, "sphere.png"))
+
+
+def _plot_sphere(ours_img, peer_img, diff, fail, su, zmax_raw, zmax_bound, thr, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+    from torch_appearance.color import linear_to_srgb
+
+    fig, ax = plt.subplots(1, 3, figsize=(12, 4.2))
+    c = (su.res - 1) / 2
+    r_px = su.radius / (su.extent / su.res)
+    for a, img, title in ((ax[0], ours_img, "torch_appearance (SDF sphere)"),
+                          (ax[1], peer_img, "Mitsuba 3 prbvolpath")):
+        a.imshow(linear_to_srgb(img.clamp(0, 1)).numpy(), interpolation="nearest")
+        a.set_title(title, fontsize=10)
+    d = diff.mean(-1).numpy()
+    lim = float(np.abs(d).max()) or 1.0
+    im = ax[2].imshow(d, cmap="coolwarm", vmin=-lim, vmax=lim, interpolation="nearest")
+    fig.colorbar(im, ax=ax[2], fraction=0.046, label="difference (mean of R, G, B)")
+    rows, cols = np.nonzero(fail.any(-1).numpy())
+    ax[2].plot(cols, rows, "kx", ms=6, label="beyond bound + noise")
+    ax[2].set_title(f"ours − Mitsuba\nmax |z| {zmax_raw:.2f}, beyond the bound {zmax_bound:.2f} "
+                    f"(threshold {thr:.2f})", fontsize=9)
+    for a in ax:
+        a.add_patch(Circle((c, c), r_px, fill=False, ec="k", lw=0.6, ls="--"))
+        a.set_xticks([])
+        a.set_yticks([])
+    fig.suptitle(f"grid medium in a dielectric sphere (IOR 1.5), R = {su.radius} mm, voxel {su.s} mm, "
+                 f"{su.res}×{su.res} orthographic pixels; dashed: the exact silhouette", fontsize=10)
+    fig.tight_layout()
+    ta_io.save_figure(fig, path)
+
+
 # ------------------------------------------------------------------------------------------------ main
 def main(argv=None):
     global mi, dr
@@ -177,7 +506,14 @@ def main(argv=None):
     p.add_argument("--timing-spp", type=int, default=16, help="(default: %(default)s)")
     p.add_argument("--reps", type=int, default=5, help="timed repetitions (default: %(default)s)")
     p.add_argument("--max-depth", type=int, default=1024, help="interaction limit in both (default: %(default)s)")
-    p.add_argument("--skip", default="", help="comma-separated parts to skip: agreement,chromatic,timing,efficiency")
+    p.add_argument("--sphere-radius", type=float, default=0.6, help="mm, sphere part (default: %(default)s)")
+    p.add_argument("--sphere-res", type=int, default=24, help="pixels per side of the sphere image (default: %(default)s)")
+    p.add_argument("--sphere-spp", type=int, default=256,
+                   help="spp of each sphere render and of its timing (default: %(default)s)")
+    p.add_argument("--sphere-seeds", type=int, default=32,
+                   help="independent renders per sphere estimate (default: %(default)s)")
+    p.add_argument("--skip", default="",
+                   help="comma-separated parts to skip: agreement,chromatic,timing,efficiency,sphere")
     p.add_argument("--out", default="results/bench/peer.jsonl", help="JSON lines; plots beside it (default: %(default)s)")
     args = p.parse_args(argv)
     mi, dr = _load_mitsuba()
@@ -315,6 +651,10 @@ def main(argv=None):
                 emit({"part": "efficiency", **row})
         ta_io.write_json(os.path.join(folder, "efficiency.json"), rows)
         _plot(rows, os.path.join(folder, "efficiency.png"))
+
+    # ---- sphere: the peer's analytic dielectric sphere against our SDF boundary
+    if "sphere" not in skip:
+        sphere_part(args, emit, folder)
     ta_io.atomic_write_bytes(args.out, ("\n".join(json.dumps(d) for d in lines) + "\n").encode())
     return 0
 
