@@ -197,7 +197,9 @@ def _mesh_colours(mesh, faces, bary):
         uv_v = np.asarray(visual.uv, dtype=np.float64)
         uv = (uv_v[mesh.faces[faces]] * bary[:, :, None]).sum(1)
         material = visual.material
-        image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+        image = getattr(material, "image", None)
+        if image is None:
+            image = getattr(material, "baseColorTexture", None)
         if image is None:
             return None, uv.astype(np.float32)
         tex = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
@@ -217,8 +219,8 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     """Voxelise a triangle mesh (mm) at ``voxel_size`` mm.
 
     Args:
-        mesh: a ``trimesh.Trimesh`` in mm (see :func:`torch_appearance.geometry.load_mesh` when it exists, or
-            ``trimesh.load``); UVs + texture, vertex or face colours give the texel colours.
+        mesh: a ``trimesh.Trimesh`` in mm (:func:`torch_appearance.geometry.load_mesh`); UVs + texture, vertex or
+            face colours give the texel colours (the glTF base-colour factor is not applied yet).
         voxel_size: voxel edge in mm, > 0 (300 DPI: 25.4 / 300).
         shell_mm: optional depth of the printable shell, mm; sets ``shell`` and widens the exact band to cover it.
         padding: empty voxels around the object's bounding box (>= 1, so the SDF is > 0 on the outer corners).
