@@ -196,3 +196,25 @@ def test_load_mesh_bad_input(tmp_path):
         load_mesh(str(obj), height_mm=1.0, scale=2.0)
     mesh, report = load_mesh(str(obj), scale=1000.0)
     assert report["units_guess"] == "m" and np.allclose(mesh.extents[:2], 1000.0) and not report["watertight"]
+
+
+def test_voxelize_cli(tmp_path):
+    """scripts/voxelize.py on an STL box: npz, summary and previews written; bad input → exit code 2."""
+    import importlib.util
+    import json
+    import os
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "scripts", "voxelize.py")
+    spec = importlib.util.spec_from_file_location("voxelize_cli", path)
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    stl = tmp_path / "box.stl"
+    trimesh.creation.box((2.0, 3.0, 1.0)).export(str(stl))
+    out = tmp_path / "out"
+    assert cli.main([str(stl), "--height-mm", "1.0", "--dpi", "127", "--shell-mm", "0.4", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["inside_voxels"] == 10 * 15 * 5 and summary["watertight"]
+    assert summary["max_texel_centre_to_surface_mm"] == pytest.approx(0.1, abs=1e-9)
+    assert VoxelObject.load(str(out / "object.npz")).grid_shape == (7, 17, 12)  # one padding voxel per side
+    for name in ("texels_normal.png", "sdf_slice.png"):
+        assert (out / name).stat().st_size > 1000
+    assert cli.main([str(tmp_path / "missing.obj"), "--out", str(out)]) == 2

@@ -253,7 +253,8 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     if not np.isfinite(V).all():
         raise ValueError("mesh: expected finite vertex coordinates")
     lo, hi = V.min(0), V.max(0)
-    dims = np.ceil((hi - lo) / h).astype(np.int64) + 2 * padding  # (W, H, D)
+    # (W, H, D); the tolerance keeps an extent of exactly n voxels (3.0 / 0.2 = 15.000000000000002) at n
+    dims = np.ceil((hi - lo) / h - 1e-9).astype(np.int64) + 2 * padding
     origin = lo - padding * h - (dims * h - (hi - lo) - 2 * padding * h) / 2  # centre the object in its grid
     w, hh, d = (int(n) for n in dims)
     need = (d + 1) * (hh + 1) * (w + 1) * 4 + d * hh * w * (1 + 4 + 1) + (d + 1) * (hh + 1) * (w + 1) * 3 * 8 // 8
