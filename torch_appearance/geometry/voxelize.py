@@ -1,10 +1,11 @@
 """A closed (or nearly closed) triangle mesh becomes a voxel object: occupancy, an exact SDF band at the voxel
 corners, surface texels with points, normals and colours, depth below the surface (TOG 2021, thesis part II §3.3).
 
-Libraries (issue 11): libigl for the exact point–triangle distances (``igl.signed_distance``, AABB tree inside)
-with the sign from the fast generalised winding number, so open or self-intersecting meshes still get a sensible
-inside; ``igl.fast_winding_number`` for the occupancy of the voxel centres; ``igl.point_mesh_squared_distance``
-for the texels' closest surface points and faces. Units: mm. Axes: x ↔ W, y ↔ H, z ↔ D; corner (k, j, i) of the
+Libraries (issue 11): libigl for the exact point–triangle distances (``igl.signed_distance`` with distance bounds,
+so only the band near the surface is resolved) and the fast generalised winding number for the sign, so open or
+self-intersecting meshes still get a sensible inside. Only band corners and the voxel cells that touch the band
+ask the winding number; everything farther takes the sign of its connected far region (one query per region).
+``igl.point_mesh_squared_distance`` gives the texels' closest surface points and faces. Units: mm. Axes: x ↔ W, y ↔ H, z ↔ D; corner (k, j, i) of the
 SDF grid sits at ``origin + (i, j, k)·voxel_size`` and voxel (k, j, i) spans [origin + (i, j, k)·h, … + h].
 """
 from dataclasses import dataclass, fields
@@ -42,7 +43,7 @@ class VoxelObject:
         texel_colors: (N, 3) float32 linear RGB target colours, or None when the mesh has no colour.
         texel_uv: (N, 2) float32 texture coordinates of the closest points, or None.
         depth: (D, H, W) float32 distance below the surface of inside voxels' centres (0 outside), mm; exact up to
-            band_mm, band_mm beyond.
+            max(band_mm, shell_mm + 2 voxels), that value beyond.
         shell: (D, H, W) bool voxels with depth < shell_mm, or None.
     """
     origin: Tuple[float, float, float]
@@ -114,21 +115,6 @@ class VoxelObject:
         if tuple(obj.sdf.shape) != (d + 1, h + 1, w + 1):
             raise ValueError(f"path: {path!r} holds an sdf of shape {tuple(obj.sdf.shape)} for a {d, h, w} grid")
         return obj
-
-
-def _trilinear(sdf, x):
-    """Trilinear interpolation of a corner grid at continuous corner coordinates x (..., 3) = (i, j, k)."""
-    d, h, w = (n - 1 for n in sdf.shape)
-    i0 = np.clip(np.floor(x).astype(np.int64), 0, [w - 1, h - 1, d - 1])
-    t = x - i0
-    out = 0.0
-    for dz in (0, 1):
-        for dy in (0, 1):
-            for dx in (0, 1):
-                wgt = (np.where(dx, t[..., 0], 1 - t[..., 0]) * np.where(dy, t[..., 1], 1 - t[..., 1])
-                       * np.where(dz, t[..., 2], 1 - t[..., 2]))
-                out = out + wgt * sdf[i0[..., 2] + dz, i0[..., 1] + dy, i0[..., 0] + dx]
-    return out
 
 
 def _barycentric(p, a, b, c):
@@ -222,7 +208,7 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
         mesh: a ``trimesh.Trimesh`` in mm (:func:`torch_appearance.geometry.load_mesh`); UVs + texture, vertex or
             face colours give the texel colours (the glTF base-colour factor is not applied yet).
         voxel_size: voxel edge in mm, > 0 (300 DPI: 25.4 / 300).
-        shell_mm: optional depth of the printable shell, mm; sets ``shell`` and widens the exact band to cover it.
+        shell_mm: optional depth of the printable shell, mm; sets ``shell`` (depth exact to shell_mm + 2 voxels).
         padding: empty voxels around the object's bounding box (>= 1, so the SDF is > 0 on the outer corners).
         band_voxels: half-width of the exact SDF band in voxels (>= 2).
         max_bytes: refuse grids that would need more memory than this (the message names the size).
@@ -261,9 +247,11 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     if need > max_bytes:
         raise ValueError(f"voxel_size: {h:g} mm gives a {d}×{hh}×{w} grid that needs about {need / 2**30:.1f} GiB "
                          f"(limit {max_bytes / 2**30:.1f} GiB); use a larger voxel or a smaller object")
-    band = band_voxels * h if shell_mm is None else max(band_voxels * h, shell_mm + 2 * h)
+    band = band_voxels * h
+    depth_limit = band if shell_mm is None else max(band, shell_mm + 2 * h)
 
-    # exact signed distances at the corners, in z-slabs to bound the query memory
+    # 1. exact distances at the corners within the band (igl's bounds prune the rest, left NaN), in z-slabs to
+    #    bound the query memory; the sign of the band corners from the fast generalised winding number
     xs = origin[0] + h * np.arange(w + 1)
     ys = origin[1] + h * np.arange(hh + 1)
     zs = origin[2] + h * np.arange(d + 1)
@@ -274,19 +262,38 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
         k1 = min(d + 1, k0 + per)
         P = np.stack([np.broadcast_to(xx, (k1 - k0, *xx.shape)), np.broadcast_to(yy, (k1 - k0, *yy.shape)),
                       np.broadcast_to(zs[k0:k1, None, None], (k1 - k0, *xx.shape))], axis=-1).reshape(-1, 3)
-        S, _, _, _ = igl.signed_distance(np.ascontiguousarray(P), V, F,
-                                         sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER,
+        S, _, _, _ = igl.signed_distance(np.ascontiguousarray(P), V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED,
                                          lower_bound=-band, upper_bound=band)
-        far = ~np.isfinite(S)  # beyond the band igl leaves the distance undefined: the winding number signs it
-        if far.any():
-            inside = igl.fast_winding_number(V, F, np.ascontiguousarray(P[far])) > 0.5
-            S[far] = np.where(inside, -band, band)
-        sdf[k0:k1] = np.clip(S, -band, band).reshape(k1 - k0, hh + 1, w + 1)
-    # occupancy of the voxel centres by the generalised winding number
-    cz, cy, cx = np.meshgrid(zs[:-1] + h / 2, ys[:-1] + h / 2, xs[:-1] + h / 2, indexing="ij")
-    centres = np.stack([cx, cy, cz], axis=-1).reshape(-1, 3)
-    wn = igl.fast_winding_number(V, F, np.ascontiguousarray(centres))
-    occ = (wn > 0.5).reshape(d, hh, w)
+        near = np.isfinite(S)
+        if near.any():
+            inside = igl.fast_winding_number(V, F, np.ascontiguousarray(P[near])) > 0.5
+            S[near] = np.where(inside, -S[near], S[near])
+        sdf[k0:k1] = S.reshape(k1 - k0, hh + 1, w + 1)
+    # 2. corners beyond the band: a 6-connected region of them has one sign (adjacent corners of opposite sign are
+    #    both within h of the surface, so inside the band), so one winding query per region signs it
+    from scipy import ndimage
+    far = np.isnan(sdf)
+    labels, count = ndimage.label(far)
+    if count:
+        _, first = np.unique(labels.ravel(), return_index=True)
+        first = first[1:] if labels.ravel()[first[0]] == 0 else first  # label 0 is the band
+        kji = np.stack(np.unravel_index(first, labels.shape), axis=1)
+        reps = origin + kji[:, ::-1] * h
+        region_inside = igl.fast_winding_number(V, F, np.ascontiguousarray(reps)) > 0.5
+        sdf[far] = np.where(region_inside[labels[far] - 1], -band, band)
+    # 3. occupancy of the voxel centres: cells with a corner in the band ask the winding number, the others share
+    #    the sign of their (far, single-region) corners
+    near_corner = ~far
+    cell_near = np.zeros((d, hh, w), dtype=bool)
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                cell_near |= near_corner[dz:dz + d, dy:dy + hh, dx:dx + w]
+    occ = sdf[:-1, :-1, :-1] < 0
+    kji = np.argwhere(cell_near)
+    if len(kji):
+        centres = origin + (kji[:, ::-1] + 0.5) * h
+        occ[cell_near] = igl.fast_winding_number(V, F, np.ascontiguousarray(centres)) > 0.5
     # texels: inside voxels with an outside 6-neighbour
     pad = np.pad(occ, 1, constant_values=False)
     border = np.zeros_like(occ)
@@ -308,9 +315,13 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     colours, uv = _mesh_colours(mesh, fid, bary)
     # depth of the voxel centres below the surface (trilinear in the corner SDF, exact at the band)
+    # depth of the inside voxel centres: exact (unsigned) distances up to depth_limit, depth_limit beyond
     depth = np.zeros(occ.shape, dtype=np.float32)
-    grid_centres = (np.argwhere(occ)[:, ::-1] + 0.5).astype(np.float64)
-    depth[occ] = np.clip(-_trilinear(sdf.astype(np.float64), grid_centres), 0, band)
+    inside_kji = np.argwhere(occ)
+    dist, _, _, _ = igl.signed_distance(np.ascontiguousarray(origin + (inside_kji[:, ::-1] + 0.5) * h), V, F,
+                                        sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED, lower_bound=-depth_limit,
+                                        upper_bound=depth_limit)
+    depth[occ] = np.where(np.isfinite(dist), np.minimum(dist, depth_limit), depth_limit)
     shell = None if shell_mm is None else torch.from_numpy(occ & (depth < shell_mm))
     return VoxelObject(origin=tuple(float(v) for v in origin), voxel_size=h, occupancy=torch.from_numpy(occ),
                        sdf=torch.from_numpy(sdf), band_mm=float(band), texel_voxels=torch.from_numpy(kji),
