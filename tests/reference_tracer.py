@@ -325,6 +325,21 @@ def _trace_channel(
     return escaped
 
 
+def _check_medium(sigma_t, albedo):
+    """(sigma_t, albedo) as float64 arrays of shape (3, D, H, W), σ_t finite >= 0, albedo in [0, 1]."""
+    sigma_t = np.asarray(sigma_t, dtype=np.float64)
+    albedo = np.asarray(albedo, dtype=np.float64)
+    if sigma_t.ndim != 4 or sigma_t.shape[0] != 3:
+        raise ValueError(f"sigma_t must have shape (3, D, H, W), got {sigma_t.shape}")
+    if albedo.shape != sigma_t.shape:
+        raise ValueError(f"albedo must have the shape of sigma_t {sigma_t.shape}, got {albedo.shape}")
+    if not np.all(np.isfinite(sigma_t)) or sigma_t.min() < 0:
+        raise ValueError("sigma_t must be finite and >= 0")
+    if albedo.min() < 0 or albedo.max() > 1:
+        raise ValueError("albedo must lie in [0, 1]")
+    return sigma_t, albedo
+
+
 def reference_render_texels(
     sigma_t: np.ndarray,
     albedo: np.ndarray,
@@ -365,16 +380,7 @@ def reference_render_texels(
     Raises:
         ValueError: on shapes or values outside the ranges above.
     """
-    sigma_t = np.asarray(sigma_t, dtype=np.float64)
-    albedo = np.asarray(albedo, dtype=np.float64)
-    if sigma_t.ndim != 4 or sigma_t.shape[0] != 3:
-        raise ValueError(f"sigma_t must have shape (3, D, H, W), got {sigma_t.shape}")
-    if albedo.shape != sigma_t.shape:
-        raise ValueError(f"albedo must have the shape of sigma_t {sigma_t.shape}, got {albedo.shape}")
-    if not np.all(np.isfinite(sigma_t)) or sigma_t.min() < 0:
-        raise ValueError("sigma_t must be finite and >= 0")
-    if albedo.min() < 0 or albedo.max() > 1:
-        raise ValueError("albedo must lie in [0, 1]")
+    sigma_t, albedo = _check_medium(sigma_t, albedo)
     if face not in ("top", "bottom"):
         raise ValueError(f"face must be 'top' or 'bottom', got {face!r}")
     if not -1.0 <= g <= 1.0:
@@ -1051,16 +1057,7 @@ def reference_render_scene(
     Raises:
         ValueError: on shapes or values outside the ranges above.
     """
-    sigma_t = np.asarray(sigma_t, dtype=np.float64)
-    albedo = np.asarray(albedo, dtype=np.float64)
-    if sigma_t.ndim != 4 or sigma_t.shape[0] != 3:
-        raise ValueError(f"sigma_t must have shape (3, D, H, W), got {sigma_t.shape}")
-    if albedo.shape != sigma_t.shape:
-        raise ValueError(f"albedo must have the shape of sigma_t {sigma_t.shape}, got {albedo.shape}")
-    if not np.all(np.isfinite(sigma_t)) or sigma_t.min() < 0:
-        raise ValueError("sigma_t must be finite and >= 0")
-    if albedo.min() < 0 or albedo.max() > 1:
-        raise ValueError("albedo must lie in [0, 1]")
+    sigma_t, albedo = _check_medium(sigma_t, albedo)
     if not -1.0 <= g <= 1.0:
         raise ValueError(f"g must lie in [-1, 1], got {g}")
     if ior is not None and ior < 1.0:

@@ -243,7 +243,8 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     dims = np.ceil((hi - lo) / h - 1e-9).astype(np.int64) + 2 * padding
     origin = lo - padding * h - (dims * h - (hi - lo) - 2 * padding * h) / 2  # centre the object in its grid
     w, hh, d = (int(n) for n in dims)
-    need = (d + 1) * (hh + 1) * (w + 1) * 4 + d * hh * w * (1 + 4 + 1) + (d + 1) * (hh + 1) * (w + 1) * 3 * 8 // 8
+    # float32 SDF and region labels (int32) at the corners; occupancy, near-cell mask, depth, shell per voxel
+    need = (d + 1) * (hh + 1) * (w + 1) * (4 + 4 + 1) + d * hh * w * (1 + 1 + 4 + 1)
     if need > max_bytes:
         raise ValueError(f"voxel_size: {h:g} mm gives a {d}×{hh}×{w} grid that needs about {need / 2**30:.1f} GiB "
                          f"(limit {max_bytes / 2**30:.1f} GiB); use a larger voxel or a smaller object")

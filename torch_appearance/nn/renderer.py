@@ -2,7 +2,8 @@
 settings and a seed sequence, ``forward(sigma_t, albedo)`` renders."""
 import torch
 
-from ..render.scene import Scene, SlabScene, _check_seed
+from ..render.checks import check_seed, check_spp
+from ..render.scene import Scene, SlabScene
 from ..render.volpath import render_scene, render_texels
 
 __all__ = ["VolumeRenderer", "SceneRenderer"]
@@ -77,10 +78,9 @@ class SceneRenderer(torch.nn.Module):
         super().__init__()
         if not isinstance(scene, Scene):
             raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
-        from ..render.sensor import _spp
         self.scene = scene
-        self.spp = _spp(spp)
-        self.next_seed = _check_seed("seed", seed)
+        self.spp = check_spp(spp)
+        self.next_seed = check_seed("seed", seed)
         self.last_stats = {}
 
     def forward(self, sigma_t, albedo, seed=None, seed_grad=None, sampling_sigma_t=None, sampling_albedo=None):

@@ -5,7 +5,8 @@ import numbers
 import numpy as np
 import torch
 
-__all__ = ["is_real", "is_int", "check_real", "check_int", "check_rgb", "check_vector3", "check_direction",
+__all__ = ["is_real", "is_int", "check_real", "check_int", "check_seed", "check_spp", "check_rgb", "check_vector3",
+           "check_direction",
            "check_float_tensor"]
 
 
@@ -42,6 +43,23 @@ def check_int(name, value, *, lo):
     if value < lo:
         raise ValueError(f"{name}: expected an int >= {lo}, got {value}")
     return int(value)
+
+
+def check_seed(name, seed):
+    """A 64-bit seed: an int in [−2⁶³, 2⁶⁴)."""
+    if not is_int(seed):
+        raise TypeError(f"{name}: expected an int, got {type(seed).__name__}")
+    if not -2 ** 63 <= seed < 2 ** 64:
+        raise ValueError(f"{name}: expected a 64-bit integer, got {seed}")
+    return int(seed)
+
+
+def check_spp(spp):
+    """Samples per sensor element: an int in [1, 2³²)."""
+    spp = check_int("spp", spp, lo=1)
+    if spp >= 2 ** 32:
+        raise ValueError(f"spp: expected < 2**32, got {spp}")
+    return spp
 
 
 def _as_list(name, value, what):

@@ -19,14 +19,14 @@ from typing import Optional, Tuple
 import torch
 
 from .boundary import BoxBoundary, Dielectric, IndexMatched, SDFBoundary
-from .checks import check_int, check_real, is_int
+from .checks import check_int, check_real, check_seed, check_vector3
 from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
 from .phase import HenyeyGreenstein
 from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels, TexelSensor
 
 __all__ = [
     "Scene", "SlabScene", "PathSettings", "voxel_edges", "check_grid", "check_medium", "default_max_depth",
-    "default_rr_depth", "derive_seed_grad",
+    "default_rr_depth", "derive_seed_grad", "default_sigma_t_floor",
     # the pieces, re-exported for older imports
     "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment", "TexelSensor", "FACES",
 ]
@@ -56,10 +56,7 @@ class PathSettings:
     albedo_floor: float = 0.05
 
     def __post_init__(self):
-        if not is_int(self.seed):
-            raise TypeError(f"seed: expected an int, got {type(self.seed).__name__}")
-        if not -2 ** 63 <= self.seed < 2 ** 64:
-            raise ValueError(f"seed: expected a 64-bit integer, got {self.seed}")
+        check_seed("seed", self.seed)
         object.__setattr__(self, "max_depth", check_int("max_depth", self.max_depth, lo=1))
         object.__setattr__(self, "rr_depth", check_int("rr_depth", self.rr_depth, lo=0))
         if self.sigma_t_floor is not None:
@@ -85,7 +82,7 @@ class SlabScene:
     def __post_init__(self):
         object.__setattr__(self, "voxel_size", voxel_edges(self.voxel_size))
         if self.gradient_seed is not None:
-            object.__setattr__(self, "gradient_seed", _check_seed("seed_grad", self.gradient_seed))
+            object.__setattr__(self, "gradient_seed", check_seed("seed_grad", self.gradient_seed))
         if not isinstance(self.boundary, (Dielectric, IndexMatched)):
             raise TypeError(f"boundary: expected Dielectric or IndexMatched, got {type(self.boundary).__name__}")
 
@@ -106,20 +103,9 @@ class SlabScene:
             gradient_seed=seed_grad)
 
     def sigma_t_floor(self, grid_shape):
-        """Density floor (mm⁻¹) of the default gradient sampling for a (…, D, H, W) grid.
-
-        Default: 0.5 optical depths along the grid's diagonal. Sampling thin voxels at σ̂ = f instead of σ ≈ 0
-        bounds the collision term's 1/σ̂ weight, but a path that flies a floored length Λ without colliding
-        carries the ratio weight exp((σ̂ − σ)Λ), whose second moment grows like exp(f·Λ); f·diagonal = 0.5
-        balances the two (measured on the `thin` benchmark scene: gradient variance × time is lowest near it,
-        and 20× higher at 0.05 optical depths per voxel, where TIR-guided paths pick up exponential weights).
-        """
-        floor = self.settings.sigma_t_floor
-        if floor is not None:
-            return floor
-        d, h, w = grid_shape[-3:]
-        sx, sy, sz = self.voxel_size
-        return 0.5 / math.sqrt((w * sx) ** 2 + (h * sy) ** 2 + (d * sz) ** 2)
+        """Density floor (mm⁻¹) of the default gradient sampling for a (…, D, H, W) grid (see
+        :func:`default_sigma_t_floor`)."""
+        return default_sigma_t_floor(self.settings, self.voxel_size, grid_shape)
 
     # ---- what the autograd Function asks of a render job (see _TraceJob)
     name = "render_texels"
@@ -145,6 +131,23 @@ class SlabScene:
                          self.sensor.spp, seed, self.settings, lanes)
 
 
+def default_sigma_t_floor(settings, voxel_size, grid_shape):
+    """Density floor (mm⁻¹) of the default gradient sampling: ``settings.sigma_t_floor`` if set, else 0.5 optical
+    depths along the diagonal of the (…, D, H, W) grid of ``voxel_size`` (x, y, z) edges.
+
+    Sampling thin voxels at σ̂ = f instead of σ ≈ 0 bounds the collision term's 1/σ̂ weight, but a path that flies a
+    floored length Λ without colliding carries the ratio weight exp((σ̂ − σ)Λ), whose second moment grows like
+    exp(f·Λ); f·diagonal = 0.5 balances the two (measured on the `thin` benchmark scene: gradient variance × time
+    is lowest near it, and 20× higher at 0.05 optical depths per voxel, where TIR-guided paths pick up exponential
+    weights).
+    """
+    if settings.sigma_t_floor is not None:
+        return settings.sigma_t_floor
+    d, h, w = grid_shape[-3:]
+    sx, sy, sz = voxel_size
+    return 0.5 / math.sqrt((w * sx) ** 2 + (h * sy) ** 2 + (d * sz) ** 2)
+
+
 def derive_seed_grad(seed):
     """The default gradient seed of a forward seed: a fixed bijection of the 64-bit seeds (odd multiplier and
     offset, as in SplitMix64), so that the gradient replay draws paths independent of the forward's noise."""
@@ -154,14 +157,6 @@ def derive_seed_grad(seed):
 def _signed64(seed):
     seed = int(seed) % 2 ** 64
     return seed if seed < 2 ** 63 else seed - 2 ** 64  # the same 64 bits, as a signed int64
-
-
-def _check_seed(name, seed):
-    if not is_int(seed):
-        raise TypeError(f"{name}: expected an int, got {type(seed).__name__}")
-    if not -2 ** 63 <= seed < 2 ** 64:
-        raise ValueError(f"{name}: expected a 64-bit integer, got {seed}")
-    return int(seed)
 
 
 def _assemble(voxel_size, origin, g, boundary, sensor, emitter, spp, seed, settings, lanes):
@@ -226,7 +221,6 @@ class Scene:
     albedo_floor: float = 0.05
 
     def __post_init__(self):
-        from .checks import check_vector3
         object.__setattr__(self, "voxel_size", voxel_edges(self.voxel_size))
         object.__setattr__(self, "origin", check_vector3("origin", self.origin))
         object.__setattr__(self, "g", HenyeyGreenstein(self.g).g)
@@ -280,12 +274,8 @@ class _TraceJob:
     def settings(self):
         return self.scene.settings
 
-    @property
-    def voxel_size(self):
-        return self.scene.voxel_size
-
     def sigma_t_floor(self, grid_shape):
-        return SlabScene.sigma_t_floor(self, grid_shape)
+        return default_sigma_t_floor(self.scene.settings, self.scene.voxel_size, grid_shape)
 
     def scene_options(self, lanes, seed, grid_shape, dtype):
         opt = self.scene.scene_options(lanes, seed, grid_shape, dtype)

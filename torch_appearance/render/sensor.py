@@ -10,7 +10,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from .checks import check_direction, check_float_tensor, check_int, check_real, check_vector3
+from .checks import check_direction, check_float_tensor, check_int, check_real, check_spp, check_vector3
 
 __all__ = ["FACES", "FaceTexels", "SurfaceTexels", "OrthographicCamera", "PerspectiveCamera", "TexelSensor"]
 
@@ -21,13 +21,6 @@ def _face(face):
     if not isinstance(face, str) or face not in FACES:
         raise ValueError(f"face: expected one of {sorted(FACES)}, got {face!r}")
     return face
-
-
-def _spp(spp):
-    spp = check_int("spp", spp, lo=1)
-    if spp >= 2 ** 32:
-        raise ValueError(f"spp: expected < 2**32, got {spp}")
-    return spp
 
 
 @dataclass(frozen=True)
@@ -235,4 +228,4 @@ class TexelSensor:
 
     def __post_init__(self):
         _face(self.face)
-        object.__setattr__(self, "spp", _spp(self.spp))
+        object.__setattr__(self, "spp", check_spp(self.spp))

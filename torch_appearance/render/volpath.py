@@ -1,7 +1,8 @@
 """The tracer's entry points, differentiable by path replay: ``render_texels`` (a voxel slab's face texels) and
 ``render_scene`` (any :class:`Scene`: box or SDF boundary, surface texels or cameras, any emitter)."""
 
-from .scene import Scene, SlabScene, _TraceJob, _check_seed, check_grid, check_medium, derive_seed_grad
+from .checks import check_seed, check_spp
+from .scene import Scene, SlabScene, _TraceJob, check_grid, check_medium, derive_seed_grad
 
 __all__ = ["render_texels", "render_scene"]
 
@@ -147,10 +148,9 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
         raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
     check_medium(sigma_t, albedo)
     scene.check_grid_shape(tuple(sigma_t.shape[1:]))
-    from .sensor import _spp
-    spp = _spp(spp)
-    seed = _check_seed("seed", seed)
-    seed_grad = derive_seed_grad(seed) if seed_grad is None else _check_seed("seed_grad", seed_grad)
+    spp = check_spp(spp)
+    seed = check_seed("seed", seed)
+    seed_grad = derive_seed_grad(seed) if seed_grad is None else check_seed("seed_grad", seed_grad)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
     job = _TraceJob(scene, spp, seed, seed_grad)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
