@@ -1,14 +1,18 @@
 """A closed (or nearly closed) triangle mesh becomes a voxel object: occupancy, an exact SDF band at the voxel
 corners, surface texels with points, normals and colours, depth below the surface (TOG 2021, thesis part II §3.3).
 
-Libraries (issue 11): libigl for the exact point–triangle distances (``igl.signed_distance`` with distance bounds,
-so only the band near the surface is resolved) and the fast generalised winding number for the sign, so open or
-self-intersecting meshes still get a sensible inside. Only band corners and the voxel cells that touch the band
-ask the winding number; everything farther takes the sign of its connected far region (one query per region).
-``igl.point_mesh_squared_distance`` gives the texels' closest surface points and faces. Units: mm. Axes: x ↔ W, y ↔ H, z ↔ D; corner (k, j, i) of the
-SDF grid sits at ``origin + (i, j, k)·voxel_size`` and voxel (k, j, i) spans [origin + (i, j, k)·h, … + h].
+Libraries (issue 11): libigl's AABB tree for exact point–triangle distances (``igl.signed_distance`` with distance
+bounds, so far points are pruned; pseudonormal signs for closed meshes), the fast generalised winding number for
+the sign where a mesh is open, duplicated or self-intersecting, and embree rays (via trimesh/embreex) for the
+inside/outside parity of everything far from the surface of closed meshes. ``igl.point_mesh_squared_distance``
+gives the texels' closest surface points and faces.
+
+Units: mm. Axes: x ↔ W, y ↔ H, z ↔ D; corner (k, j, i) of the SDF grid sits at ``origin + (i, j, k)·voxel_size``
+and voxel (k, j, i) spans [origin + (i, j, k)·h, … + h].
 """
 from dataclasses import dataclass, fields
+import json
+import math
 import os
 from typing import Optional, Tuple
 
@@ -45,6 +49,7 @@ class VoxelObject:
         depth: (D, H, W) float32 distance below the surface of inside voxels' centres (0 outside), mm; exact up to
             max(band_mm, shell_mm + 2 voxels), that value beyond.
         shell: (D, H, W) bool voxels with depth < shell_mm, or None.
+        info: how it was made (closed mesh or not, inverted, counts of queries, timings per step in s), or None.
     """
     origin: Tuple[float, float, float]
     voxel_size: float
@@ -58,6 +63,7 @@ class VoxelObject:
     texel_uv: Optional[torch.Tensor] = None
     depth: Optional[torch.Tensor] = None
     shell: Optional[torch.Tensor] = None
+    info: Optional[dict] = None
 
     @property
     def grid_shape(self):
@@ -81,6 +87,9 @@ class VoxelObject:
             v = getattr(self, f.name)
             if v is None:
                 continue
+            if f.name == "info":
+                arrays["info_json"] = np.array(json.dumps(v))
+                continue
             arrays[f.name] = v.numpy() if isinstance(v, torch.Tensor) else np.asarray(v)
         tmp = f"{path}.partial.npz"
         np.savez_compressed(tmp, **arrays)
@@ -100,8 +109,10 @@ class VoxelObject:
         if missing:
             raise ValueError(f"path: {path!r} lacks {missing}: not a voxel object")
         kw = {}
+        if "info_json" in arrays:
+            kw["info"] = json.loads(str(arrays["info_json"]))
         for f in fields(VoxelObject):
-            if f.name not in arrays:
+            if f.name not in arrays or f.name == "info":
                 continue
             v = arrays[f.name]
             if f.name == "origin":
@@ -117,28 +128,108 @@ class VoxelObject:
         return obj
 
 
-def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_bytes=MAX_GRID_BYTES):
+def _oriented(mesh):
+    """(mesh with outward faces, merged vertices V (n, 3), faces F (m, 3), closed): the mesh is inverted when its
+    signed volume is negative (faces wound inward); ``closed`` (watertight with consistent winding after merging
+    seam-split vertices) allows the pseudonormal sign and ray parity, otherwise the winding number decides."""
+    merged = mesh.copy()
+    merged.merge_vertices(merge_tex=True, merge_norm=True)
+    inverted = bool(merged.volume < 0)
+    if inverted:
+        mesh = mesh.copy()
+        mesh.invert()
+        merged.invert()
+    closed = bool(merged.is_watertight and merged.is_winding_consistent)
+    V = np.ascontiguousarray(merged.vertices, dtype=np.float64)
+    F = np.ascontiguousarray(merged.faces, dtype=np.int64)
+    return mesh, V, F, closed, inverted
+
+
+def _signed_band(P, V, F, closed, band):
+    """Signed distances (mm) of points P (n, 3) within ``band`` of the surface, NaN beyond (igl prunes those)."""
+    import igl
+
+    P = np.ascontiguousarray(P)
+    if closed:  # angle-weighted pseudonormals give the exact sign of a closed, consistently wound mesh
+        S, _, _, _ = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL,
+                                         lower_bound=-band, upper_bound=band)
+        return S
+    S, _, _, _ = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED, lower_bound=-band,
+                                     upper_bound=band)
+    near = np.isfinite(S)
+    if near.any():
+        S[near] = np.where(_inside_winding(P[near], V, F), -S[near], S[near])
+    return S
+
+
+def _inside_winding(P, V, F):
+    """Inside by the fast generalised winding number (|w| > 1/2: holes, duplicated faces and flipped parts too)."""
+    import igl
+
+    return np.abs(igl.fast_winding_number(V, F, np.ascontiguousarray(P))) > 0.5
+
+
+def _parity_inside(mesh_merged, xs, ys, z0, z_step, nz, rng):
+    """Inside/outside at the points (xs[i] + δx, ys[j] + δy, z0 + k·z_step) of a closed mesh by the parity of
+    embree ray hits along +z, one ray per (j, i) column; δ is a tiny random offset (≤ 1e-4 of a step) so rays do
+    not run along grid-aligned edges. Points closer to the surface than the offset may be wrong: callers use it
+    only farther out. Returns (inside (nz, ny, nx) bool, bad (ny, nx) bool: columns with an odd hit count)."""
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    ny, nx = len(ys), len(xs)
+    intersector = RayMeshIntersector(mesh_merged)
+    toggles = np.zeros((nz + 1, ny, nx), dtype=np.uint8)
+    todo = np.ones((ny, nx), dtype=bool)
+    for _ in range(3):
+        jj, ii = np.nonzero(todo)
+        if not len(jj):
+            break
+        jitter = (rng.random((len(jj), 2)) - 0.5) * 2e-4 * z_step
+        origins = np.stack([xs[ii] + jitter[:, 0], ys[jj] + jitter[:, 1], np.full(len(jj), z0 - z_step)], axis=1)
+        directions = np.broadcast_to(np.array([0.0, 0.0, 1.0]), origins.shape)
+        hits, ray, _ = intersector.intersects_location(origins, directions, multiple_hits=True)
+        counts = np.bincount(ray, minlength=len(jj))
+        even = counts % 2 == 0
+        keep = even[ray]
+        first_above = np.clip(np.ceil((hits[keep, 2] - z0) / z_step).astype(np.int64), 0, nz)
+        np.add.at(toggles, (first_above, jj[ray[keep]], ii[ray[keep]]), 1)
+        todo[jj[even], ii[even]] = False
+    inside = np.bitwise_xor.accumulate(toggles[:-1] & 1, axis=0).astype(bool)
+    return inside, todo
+
+
+def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_bytes=MAX_GRID_BYTES, seed=0):
     """Voxelise a triangle mesh (mm) at ``voxel_size`` mm.
+
+    How: exact point–triangle distances (libigl, AABB tree) are asked only where they matter. A coarse grid of
+    every 4th corner finds the region within the band (plus the coarse half-diagonal); the corners there get exact
+    signed distances (pseudonormal sign for closed meshes, fast winding number otherwise). Corners beyond the band
+    take their sign from embree ray parity along z (closed meshes) or from one winding-number query per connected
+    far region. A voxel centre takes the sign of any of its corners farther from the surface than the half
+    diagonal; the few centres without one are asked directly. Depth is exact below the surface up to the shell.
 
     Args:
         mesh: a ``trimesh.Trimesh`` in mm (:func:`torch_appearance.geometry.load_mesh`); UVs + texture, vertex or
-            face colours give the texel colours (the glTF base-colour factor is not applied yet).
+            face colours give the texel colours. Faces wound inward (negative volume) are inverted.
         voxel_size: voxel edge in mm, > 0 (300 DPI: 25.4 / 300).
         shell_mm: optional depth of the printable shell, mm; sets ``shell`` (depth exact to shell_mm + 2 voxels).
         padding: empty voxels around the object's bounding box (>= 1, so the SDF is > 0 on the outer corners).
         band_voxels: half-width of the exact SDF band in voxels (>= 2).
         max_bytes: refuse grids that would need more memory than this (the message names the size).
+        seed: seed of the tiny ray offsets of the parity test (results do not depend on it unless a mesh is
+            degenerate at that scale).
 
     Returns:
-        A :class:`VoxelObject`.
+        A :class:`VoxelObject`; its ``info`` holds timings per step and how the signs were found.
 
     Example:
         >>> import trimesh
         >>> obj = voxelize(trimesh.creation.box((2.0, 2.0, 1.0)), 0.25)
-        >>> obj.grid_shape, int(obj.occupancy.sum()), len(obj.texel_voxels)
-        ((6, 10, 10), 256, 184)
+        >>> obj.grid_shape, int(obj.occupancy.sum()), len(obj.texel_voxels), obj.info["closed"]
+        ((6, 10, 10), 256, 184, True)
     """
     import igl
+    import time
     import trimesh
 
     if not isinstance(mesh, trimesh.Trimesh):
@@ -150,90 +241,165 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     band_voxels = check_int("band_voxels", band_voxels, lo=2)
     if shell_mm is not None:
         shell_mm = check_real("shell_mm", shell_mm, lo=0.0, lo_open=True)
-    V = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-    F = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-    if not np.isfinite(V).all():
+    if not np.isfinite(np.asarray(mesh.vertices, dtype=np.float64)).all():
         raise ValueError("mesh: expected finite vertex coordinates")
-    lo, hi = V.min(0), V.max(0)
+    timings = {}
+    clock = time.perf_counter()
+
+    def lap(name):
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = now - clock
+        clock = now
+
+    V0 = np.asarray(mesh.vertices, dtype=np.float64)
+    lo, hi = V0.min(0), V0.max(0)
     # (W, H, D); the tolerance keeps an extent of exactly n voxels (3.0 / 0.2 = 15.000000000000002) at n
     dims = np.ceil((hi - lo) / h - 1e-9).astype(np.int64) + 2 * padding
     origin = lo - padding * h - (dims * h - (hi - lo) - 2 * padding * h) / 2  # centre the object in its grid
     w, hh, d = (int(n) for n in dims)
-    # float32 SDF and region labels (int32) at the corners; occupancy, near-cell mask, depth, shell per voxel
-    need = (d + 1) * (hh + 1) * (w + 1) * (4 + 4 + 1) + d * hh * w * (1 + 1 + 4 + 1)
+    # float32 SDF, candidate and far masks at the corners (+ int32 labels for open meshes); occupancy, border
+    # masks, depth and shell per voxel
+    need = (d + 1) * (hh + 1) * (w + 1) * (4 + 1 + 1 + 4) + d * hh * w * (1 + 1 + 1 + 4 + 1)
     if need > max_bytes:
         raise ValueError(f"voxel_size: {h:g} mm gives a {d}×{hh}×{w} grid that needs about {need / 2**30:.1f} GiB "
                          f"(limit {max_bytes / 2**30:.1f} GiB); use a larger voxel or a smaller object")
+    mesh, V, F, closed, inverted = _oriented(mesh)
+    lap("prepare")
     band = band_voxels * h
     depth_limit = band if shell_mm is None else max(band, shell_mm + 2 * h)
+    half_diag = math.sqrt(3.0) / 2.0
 
-    # 1. exact distances at the corners within the band (igl's bounds prune the rest, left NaN), in z-slabs to
-    #    bound the query memory; the sign of the band corners from the fast generalised winding number
-    xs = origin[0] + h * np.arange(w + 1)
-    ys = origin[1] + h * np.arange(hh + 1)
-    zs = origin[2] + h * np.arange(d + 1)
-    sdf = np.empty((d + 1, hh + 1, w + 1), dtype=np.float32)
-    yy, xx = np.meshgrid(ys, xs, indexing="ij")
-    per = max(1, int(2e6 // ((hh + 1) * (w + 1))))
-    for k0 in range(0, d + 1, per):
-        k1 = min(d + 1, k0 + per)
-        P = np.stack([np.broadcast_to(xx, (k1 - k0, *xx.shape)), np.broadcast_to(yy, (k1 - k0, *yy.shape)),
-                      np.broadcast_to(zs[k0:k1, None, None], (k1 - k0, *xx.shape))], axis=-1).reshape(-1, 3)
-        S, _, _, _ = igl.signed_distance(np.ascontiguousarray(P), V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED,
-                                         lower_bound=-band, upper_bound=band)
-        near = np.isfinite(S)
-        if near.any():
-            inside = igl.fast_winding_number(V, F, np.ascontiguousarray(P[near])) > 0.5
-            S[near] = np.where(inside, -S[near], S[near])
-        sdf[k0:k1] = S.reshape(k1 - k0, hh + 1, w + 1)
-    # 2. corners beyond the band: a 6-connected region of them has one sign (adjacent corners of opposite sign are
-    #    both within h of the surface, so inside the band), so one winding query per region signs it
-    from scipy import ndimage
+    # 1. coarse corners (every 4th): unsigned distance up to the largest bound needed, +2√3·h (the farthest a fine
+    #    point is from its nearest coarse corner), so that a fine point within r of the surface always has its
+    #    nearest coarse corner within r + 2√3·h
+    reach = 2.0 * math.sqrt(3.0) * h * (1 + 1e-9)
+    nc = [(n + 2) // 4 + 1 for n in (d, hh, w)]
+    cz, cy, cx = (origin[axis] + 4 * h * np.arange(n) for axis, n in zip((2, 1, 0), nc))
+    Pc = np.stack(np.meshgrid(cx, cy, cz, indexing="ij"), axis=-1).transpose(2, 1, 0, 3).reshape(-1, 3)
+    bound = max(band, depth_limit) + reach
+    coarse, _, _, _ = igl.signed_distance(np.ascontiguousarray(Pc), V, F,
+                                          sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED,
+                                          lower_bound=-bound, upper_bound=bound)
+    coarse = np.where(np.isfinite(coarse), coarse, np.inf).reshape(nc)
+    lap("coarse")
+
+    def near_corners(limit):
+        """(d+1, h+1, w+1) bool: corners whose nearest coarse corner is within ``limit`` + reach."""
+        c = coarse <= limit + reach
+        return c[np.ix_((np.arange(d + 1) + 2) // 4, (np.arange(hh + 1) + 2) // 4, (np.arange(w + 1) + 2) // 4)]
+
+    # 2. exact signed distances at the candidate corners; those beyond the band come back NaN
+    sdf = np.full((d + 1, hh + 1, w + 1), np.nan, dtype=np.float32)
+    cand = np.flatnonzero(near_corners(band))
+    kji = np.stack(np.unravel_index(cand, sdf.shape), axis=1)
+    sdf.ravel()[cand] = _signed_band(origin + kji[:, ::-1] * h, V, F, closed, band)
+    del kji
     far = np.isnan(sdf)
-    labels, count = ndimage.label(far)
-    if count:
-        _, first = np.unique(labels.ravel(), return_index=True)
-        first = first[1:] if labels.ravel()[first[0]] == 0 else first  # label 0 is the band
-        kji = np.stack(np.unravel_index(first, labels.shape), axis=1)
-        reps = origin + kji[:, ::-1] * h
-        region_inside = igl.fast_winding_number(V, F, np.ascontiguousarray(reps)) > 0.5
-        sdf[far] = np.where(region_inside[labels[far] - 1], -band, band)
-    # 3. occupancy of the voxel centres: cells with a corner in the band ask the winding number, the others share
-    #    the sign of their (far, single-region) corners
+    lap("band")
+
+    # 3. the sign of far corners: a 6-connected far region cannot cross the surface
+    parity_fallback = 0
+    try:
+        import trimesh.ray.ray_pyembree  # noqa: F401  (embreex; without it the winding number signs the far regions)
+        rays = closed
+    except ImportError:
+        rays = False
+    if rays:
+        inside, bad = _parity_inside(trimesh.Trimesh(V, F, process=False), origin[0] + h * np.arange(w + 1),
+                                     origin[1] + h * np.arange(hh + 1), origin[2], h, d + 1,
+                                     np.random.default_rng(seed))
+        if bad.any():  # columns whose rays kept an odd hit count: winding number for their far corners
+            cols = far & bad[None]
+            parity_fallback = int(bad.sum())
+            kji = np.argwhere(cols)
+            inside[cols] = _inside_winding(origin + kji[:, ::-1] * h, V, F)
+        sdf[far] = np.where(inside[far], -band, band)
+        del inside
+    else:
+        from scipy import ndimage
+        labels, count = ndimage.label(far)
+        if count:
+            _, first = np.unique(labels.ravel(), return_index=True)
+            first = first[1:] if labels.ravel()[first[0]] == 0 else first  # label 0 is the band
+            kji = np.stack(np.unravel_index(first, labels.shape), axis=1)
+            region_inside = _inside_winding(origin + kji[:, ::-1] * h, V, F)
+            sdf[far] = np.where(region_inside[labels[far] - 1], -band, band)
+        del labels
+    lap("far_sign")
+
+    # 4. occupancy of the voxel centres: cells with only far corners share their sign; a near cell takes the sign
+    #    of a corner farther than the half diagonal from the surface; the rest ask a signed query at the centre
     near_corner = ~far
+    del far
     cell_near = np.zeros((d, hh, w), dtype=bool)
     for dz in (0, 1):
         for dy in (0, 1):
             for dx in (0, 1):
                 cell_near |= near_corner[dz:dz + d, dy:dy + hh, dx:dx + w]
+    del near_corner
     occ = sdf[:-1, :-1, :-1] < 0
     kji = np.argwhere(cell_near)
-    if len(kji):
-        centres = origin + (kji[:, ::-1] + 0.5) * h
-        occ[cell_near] = igl.fast_winding_number(V, F, np.ascontiguousarray(centres)) > 0.5
-    # texels: inside voxels with an outside 6-neighbour
-    pad = np.pad(occ, 1, constant_values=False)
+    flat = (kji[:, 0] * (hh + 1) + kji[:, 1]) * (w + 1) + kji[:, 2]
+    offsets = np.array([(dz * (hh + 1) + dy) * (w + 1) + dx for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])
+    corner_values = sdf.ravel()[flat[:, None] + offsets[None, :]]
+    decisive = np.abs(corner_values) > half_diag * h * (1 + 1e-6)
+    decided = decisive.any(1)
+    pick = np.argmax(decisive, axis=1)
+    near_occ = corner_values[np.arange(len(flat)), pick] < 0
+    open_cells = ~decided
+    if open_cells.any():
+        centres = origin + (kji[open_cells][:, ::-1] + 0.5) * h
+        if closed:
+            S, _, _, _ = igl.signed_distance(np.ascontiguousarray(centres), V, F,
+                                             sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+            near_occ[open_cells] = S < 0
+        else:
+            near_occ[open_cells] = _inside_winding(centres, V, F)
+    occ[cell_near] = near_occ
+    del cell_near, kji, flat, corner_values, decisive
+    lap("occupancy")
+
+    # 5. texels: inside voxels with an outside 6-neighbour; their closest surface points, normals and colours
     border = np.zeros_like(occ)
-    for axis in range(3):
-        for step in (1, -1):
-            border |= ~np.roll(pad, step, axis=axis)[1:-1, 1:-1, 1:-1]
-    texel_mask = occ & border
-    kji = np.argwhere(texel_mask)
-    tex_centres = origin + (kji[:, ::-1] + 0.5) * h
-    _, fid, closest = igl.point_mesh_squared_distance(np.ascontiguousarray(tex_centres), V, F)
+    border[0] = border[-1] = True
+    border[:, 0] = border[:, -1] = True
+    border[:, :, 0] = border[:, :, -1] = True
+    border[1:] |= ~occ[:-1]
+    border[:-1] |= ~occ[1:]
+    border[:, 1:] |= ~occ[:, :-1]
+    border[:, :-1] |= ~occ[:, 1:]
+    border[:, :, 1:] |= ~occ[:, :, :-1]
+    border[:, :, :-1] |= ~occ[:, :, 1:]
+    texel_kji = np.argwhere(occ & border)
+    del border
+    tex_centres = origin + (texel_kji[:, ::-1] + 0.5) * h
+    _, fid, closest = igl.point_mesh_squared_distance(np.ascontiguousarray(tex_centres),
+                                                      np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                                                      np.ascontiguousarray(mesh.faces, dtype=np.int64))
     normals, colours, uv = surface_attributes(mesh, fid, closest)
-    # depth of the voxel centres below the surface (trilinear in the corner SDF, exact at the band)
-    # depth of the inside voxel centres: exact (unsigned) distances up to depth_limit, depth_limit beyond
+    lap("texels")
+
+    # 6. depth of the inside voxel centres: exact (unsigned) up to depth_limit, depth_limit beyond; only centres
+    #    whose nearest coarse corner is within depth_limit + reach can be that close
     depth = np.zeros(occ.shape, dtype=np.float32)
-    inside_kji = np.argwhere(occ)
-    dist, _, _, _ = igl.signed_distance(np.ascontiguousarray(origin + (inside_kji[:, ::-1] + 0.5) * h), V, F,
+    c = coarse <= depth_limit + reach
+    maybe = c[np.ix_((2 * np.arange(d) + 5) // 8, (2 * np.arange(hh) + 5) // 8, (2 * np.arange(w) + 5) // 8)]
+    maybe &= occ
+    depth[occ] = depth_limit
+    kji = np.argwhere(maybe)
+    dist, _, _, _ = igl.signed_distance(np.ascontiguousarray(origin + (kji[:, ::-1] + 0.5) * h), V, F,
                                         sign_type=igl.SIGNED_DISTANCE_TYPE_UNSIGNED, lower_bound=-depth_limit,
                                         upper_bound=depth_limit)
-    depth[occ] = np.where(np.isfinite(dist), np.minimum(dist, depth_limit), depth_limit)
+    depth[maybe] = np.where(np.isfinite(dist), np.minimum(dist, depth_limit), depth_limit)
     shell = None if shell_mm is None else torch.from_numpy(occ & (depth < shell_mm))
+    lap("depth")
+    info = {"closed": closed, "inverted": inverted, "ray_parity": rays, "band_corners": int(len(cand)),
+            "parity_fallback_columns": parity_fallback, "open_centres": int(open_cells.sum()),
+            "depth_queries": int(len(kji)), "timings_s": timings}
     return VoxelObject(origin=tuple(float(v) for v in origin), voxel_size=h, occupancy=torch.from_numpy(occ),
-                       sdf=torch.from_numpy(sdf), band_mm=float(band), texel_voxels=torch.from_numpy(kji),
+                       sdf=torch.from_numpy(sdf), band_mm=float(band), texel_voxels=torch.from_numpy(texel_kji),
                        texel_points=torch.from_numpy(closest), texel_normals=torch.from_numpy(normals),
                        texel_colors=None if colours is None else torch.from_numpy(colours),
                        texel_uv=None if uv is None else torch.from_numpy(uv),
-                       depth=torch.from_numpy(depth), shell=shell)
+                       depth=torch.from_numpy(depth), shell=shell, info=info)
