@@ -417,3 +417,43 @@ def test_mix_inks_gradcheck():
     weights = torch.rand(4, 2, 2, 2, generator=torch.Generator().manual_seed(8), dtype=torch.float64) + 0.05
     weights.requires_grad_(True)
     assert torch.autograd.gradcheck(lambda w: mix_inks(w, inks), (weights,), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+def test_support_mixture_matches_full_grid_and_holds_the_core():
+    """Shell-only parameters: logits only on the support; there the weights and optics equal those of a full-grid
+    mixture with the same logits, elsewhere the core ink holds exactly, and gradients reach only the support."""
+    inks = InkSet.from_names()
+    shape = (5, 6, 7)
+    support = torch.zeros(shape, dtype=torch.bool)
+    support[1:4, 2:5, 1:6] = True
+    support[0, 0, 0] = True
+    gen = torch.Generator().manual_seed(0)
+    full = MaterialMixture(inks, shape, dtype=torch.float64)
+    with torch.no_grad():
+        full.logits.copy_(torch.randn(full.logits.shape, generator=gen, dtype=torch.float64))
+    shell = MaterialMixture(inks, shape, dtype=torch.float64, support=support, core_ink="cyan")
+    assert tuple(shell.logits.shape) == (len(inks), int(support.sum()))
+    with torch.no_grad():
+        shell.logits.copy_(full.logits[:, support])
+    w, w_full = shell.weights(), full.weights()
+    assert torch.allclose(w[:, support], w_full[:, support], rtol=1e-14, atol=1e-16)
+    core = torch.zeros(len(inks), dtype=torch.float64)
+    core[inks.index("cyan")] = 1
+    assert torch.equal(w[:, ~support], core.view(-1, 1).expand(-1, int((~support).sum())))
+    sigma_t, albedo = shell()
+    ref_t, ref_a = mix_inks(w, inks)
+    assert torch.allclose(sigma_t, ref_t, rtol=1e-13, atol=0) and torch.allclose(albedo, ref_a, rtol=1e-13, atol=0)
+    (sigma_t.sum() + albedo.sum()).backward()
+    assert shell.logits.grad.shape == shell.logits.shape and bool(shell.logits.grad.abs().sum() > 0)
+    mask = torch.zeros(shape, dtype=torch.bool)
+    mask[0, 5, 6] = True  # outside the support
+    with pytest.raises(ValueError, match="outside the optimised support"):
+        MaterialMixture(inks, shape, support=support, fixed=[FixedFraction(mask, "white", 0.5)])
+    with pytest.raises(ValueError, match="support: expected shape"):
+        MaterialMixture(inks, shape, support=support[:-1])
+    with pytest.raises(ValueError, match="core_ink"):
+        MaterialMixture(inks, shape, support=support, core_ink="gold")
+    inside = torch.zeros(shape, dtype=torch.bool)
+    inside[2, 3, 3] = True
+    fixed = MaterialMixture(inks, shape, support=support, fixed=[FixedFraction(inside, "white", 0.25)])
+    assert float(fixed.weights()[inks.index("white"), 2, 3, 3]) == 0.25

@@ -66,16 +66,16 @@ def _check_weights(name, weights, n_inks):
 
 
 def _mix(weights, sigma_s_n, sigma_a_n, albedo_n):
-    """Eq. 9 without checks: (N, D, H, W) weights, (N, 3) σ_s,n, σ_a,n, α_n → (3, D, H, W) σ_t and α."""
-    sigma_s = torch.einsum("nc,ndhw->cdhw", sigma_s_n, weights)
-    sigma_a = torch.einsum("nc,ndhw->cdhw", sigma_a_n, weights)
+    """Eq. 9 without checks: (N, ...) weights, (N, 3) σ_s,n, σ_a,n, α_n → (3, ...) σ_t and α."""
+    sigma_s = torch.einsum("nc,n...->c...", sigma_s_n, weights)
+    sigma_a = torch.einsum("nc,n...->c...", sigma_a_n, weights)
     sigma_t = sigma_s + sigma_a
     positive = sigma_t > 0
     # Safe division: the unselected branch of torch.where must not produce NaN (its gradient would be NaN too).
     ratio = sigma_s / torch.where(positive, sigma_t, torch.ones_like(sigma_t))
     # σ_t = 0 only if every ink present has μ_t = 0 in that channel (built-in inks have μ_t >= 1e-4): no
     # interaction happens there, so α is irrelevant to the light transport; report the weight-averaged ink albedo.
-    fallback = torch.einsum("nc,ndhw->cdhw", albedo_n, weights) / weights.sum(0).clamp_min(1e-300)
+    fallback = torch.einsum("nc,n...->c...", albedo_n, weights) / weights.sum(0).clamp_min(1e-300)
     albedo = torch.where(positive, ratio, fallback).clamp(0.0, 1.0)  # clamp: round-off only
     return sigma_t.contiguous(), albedo.contiguous()
 
@@ -178,6 +178,10 @@ class MaterialMixture(torch.nn.Module):
     constraints may overlap if the sum of fixed fractions per voxel is <= 1 (= 1 exactly when every ink is fixed)
     and one ink is not fixed to two different values.
 
+    Shell-only parameters: with ``support`` (a (D, H, W) bool mask, e.g. the voxels within a few mm of an object's
+    surface) only those S voxels carry logits (N, S); every other voxel holds ``core_ink`` exactly and costs
+    neither parameters nor gradient memory.
+
     Args:
         inks: :class:`~torch_appearance.fabrication.InkSet` (or a sequence of built-in ink names).
         shape: (D, H, W) voxel counts, D the printing z axis.
@@ -186,9 +190,11 @@ class MaterialMixture(torch.nn.Module):
         init_ink: name of the dominant initial ink, or ``None`` for a uniform 1/N start.
         fixed: sequence of :class:`FixedFraction`.
         dtype: ``torch.float32`` or ``torch.float64`` (of the logits and all outputs).
+        support: optional (D, H, W) bool tensor/ndarray of the optimised voxels (None: all).
+        core_ink: the ink of the voxels outside ``support`` (default: ``init_ink``, or white).
 
     Attributes:
-        logits: ``nn.Parameter`` (N, D, H, W).
+        logits: ``nn.Parameter`` (N, D, H, W), or (N, S) with a support.
         inks: the :class:`InkSet`.
 
     Example:
@@ -198,7 +204,7 @@ class MaterialMixture(torch.nn.Module):
     """
 
     def __init__(self, inks, shape, parameterization="sigmoid", white_fraction=0.97, init_ink="white", fixed=(),
-                 dtype=torch.float32):
+                 dtype=torch.float32, support=None, core_ink=None):
         super().__init__()
         self.inks = _as_inkset("inks", inks)
         n = len(self.inks)
@@ -229,10 +235,20 @@ class MaterialMixture(torch.nn.Module):
                                  f"got {init_ink!r}") from None
         self.init_ink = None if init_index is None else self.inks.names[init_index]
 
-        init = torch.from_numpy(_initial_logits(n, init_index, self.white_fraction, parameterization))
-        self.logits = torch.nn.Parameter(init.to(dtype).view(n, 1, 1, 1).expand(n, *self.shape).contiguous())
+        support_index = self._build_support(support)
+        self.param_shape = self.shape if support_index is None else (len(support_index),)
+        core_name = core_ink if core_ink is not None else (self.init_ink or "white")
+        try:
+            core_index = self.inks.index(core_name)
+        except (TypeError, ValueError):
+            raise ValueError(f"core_ink: expected one of {list(self.inks.names)}, got {core_name!r}") from None
+        self.core_ink = self.inks.names[core_index]
 
-        fixed_mask, fixed_value, remaining = self._build_fixed(fixed, dtype)
+        init = torch.from_numpy(_initial_logits(n, init_index, self.white_fraction, parameterization))
+        ones = (1,) * len(self.param_shape)
+        self.logits = torch.nn.Parameter(init.to(dtype).view(n, *ones).expand(n, *self.param_shape).contiguous())
+
+        fixed_mask, fixed_value, remaining = self._build_fixed(fixed, dtype, support_index)
         self.fixed = (fixed,) if isinstance(fixed, FixedFraction) else tuple(fixed)
         self.register_buffer("fixed_mask", fixed_mask, persistent=False)
         self.register_buffer("fixed_value", fixed_value, persistent=False)
@@ -240,15 +256,36 @@ class MaterialMixture(torch.nn.Module):
         self.register_buffer("ink_sigma_s", self.inks.sigma_s(dtype), persistent=False)
         self.register_buffer("ink_sigma_a", self.inks.sigma_a(dtype), persistent=False)
         self.register_buffer("ink_albedo", self.inks.albedo(dtype), persistent=False)
+        self.register_buffer("support_index", support_index, persistent=False)
+        core = torch.zeros(n, dtype=dtype)
+        core[core_index] = 1
+        self.register_buffer("core_weights", core, persistent=False)
 
-    def _build_fixed(self, fixed, dtype):
+    def _build_support(self, support):
+        """(S,) int64 flat indices of the support voxels, or None."""
+        if support is None:
+            return None
+        if isinstance(support, np.ndarray):
+            support = torch.from_numpy(np.ascontiguousarray(support))
+        if not isinstance(support, torch.Tensor) or support.dtype != torch.bool:
+            raise TypeError(f"support: expected a bool tensor or ndarray of shape {self.shape}, got "
+                            f"{getattr(support, 'dtype', type(support).__name__)}")
+        if tuple(support.shape) != self.shape:
+            raise ValueError(f"support: expected shape {self.shape} (the mixture's shape), got {tuple(support.shape)}")
+        index = support.reshape(-1).nonzero().flatten()
+        if index.numel() == 0:
+            raise ValueError("support: selects no voxels; there is nothing to optimise")
+        return index
+
+    def _build_fixed(self, fixed, dtype, support_index=None):
         n = len(self.inks)
         if isinstance(fixed, FixedFraction):
             fixed = (fixed,)
         if isinstance(fixed, (str, bytes)) or not isinstance(fixed, Sequence):
             raise TypeError(f"fixed: expected a sequence of FixedFraction, got {type(fixed).__name__}")
-        mask = torch.zeros((n, *self.shape), dtype=torch.bool)
-        value = torch.zeros((n, *self.shape), dtype=torch.float64)
+        shape = self.shape if support_index is None else (len(support_index),)
+        mask = torch.zeros((n, *shape), dtype=torch.bool)
+        value = torch.zeros((n, *shape), dtype=torch.float64)
         for i, constraint in enumerate(fixed):
             if not isinstance(constraint, FixedFraction):
                 raise TypeError(f"fixed[{i}]: expected a FixedFraction, got {type(constraint).__name__}")
@@ -261,6 +298,12 @@ class MaterialMixture(torch.nn.Module):
                 raise ValueError(f"fixed[{i}].ink: ink {constraint.ink!r} is not in the ink set "
                                  f"{list(self.inks.names)}") from None
             m = constraint.mask.cpu()
+            if support_index is not None:
+                outside = int(m.sum()) - int(m.reshape(-1)[support_index].sum())
+                if outside:
+                    raise ValueError(f"fixed[{i}].mask: {outside} of its voxels lie outside the optimised support "
+                                     f"(they hold the core ink {self.core_ink!r}); widen the support (shell)")
+                m = m.reshape(-1)[support_index]
             clash = m & mask[k] & (value[k] != constraint.fraction)
             if bool(clash.any()):
                 raise ValueError(f"fixed[{i}]: ink {self.inks.names[k]!r} is already fixed to a different fraction "
@@ -286,7 +329,20 @@ class MaterialMixture(torch.nn.Module):
         return len(self.inks)
 
     def weights(self):
-        """Mixture weights ρ, shape (N, D, H, W): >= 0 and summing to 1 per voxel; fixed fractions exact."""
+        """Mixture weights ρ, shape (N, D, H, W): >= 0 and summing to 1 per voxel; fixed fractions exact; the core
+        ink (weight 1) outside the support."""
+        w = self.free_weights()
+        if self.support_index is None:
+            return w
+        return self._scatter(w, self.core_weights)
+
+    def _scatter(self, values, core):
+        """(C, S) support values → (C, D, H, W), ``core`` (C,) elsewhere (differentiable in ``values``)."""
+        full = core.to(values.dtype).view(-1, 1).expand(values.shape[0], math.prod(self.shape))
+        return full.index_copy(1, self.support_index, values).view(values.shape[0], *self.shape)
+
+    def free_weights(self):
+        """Weights of the optimised voxels: (N, D, H, W), or (N, S) with a support."""
         logits = self.logits
         free = ~self.fixed_mask
         if self.parameterization == "sigmoid":
@@ -309,8 +365,14 @@ class MaterialMixture(torch.nn.Module):
             (sigma_t, albedo): each (3, D, H, W), the logits' dtype; σ_t in mm⁻¹ (> 0 for the built-in inks),
             α in [0, 1]; contiguous, ready for :func:`torch_appearance.render_texels`.
         """
-        return _mix(self.weights(), self.ink_sigma_s, self.ink_sigma_a, self.ink_albedo)
+        if self.support_index is None:
+            return _mix(self.weights(), self.ink_sigma_s, self.ink_sigma_a, self.ink_albedo)
+        sigma_t, albedo = _mix(self.free_weights(), self.ink_sigma_s, self.ink_sigma_a, self.ink_albedo)
+        core_t, core_a = _mix(self.core_weights.view(-1, 1), self.ink_sigma_s, self.ink_sigma_a, self.ink_albedo)
+        return (self._scatter(sigma_t, core_t.view(-1)).contiguous(),
+                self._scatter(albedo, core_a.view(-1)).contiguous())
 
     def extra_repr(self):
+        support = "" if self.support_index is None else f", support={len(self.support_index)}, core={self.core_ink!r}"
         return (f"inks={list(self.inks.names)}, shape={self.shape}, parameterization={self.parameterization!r}, "
-                f"fixed={len(self.fixed)}")
+                f"fixed={len(self.fixed)}{support}")
