@@ -456,4 +456,4 @@ def test_support_mixture_matches_full_grid_and_holds_the_core():
     inside = torch.zeros(shape, dtype=torch.bool)
     inside[2, 3, 3] = True
     fixed = MaterialMixture(inks, shape, support=support, fixed=[FixedFraction(inside, "white", 0.25)])
-    assert float(fixed.weights()[inks.index("white"), 2, 3, 3]) == 0.25
+    assert float(fixed.weights().detach()[inks.index("white"), 2, 3, 3]) == 0.25
