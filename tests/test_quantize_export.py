@@ -262,7 +262,7 @@ def test_slices_overwrite_removes_stale_layers(tmp_path):
 def test_slices_refusals(tmp_path):
     inks = _inks6()
     indices = np.zeros((2, 2, 2), dtype=np.uint8)
-    with pytest.raises(ValueError, match=r"indices: expected values in \[0, 6\).*got maximum 6"):
+    with pytest.raises(ValueError, match=r"indices: expected values in \[0, 6\).*got 6"):
         export_slices(indices + 6, inks, tmp_path)
     with pytest.raises(TypeError, match="indices: expected dtype uint8, got int64"):
         export_slices(indices.astype(np.int64), inks, tmp_path)
@@ -299,3 +299,19 @@ def test_index_volume_round_trip(tmp_path):
         save_index_volume(tmp_path / "volume.npy", indices, inks)
     with pytest.raises(ValueError, match=r"indices: expected values in \[0, 2\)"):
         save_index_volume(path, indices + 2, inks)
+
+
+def test_slices_round_trip_with_void(tmp_path):
+    """Micro-voxels outside an object (VOID) export in the void colour and read back as VOID."""
+    from torch_appearance.fabrication.export import VOID, VOID_RGB
+
+    inks = InkSet.from_names()
+    rng = np.random.default_rng(1)
+    indices = rng.integers(0, len(inks), size=(4, 5, 6)).astype(np.uint8)
+    indices[rng.random(indices.shape) < 0.3] = VOID
+    palette = export_slices(indices, inks, tmp_path / "s")
+    assert palette["void"] == {"index": VOID, "rgb": list(VOID_RGB)}
+    back, _ = read_slices(tmp_path / "s")
+    assert np.array_equal(back, indices)
+    save_index_volume(str(tmp_path / "v.npz"), indices, inks)
+    assert np.array_equal(load_index_volume(str(tmp_path / "v.npz"))[0], indices)

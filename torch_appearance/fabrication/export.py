@@ -10,6 +10,9 @@ upward; each is an 8-bit RGB PNG with row j ↔ y index j and column i ↔ x ind
      "layer_thickness_mm": 0.0270..., "dpi": [600, 300, 940], "order": "bottom_to_top",
      "layers": Dz, "shape": [Dz, Hy, Wx], "file_pattern": "slice_{:04d}.png"}
 
+Objects: micro-voxels outside the object hold :data:`VOID` (255, "no material"); their pixels take the colour
+``palette["void"]["rgb"]`` (not an ink's colour), and :func:`read_slices` maps it back to 255.
+
 Every file is written atomically (temporary file + :func:`os.replace`); ``palette.json`` is written last.
 """
 import io as _stdio
@@ -24,7 +27,12 @@ from .. import io as _io
 from .inks import InkSet, ink_from_dict
 from .quantize import PRINTER_DPI, _check_dpi
 
-__all__ = ["export_slices", "read_slices", "save_index_volume", "load_index_volume"]
+__all__ = ["export_slices", "read_slices", "save_index_volume", "load_index_volume", "VOID", "VOID_RGB"]
+
+#: Material index of "no material" (outside an object) in index volumes.
+VOID = 255
+#: Slice colour of VOID micro-voxels (sRGB bytes), distinct from the built-in inks' colours.
+VOID_RGB = (0, 96, 0)
 
 _SLICE_RE = re.compile(r"^slice_(\d{4,})\.png$")
 _PALETTE = "palette.json"
@@ -38,8 +46,11 @@ def _check_indices(indices, n_inks=None):
         raise TypeError(f"indices: expected dtype uint8, got {indices.dtype}")
     if indices.ndim != 3 or min(indices.shape) < 1:
         raise ValueError(f"indices: expected shape (Dz, Hy, Wx) with all sizes >= 1, got {indices.shape}")
-    if n_inks is not None and int(indices.max()) >= n_inks:
-        raise ValueError(f"indices: expected values in [0, {n_inks}) (one per ink), got maximum {int(indices.max())}")
+    if n_inks is not None:
+        bad = (indices >= n_inks) & (indices != VOID)
+        if bad.any():
+            raise ValueError(f"indices: expected values in [0, {n_inks}) (one per ink) or {VOID} (void), got "
+                             f"{int(indices[bad][0])}")
     return indices
 
 
@@ -90,6 +101,9 @@ def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI):
                    if codes[i] == codes[j]]
         raise ValueError(f"inks: slice colours must be distinct to be read back, but these inks share a "
                          f"display_rgb (after 8-bit rounding): {clashes}")
+    void = bool((indices == VOID).any())
+    if void and _codes(np.array(VOID_RGB)) in set(codes.tolist()):
+        raise ValueError(f"inks: an ink's display_rgb equals the void colour {VOID_RGB}; change the ink's colour")
     os.makedirs(folder, exist_ok=True)
     palette = {
         "inks": [dict(index=i, name=ink.name, rgb=[int(v) for v in rgb[i]], sigma_t=list(ink.sigma_t),
@@ -101,10 +115,14 @@ def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI):
         "shape": [int(v) for v in indices.shape],
         "file_pattern": "slice_{:04d}.png",
     }
+    if void:
+        palette["void"] = {"index": VOID, "rgb": list(VOID_RGB)}
     # Remove the palette first: a folder with stale slices but no palette is recognisably incomplete.
     if os.path.exists(os.path.join(folder, _PALETTE)):
         os.remove(os.path.join(folder, _PALETTE))
-    bgr_palette = np.ascontiguousarray(rgb[:, ::-1])            # OpenCV stores B, G, R
+    bgr_palette = np.zeros((256, 3), dtype=np.uint8)
+    bgr_palette[:len(rgb)] = rgb[:, ::-1]                       # OpenCV stores B, G, R
+    bgr_palette[VOID] = VOID_RGB[::-1]
     for z in range(indices.shape[0]):
         ok, encoded = cv2.imencode(".png", bgr_palette[indices[z]])
         if not ok:
@@ -143,6 +161,10 @@ def read_slices(folder):
         raise ValueError(f"{os.path.join(folder, _PALETTE)!r}: malformed palette ({error!r})") from None
     if [int(e["index"]) for e in entries] != list(range(len(entries))) or colours.shape != (len(entries), 3):
         raise ValueError(f"{os.path.join(folder, _PALETTE)!r}: ink indices must be 0..N-1 with 3 rgb values each")
+    index_of = np.arange(len(entries))
+    if "void" in palette:
+        colours = np.concatenate([colours, np.array([palette["void"]["rgb"]], dtype=np.int64)])
+        index_of = np.append(index_of, VOID)
     codes = _codes(colours)
     order = np.argsort(codes)
     sorted_codes = codes[order]
@@ -163,7 +185,7 @@ def read_slices(folder):
             j, i = np.argwhere(~known)[0]
             raise ValueError(f"{path!r}: pixel (row {j}, column {i}) has colour {image[j, i, ::-1].tolist()}, "
                              f"which is not in the palette {colours.tolist()}")
-        indices[z] = order[pos]
+        indices[z] = index_of[order[pos]]
     return indices, palette
 
 
