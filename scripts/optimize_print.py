@@ -1,15 +1,20 @@
 #!/usr/bin/env python
-"""Optimise the ink arrangement of a printed slab so that its rendered look matches a target image.
+"""Optimise the ink arrangement of a printed slab or textured object so that its rendered look matches a target.
 
 Runs torch_appearance.pipelines.optimize_print: ink mixtures → C++ path tracer (radiative backpropagation) →
 perceptual appearance loss (ΔE76², 3D SSIM, 3D Sobel) → Adagrad/Adam; then probabilistic quantisation to the
 printer's native resolution, slice export, and an evaluation of the quantised volume against the target and
 against the naive-extrusion baseline (CIEDE2000). Writes a run folder (see --help of --out) and can resume.
 
+With --mesh (OBJ + MTL + texture, GLB/GLTF, PLY with vertex colours, ...) the object is scaled to --height-mm,
+voxelised at --dpi, and only a shell of --shell-mm below its surface is optimised (deeper voxels hold --core-ink);
+the surface is a smooth dielectric (--ior), the texels shoot inward from the surface.
+
 Examples:
     python scripts/optimize_print.py --target colorchecker --iterations 200 --out results/colorchecker
     python scripts/optimize_print.py --target zebra --gamma 1,3,1 --out results/zebra
     python scripts/optimize_print.py --target photo.png --bottom-target back.exr --width-mm 20 --out results/mine
+    python scripts/optimize_print.py --mesh spot.obj --texture spot_texture.png --height-mm 20 --out results/spot
     python scripts/optimize_print.py --out results/mine --resume     # continue an interrupted run
 """
 import argparse
@@ -48,7 +53,15 @@ def parse_args(argv=None):
     p.add_argument("--thickness-mm", type=float, default=d.thickness_mm, help="slab thickness (default: %(default)s)")
     p.add_argument("--dpi", type=float, default=d.dpi, help="optimisation voxel pitch (default: %(default)s ≈ 0.0847 mm)")
     p.add_argument("--width-mm", type=float, default=None, help="slab width; default: target width × voxel pitch")
-    p.add_argument("--height-mm", type=float, default=None, help="slab height; default: target height × voxel pitch")
+    p.add_argument("--height-mm", type=float, default=None, help="slab height (default: target height × voxel "
+                   "pitch), or with --mesh the object's z extent in mm")
+    p.add_argument("--mesh", default=None, help="a textured mesh to print as an object instead of a slab "
+                   "(--height-mm is then its z extent in mm)")
+    p.add_argument("--texture", default=None, help="base-colour image for a mesh with UVs but no material")
+    p.add_argument("--shell-mm", type=float, default=d.shell_mm,
+                   help="objects: optimised depth below the surface in mm (default: %(default)s)")
+    p.add_argument("--core-ink", default=d.core_ink, help="objects: ink of the voxels below the shell "
+                   "(default: %(default)s)")
     p.add_argument("--inks", default=",".join(DEFAULT_INKS),
                    help=f"comma-separated ink names from {sorted(INKS)} or a JSON ink file (default: %(default)s)")
     p.add_argument("--gamma", type=_floats(3, "--gamma"), default=d.gamma,
@@ -90,7 +103,8 @@ def main(argv=None):
                       gamma=args.gamma, spp=args.spp, eval_spp=args.eval_spp, eval_every=args.eval_every,
                       iterations=args.iterations, optimizer=args.optimizer, lr=args.lr,
                       parameterization=args.parameterization, printer_dpi=args.printer_dpi, ior=args.ior,
-                      seed=args.seed, gradient_seed=args.gradient_seed, out=args.out, resume=args.resume)
+                      seed=args.seed, gradient_seed=args.gradient_seed, out=args.out, resume=args.resume,
+                      mesh=args.mesh, texture=args.texture, shell_mm=args.shell_mm, core_ink=args.core_ink)
     try:
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

@@ -67,6 +67,10 @@ class PrintConfig:
     g: Optional[float] = None  # HG parameter; default: the inks' common g (0.4 for the built-in inks)
     printer_dpi: Tuple[float, float, float] = PRINTER_DPI
     table_steps: int = 6
+    mesh: Optional[str] = None  # a textured mesh: optimise the object instead of a slab (height_mm: its z extent)
+    texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
+    shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
+    core_ink: str = "white"
     out: str = "results/print"
     resume: bool = False
 
@@ -79,7 +83,7 @@ class PrintConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: expected > 0, got {value}")
 
-        for name in ("thickness_mm", "dpi", "lr"):
+        for name in ("thickness_mm", "dpi", "lr", "shell_mm"):
             positive(name, getattr(self, name))
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps"):
             positive(name, getattr(self, name), integer=True)
@@ -94,6 +98,12 @@ class PrintConfig:
             raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
         if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
             raise ValueError(f"printer_dpi: expected three positive DPI values (x, y, z), got {self.printer_dpi!r}")
+        if self.mesh is not None:
+            if self.height_mm is None:
+                raise ValueError("height_mm: an object print needs the object's height in mm (--height-mm)")
+            if self.bottom_target is not None or self.width_mm is not None:
+                raise ValueError("mesh: bottom_target and width_mm are slab settings; an object takes its colours "
+                                 "from the mesh and its size from height_mm")
         if self.voxel_size > self.thickness_mm * 1.0001:
             raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
                              f"got {self.thickness_mm}")
@@ -128,6 +138,38 @@ def slab_texel_grid(faces_rgb, depth):
         grid = grid.index_copy(1, torch.tensor([layer]), faces_rgb[k].permute(2, 0, 1).unsqueeze(1))
         mask[layer] = True
     return grid, mask
+
+
+class SlabTarget:
+    """Face texel images of a slab as the optimisation target (the loop's other kind is
+    :class:`~torch_appearance.pipelines.object_target.ObjectTarget`).
+
+    Attributes:
+        shape: (D, H, W). support: None (every voxel optimised). target: (F, H, W, 3) linear RGB, F = 1 (top) or
+        2 (top, bottom). target_grid, mask: the faces on the voxel grid for the losses.
+    """
+    kind = "slab"
+    support = None
+
+    def __init__(self, cfg, inks, faces_target):
+        self.cfg, self.inks = cfg, inks
+        self.target = torch.tensor(np.stack(faces_target))  # (F, H, W, 3)
+        self.faces = self.target.shape[0]
+        self.shape = (cfg.depth, *self.target.shape[1:3])
+        self.target_grid, self.mask = slab_texel_grid(self.target, cfg.depth)
+
+    def render(self, sigma_t, albedo, spp, seed):
+        return _render_faces(sigma_t, albedo, self.cfg, self.inks, self.faces, spp, seed)
+
+    def to_grid(self, texels):
+        return slab_texel_grid(texels, self.cfg.depth)[0]
+
+    def scored(self, texels):
+        """The top face is scored (the bottom face is reported separately)."""
+        return texels[0], self.target[0]
+
+    def describe(self):
+        return {"grid_dhw": list(self.shape), "faces": self.faces, "texels": self.faces * self.shape[1] * self.shape[2]}
 
 
 def _render_faces(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None):
@@ -285,19 +327,27 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
     fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "convergence.png"))
 
-    # ink usage by depth: mean mixture per layer, from the top face down
-    w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
-    depth_mm = (np.arange(w.shape[1]) + 0.5) * cfg.voxel_size
+    # ink usage by depth: mean mixture per layer from the top face down (slab), or per depth bin below the
+    # surface over the shell (object)
+    if target.kind == "slab":
+        w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
+        depth_mm = (np.arange(w.shape[1]) + 0.5) * cfg.voxel_size
+        where = "the top face"
+    else:
+        w, depth_mm = target.ink_usage_by_depth(weights)
+        where = "the surface (shell voxels)"
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.stackplot(depth_mm, w, labels=inks.names, edgecolor="0.3", linewidth=0.4,
                  colors=[np.clip(np.asarray(ink.display_rgb, float), 0, 1) for ink in inks])
-    ax.set(xlabel="depth below the top face [mm]", ylabel="mean ink fraction", xlim=(depth_mm[0], depth_mm[-1]),
-           ylim=(0, 1), title="ink usage by depth")
+    ax.set(xlabel=f"depth below {where} [mm]", ylabel="mean ink fraction",
+           xlim=(depth_mm[0], max(depth_mm[-1], depth_mm[0] + 1e-6)), ylim=(0, 1), title="ink usage by depth")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "ink_usage_by_depth.png"))
 
-    de = delta_e_2000(torch.as_tensor(final["image"]), torch.as_tensor(target))
+    if target.kind != "slab":
+        return
+    de = delta_e_2000(torch.as_tensor(final["image"][0]), target.target[0])
     de = np.asarray(de, np.float64)
     fig, ax = plt.subplots(figsize=(5, 4))
     im = ax.imshow(de, cmap="magma", vmin=0)
@@ -317,33 +367,8 @@ def _score(image, target):
 
 
 # ------------------------------------------------------------------------------------------------ the loop
-def optimize_print(cfg: PrintConfig, progress=True, log=print):
-    """Run one print optimisation and write its run folder ``cfg.out``.
-
-    Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (iteration, wall_s, loss, E1, E2,
-    E3, dE00_mean, dE00_p95, dE76_mean, seed); ``convergence.png``; ``target.exr`` / ``baseline.exr`` (naive
-    extrusion, quantised) / ``initial.exr`` / ``optimized.exr`` (continuous mixture) / ``final.exr`` (quantised
-    result), each linear RGB of the top face at the target's size, with PNG previews (and ``*_bottom`` for
-    two-sided targets); ``dE00_heatmap.png``; ``ink_usage_by_depth.png``; ``mixture.npz`` (weights N×D×H×W, ink
-    names, voxel size); ``quantized.npz`` (uint8 material indices at the printer resolution); ``slices/``
-    (one PNG per printer layer + ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation;
-    ``cfg.resume`` continues from it); ``summary.json``.
-
-    Returns:
-        The summary dict (also written to ``summary.json``).
-    """
-    cfg.validate()
-    folder = cfg.out
-    os.makedirs(folder, exist_ok=True)
-    ckpt_path = os.path.join(folder, CHECKPOINT)
-    if os.path.exists(ckpt_path) and not cfg.resume:
-        raise ValueError(f"out: {folder!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
-                         f"continue it or choose another folder")
-    inks = _load_inks(cfg.inks)
-    if cfg.g is None:
-        inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
-
-    # targets: top (and bottom), sized by the image at the voxel pitch or by width_mm/height_mm
+def _slab_target(cfg, inks):
+    """The slab target: top (and bottom) images sized by the image at the voxel pitch or by width/height."""
     top = load_target(cfg.target, name="target")
     size = None
     if cfg.width_mm is not None or cfg.height_mm is not None:
@@ -359,29 +384,115 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
             raise ValueError(f"bottom_target: expected the size of the top target {top.shape[:2]}, "
                              f"got {bottom.shape[:2]} (pass width_mm/height_mm to resample both)")
         faces_target.append(bottom)
-    n_faces = len(faces_target)
-    h, w = top.shape[:2]
-    target = torch.tensor(np.stack(faces_target))  # (F, H, W, 3)
-    target_grid, mask = slab_texel_grid(target, cfg.depth)
+    return SlabTarget(cfg, inks, faces_target)
+
+
+def _object_target(cfg, inks, log):
+    """The object target: the mesh loaded, scaled to height_mm and voxelised with a shell of shell_mm."""
+    from ..geometry import load_mesh, voxelize
+    from .object_target import ObjectTarget
+
+    mesh, report = load_mesh(cfg.mesh, height_mm=cfg.height_mm, **({} if cfg.texture is None else {"texture": cfg.texture}))
+    t0 = time.perf_counter()
+    obj = voxelize(mesh, cfg.voxel_size, shell_mm=cfg.shell_mm)
+    inside, shell = int(obj.occupancy.sum()), int(obj.shell.sum())
+    if shell >= inside:
+        raise ValueError(f"shell_mm: a {cfg.shell_mm} mm shell takes every one of the object's {inside} voxels (it "
+                         f"is thicker than half the object's thickness); use a thinner shell")
+    log(f"optimize_print: {cfg.mesh}: {report['triangles']} triangles, grid {obj.grid_shape}, {inside} inside "
+        f"voxels, {shell} in the {cfg.shell_mm} mm shell, {len(obj.texel_voxels)} texels "
+        f"({time.perf_counter() - t0:.1f} s)")
+    g = inks.g if cfg.g is None else cfg.g
+    target = ObjectTarget(obj, ior=cfg.ior, g=g, gradient_seed=cfg.gradient_seed)
+    target.mesh_report = report
+    return target
+
+
+def _naive_baseline(target, inks, cfg):
+    """Naive extrusion weights (N, D, H, W) and the table's description, for either kind of target."""
+    if target.kind == "slab":
+        return naive_extrusion(target.target[0].numpy(), inks, cfg)
+    # objects: the same table (homogeneous slabs as thick as the shell) per texel, extruded to the nearest texel
+    table_cfg = dataclasses.replace(cfg, thickness_mm=cfg.shell_mm)
+    column, table = naive_extrusion(target.target.numpy()[:, None, :], inks, table_cfg)
+    core = np.zeros(len(inks))
+    core[inks.index(cfg.core_ink)] = 1.0
+    return target.extrude(column[:, 0, :, 0].numpy(), core), table
+
+
+def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed):
+    """Printer-resolution indices of ``weights`` (VOID outside an object) and their rendered texels."""
+    indices = quantize_mixture(weights, cfg.voxel_size, cfg.printer_dpi, seed=quant_seed)
+    if target.kind == "slab":
+        h, w = target.shape[1:]
+        return indices, render_quantized(indices, inks, cfg, (h, w), target.faces, spp, seed)
+    indices = target.quantized_void(indices)
+    return indices, target.render_quantized(indices, inks, cfg.voxel_size, cfg.printer_dpi, spp, seed)
+
+
+def _save_texels(target, folder, stem, texels):
+    texels = texels.numpy() if isinstance(texels, torch.Tensor) else np.asarray(texels)
+    if target.kind == "object":
+        target.save_texels(folder, stem, texels)
+        return
+    _save_image(folder, stem, texels[0])
+    if target.faces == 2:
+        _save_image(folder, f"{stem}_bottom", texels[1])
+
+
+# ------------------------------------------------------------------------------------------------ the loop
+def optimize_print(cfg: PrintConfig, progress=True, log=print):
+    """Run one print optimisation of a slab or, with ``cfg.mesh``, of a textured object, and write ``cfg.out``.
+
+    Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (iteration, wall_s, loss, E1, E2,
+    E3, dE00_mean, dE00_p95, dE76_mean, seed); ``convergence.png``; ``ink_usage_by_depth.png``; the texel colours
+    of ``target``, ``baseline`` (naive extrusion, quantised), ``initial``, ``optimized`` (continuous mixture) and
+    ``final`` (quantised result): for a slab linear-RGB ``.exr`` images of the top face with PNG previews (and
+    ``*_bottom`` for two-sided targets) and ``dE00_heatmap.png``; for an object ``.npy`` (N, 3) linear RGB and a
+    coloured point cloud ``.ply`` at the texels' surface points, and ``object.npz`` (the voxelisation);
+    ``mixture.npz`` (weights N×D×H×W, ink names, voxel size); ``quantized.npz`` (uint8 material indices at the
+    printer resolution, 255 = void outside an object); ``slices/`` (one PNG per printer layer +
+    ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation; ``cfg.resume`` continues from
+    it); ``summary.json``.
+
+    Returns:
+        The summary dict (also written to ``summary.json``).
+    """
+    cfg.validate()
+    folder = cfg.out
+    ckpt_path = os.path.join(folder, CHECKPOINT)
+    if os.path.exists(ckpt_path) and not cfg.resume:
+        raise ValueError(f"out: {folder!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
+                         f"continue it or choose another folder")
+    inks = _load_inks(cfg.inks)
+    if cfg.g is None:
+        inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
+    if cfg.mesh is not None and cfg.core_ink.lower() not in [n.lower() for n in inks.names]:
+        raise ValueError(f"core_ink: {cfg.core_ink!r} is not in the ink set {list(inks.names)}")
+    target = _object_target(cfg, inks, log) if cfg.mesh is not None else _slab_target(cfg, inks)
+    shape = tuple(target.shape)
+    os.makedirs(folder, exist_ok=True)  # only once the inputs are known to be good: no partial run folder
 
     ta_io.write_json(os.path.join(folder, "config.json"), {
         **dataclasses.asdict(cfg), "inks": [dataclasses.asdict(i) for i in inks], "voxel_size_mm": cfg.voxel_size,
-        "grid_dhw": [cfg.depth, h, w], "faces": n_faces, "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads()})
-    _save_image(folder, "target", top)
-    if n_faces == 2:
-        _save_image(folder, "target_bottom", faces_target[1])
+        "kind": target.kind, **target.describe(), "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(), **({"mesh_report": target.mesh_report}
+                                                     if target.kind == "object" else {})})
+    if target.kind == "object":
+        target.obj.save(os.path.join(folder, "object.npz"))
+    _save_texels(target, folder, "target", target.target)
 
-    model = MaterialMixture(inks, (cfg.depth, h, w), parameterization=cfg.parameterization)
+    model = MaterialMixture(inks, shape, parameterization=cfg.parameterization, support=target.support,
+                            core_ink=cfg.core_ink if target.support is not None else None)
     optim_cls = torch.optim.Adagrad if cfg.optimizer == "adagrad" else torch.optim.Adam
     optimizer = optim_cls(model.parameters(), lr=cfg.lr)
     criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
     rows, start, wall_offset = [], 0, 0.0
     if cfg.resume and os.path.exists(ckpt_path):
         state = torch.load(ckpt_path, weights_only=False)
-        if tuple(state["grid_dhw"]) != (cfg.depth, h, w) or state["inks"] != list(inks.names):
+        if tuple(state["grid_dhw"]) != shape or state["inks"] != list(inks.names):
             raise ValueError(f"resume: the checkpoint in {folder!r} is for grid {state['grid_dhw']} and inks "
-                             f"{state['inks']}, this run has {[cfg.depth, h, w]} and {list(inks.names)}")
+                             f"{state['inks']}, this run has {list(shape)} and {list(inks.names)}")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         rows, start, wall_offset = state["rows"], state["iteration"], state["wall_s"]
@@ -396,20 +507,26 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
     def evaluate(spp=cfg.eval_spp):
         with torch.no_grad():
             s, a = model()
-            return _render_faces(s, a, cfg, inks, n_faces, spp, eval_seed)
+            return target.render(s, a, spp, eval_seed)
+
+    def score(texels):
+        return _score(*target.scored(texels))
+
+    def loss_row(texels):
+        with torch.no_grad():
+            loss, parts = criterion.forward_parts(target.to_grid(texels), target.target_grid, target.mask)
+        return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
     if baseline is None:  # naive extrusion, quantised and scored the same way as the result
         t0 = time.perf_counter()
-        base_w, table = naive_extrusion(top, inks, cfg)
-        indices = quantize_mixture(base_w, cfg.voxel_size, cfg.printer_dpi, seed=quant_seed)
-        base_img = render_quantized(indices, inks, cfg, (h, w), n_faces, cfg.eval_spp, eval_seed)
-        baseline = {"image": base_img.numpy(), **_score(base_img[0], top), "table": table,
+        base_w, table = _naive_baseline(target, inks, cfg)
+        _, base_img = _quantize_and_render(target, base_w, inks, cfg, cfg.eval_spp, eval_seed, quant_seed)
+        baseline = {"image": base_img.numpy(), **score(base_img), "table": table,
                     "seconds": time.perf_counter() - t0}
-        _save_image(folder, "baseline", baseline["image"][0])
+        _save_texels(target, folder, "baseline", baseline["image"])
         initial = evaluate()
-        _save_image(folder, "initial", initial[0].numpy())
-        rows.append({"iteration": 0, "wall_s": 0.0, **_loss_row(criterion, initial, target_grid, mask, cfg.depth),
-                     **_score(initial[0], top), "seed": eval_seed})
+        _save_texels(target, folder, "initial", initial)
+        rows.append({"iteration": 0, "wall_s": 0.0, **loss_row(initial), **score(initial), "seed": eval_seed})
 
     # ---- optimisation
     try:
@@ -422,22 +539,21 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
     for it in range(start, cfg.iterations):
         seed = _iteration_seed(cfg.seed, it)
         sigma_t, albedo = model()
-        image = _render_faces(sigma_t, albedo, cfg, inks, n_faces, cfg.spp, seed)
-        grid, _ = slab_texel_grid(image, cfg.depth)
-        loss, parts = criterion.forward_parts(grid, target_grid, mask)
+        image = target.render(sigma_t, albedo, cfg.spp, seed)
+        loss, parts = criterion.forward_parts(target.to_grid(image), target.target_grid, target.mask)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
         if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
-            row.update(_score(evaluate()[0], top))
+            row.update(score(evaluate()))
             last_eval = row
         row["wall_s"] = time.perf_counter() - t_start
         rows.append(row)
         if "dE00_mean" in row:
             _atomic_torch_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "rows": rows,
                                 "iteration": it + 1, "wall_s": row["wall_s"], "baseline": baseline,
-                                "grid_dhw": [cfg.depth, h, w], "inks": list(inks.names)}, ckpt_path)
+                                "grid_dhw": list(shape), "inks": list(inks.names)}, ckpt_path)
             ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
         if bar is not None:
             bar.update(1)
@@ -449,46 +565,38 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
     # ---- results: continuous, quantised, exports
     weights = model.weights().detach()
     optimized = evaluate()
-    _save_image(folder, "optimized", optimized[0].numpy())
-    indices = quantize_mixture(weights, cfg.voxel_size, cfg.printer_dpi, seed=quant_seed)
-    final_img = render_quantized(indices, inks, cfg, (h, w), n_faces, cfg.eval_spp, eval_seed)
-    final = {"image": final_img[0].numpy(), **_score(final_img[0], top)}
-    _save_image(folder, "final", final["image"])
-    if n_faces == 2:
-        _save_image(folder, "final_bottom", final_img[1].numpy())
-        _save_image(folder, "baseline_bottom", baseline["image"][1])
-        final["bottom"] = _score(final_img[1], faces_target[1])
+    _save_texels(target, folder, "optimized", optimized)
+    indices, final_img = _quantize_and_render(target, weights, inks, cfg, cfg.eval_spp, eval_seed, quant_seed)
+    final = {"image": final_img.numpy(), **score(final_img)}
+    _save_texels(target, folder, "final", final["image"])
+    if target.kind == "slab" and target.faces == 2:
+        final["bottom"] = _score(final_img[1], target.target[1])
     ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), _npz_bytes(
         weights=weights.numpy().astype(np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
     save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
     export_slices(indices, inks, os.path.join(folder, "slices"))
-    _plots(folder, rows, baseline, weights, inks, cfg, top, final)
+    _plots(folder, rows, baseline, weights, inks, cfg, target, final)
 
     opt_rows = [r for r in rows if r["iteration"] > 0]
     summary = {
+        "kind": target.kind,
         "iterations": cfg.iterations,
         "wall_s": rows[-1]["wall_s"],
         "seconds_per_iteration": (rows[-1]["wall_s"] / max(1, len(opt_rows))) if opt_rows else None,
-        "grid_dhw": [cfg.depth, h, w], "texels": n_faces * h * w, "spp": cfg.spp, "eval_spp": cfg.eval_spp,
+        **target.describe(), "spp": cfg.spp, "eval_spp": cfg.eval_spp,
         "final_quantized": {k: v for k, v in final.items() if k != "image"},
-        "optimized_continuous": _score(optimized[0], top),
+        "optimized_continuous": score(optimized),
         "baseline_naive_extrusion": {k: v for k, v in baseline.items() if k != "image"},
         "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
         "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
         "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
+        "parameters": int(model.logits.numel()),
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
     log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
         f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}, naive extrusion "
         f"{baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f} -> {folder}")
     return summary
-
-
-def _loss_row(criterion, image, target_grid, mask, depth):
-    grid, _ = slab_texel_grid(image, depth)
-    with torch.no_grad():
-        loss, parts = criterion.forward_parts(grid, target_grid, mask)
-    return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
 
 def _load_inks(spec):

@@ -1,0 +1,117 @@
+"""Print optimisation of a voxelised textured object (issue 12): the loop, its run folder, resume, the shell,
+the void outside the object and bad input."""
+import csv
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from torch_appearance.fabrication import InkSet, load_index_volume, read_slices
+from torch_appearance.fabrication.export import VOID
+from torch_appearance.geometry import VoxelObject, voxelize
+from torch_appearance.pipelines import PrintConfig, optimize_print
+from torch_appearance.pipelines.object_target import ObjectTarget
+
+QUIET = dict(progress=False, log=lambda *_: None)
+
+
+@pytest.fixture(scope="module")
+def sphere_ply(tmp_path_factory):
+    """A sphere coloured by its normals (vertex colours), radius 1 in file units."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    rgb = np.clip(0.5 + 0.4 * mesh.vertex_normals, 0, 1)
+    mesh.visual.vertex_colors = np.c_[(rgb * 255).astype(np.uint8), np.full(len(rgb), 255, np.uint8)]
+    path = tmp_path_factory.mktemp("mesh") / "sphere.ply"
+    mesh.export(path)
+    return str(path)
+
+
+def config(mesh_path, out, **kw):
+    kw.setdefault("mesh", mesh_path)
+    base = dict( height_mm=2.4, dpi=100.0, shell_mm=0.55, spp=2, eval_spp=8, eval_every=2, iterations=4,
+                printer_dpi=(300.0, 300.0, 300.0), out=str(out))
+    base.update(kw)
+    return PrintConfig(**base)
+
+
+def test_object_run_folder_shell_void_and_resume(sphere_ply, tmp_path):
+    summary = optimize_print(config(sphere_ply, tmp_path / "run"), **QUIET)
+    folder = tmp_path / "run"
+    for name in ("config.json", "log.csv", "convergence.png", "ink_usage_by_depth.png", "object.npz", "mixture.npz",
+                 "quantized.npz", "summary.json", "checkpoint.pt", "slices/palette.json"):
+        assert (folder / name).exists(), name
+    for stem in ("target", "baseline", "initial", "optimized", "final"):
+        assert (folder / f"{stem}.ply").exists() and (folder / f"{stem}.npy").exists(), stem
+    obj = VoxelObject.load(str(folder / "object.npz"))
+    n_texels, shell = len(obj.texel_voxels), obj.shell
+    assert summary["kind"] == "object" and summary["texels"] == n_texels
+    assert np.load(folder / "final.npy").shape == (n_texels, 3)
+    # only the shell carries parameters; deeper voxels hold the core ink exactly
+    inks = InkSet.from_names()
+    assert summary["parameters"] == len(inks) * int(shell.sum())
+    weights = torch.from_numpy(np.load(folder / "mixture.npz")["weights"])
+    core = weights[:, obj.occupancy & ~shell]
+    assert core.shape[1] > 0 and bool((core[inks.index("white")] == 1).all())
+    # the quantised volume: void outside the object, inks inside, the slices read back the same
+    indices, _, _ = load_index_volume(str(folder / "quantized.npz"))
+    inside = obj.occupancy.float().mean().item()
+    assert 0.5 * inside < float((indices != VOID).mean()) < 1.5 * inside
+    assert np.array_equal(read_slices(str(folder / "slices"))[0], indices)
+    # the colours move towards the target (same evaluation spp and seed at iteration 0 and at the end)
+    rows = list(csv.DictReader(open(folder / "log.csv")))
+    assert [int(r["iteration"]) for r in rows] == list(range(5))
+    assert float(rows[-1]["dE00_mean"]) < 0.8 * float(rows[0]["dE00_mean"])
+    # resume: 2 iterations, then continue to 4 = one run of 4 (same seeds per iteration)
+    optimize_print(config(sphere_ply, tmp_path / "split", iterations=2), **QUIET)
+    with pytest.raises(ValueError, match="already holds a run"):
+        optimize_print(config(sphere_ply, tmp_path / "split"), **QUIET)
+    resumed = optimize_print(config(sphere_ply, tmp_path / "split", resume=True), **QUIET)
+    split_rows = list(csv.DictReader(open(tmp_path / "split" / "log.csv")))
+    assert [r["loss"] for r in split_rows] == [r["loss"] for r in rows]
+    assert resumed["final_quantized"] == summary["final_quantized"]
+
+
+def test_object_naive_extrusion_takes_the_nearest_texel():
+    """Every shell voxel of the baseline holds the mixture of the texel nearest to it; the core holds the core."""
+    obj = voxelize(trimesh.creation.box((2.0, 1.6, 1.2)), 0.2, shell_mm=0.3)
+    obj.texel_colors = torch.rand(len(obj.texel_voxels), 3)
+    target = ObjectTarget(obj)
+    n = len(obj.texel_voxels)
+    texel_weights = np.random.default_rng(0).random((4, n))
+    core = np.array([0.0, 0.0, 0.0, 1.0])
+    w = target.extrude(texel_weights, core).numpy()
+    tex = obj.texel_voxels.numpy()
+    for k, j, i in np.argwhere(obj.shell.numpy())[::7]:
+        d2 = ((tex - (k, j, i)) ** 2).sum(1)
+        assert d2.min() == d2[np.argmin(d2)]
+        candidates = np.flatnonzero(d2 == d2.min())
+        assert any(np.allclose(w[:, k, j, i], texel_weights[:, c], atol=1e-7) for c in candidates)
+    outside_shell = ~obj.shell.numpy()
+    assert np.allclose(w[:, outside_shell], core[:, None])
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (dict(mesh="/nonexistent/missing.obj"), "no such file"),
+    (dict(height_mm=0.0), "height_mm"),
+    (dict(height_mm=None), "height_mm"),
+    (dict(shell_mm=3.0), "shell_mm"),
+    (dict(core_ink="gold"), "core_ink"),
+    (dict(width_mm=3.0), "slab settings"),
+])
+def test_object_bad_input_leaves_no_run_folder(sphere_ply, tmp_path, overrides, match):
+    out = tmp_path / "run"
+    with pytest.raises(ValueError, match=match):
+        optimize_print(config(sphere_ply, out, **overrides), **QUIET)
+    assert not out.exists()
+
+
+def test_object_without_colours_is_refused(tmp_path):
+    path = tmp_path / "plain.stl"
+    trimesh.creation.box((1.0, 1.0, 1.0)).export(path)
+    out = tmp_path / "run"
+    with pytest.raises(ValueError, match="neither a texture nor vertex/face colours"):
+        optimize_print(config(str(path), out), **QUIET)
+    assert not out.exists()

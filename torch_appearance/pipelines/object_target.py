@@ -1,0 +1,160 @@
+"""A voxelised textured object as a print target (TOG 2021 §3.3, thesis part II): what the print-optimisation loop
+needs of an object, next to the slab target of :mod:`.print_optimization`.
+
+The object's surface is a smooth dielectric given by its SDF grid; the texel sensor shoots from the surface texels
+along the inward normal; only a shell of voxels within ``shell_mm`` of the surface carries mixture logits, deeper
+voxels hold the core ink. The appearance losses see the texel colours placed on the voxel grid
+(:meth:`VoxelObject.texels_to_grid`), masked to the texels.
+"""
+import os
+
+import numpy as np
+import torch
+
+from .. import io as ta_io
+from ..fabrication.export import VOID
+from ..fabrication.quantize import micro_grid_pitch
+from ..nn.mixture import mix_inks
+from ..render import ConstantEnvironment, Scene, SDFBoundary, SurfaceTexels
+from ..render.volpath import render_scene
+
+__all__ = ["ObjectTarget"]
+
+
+class ObjectTarget:
+    """Texel colours of a voxelised object as the optimisation target.
+
+    Args:
+        obj: a :class:`~torch_appearance.geometry.VoxelObject` with ``texel_colors`` and ``shell``.
+        ior: refractive index of the object's surface (None: index matched).
+        g: Henyey–Greenstein g of the inks.
+        gradient_seed: ``"same"`` (the replay retraces the forward's paths) or ``"independent"``.
+
+    Attributes:
+        shape: (D, H, W) of the voxel grid. support: (D, H, W) bool, the optimised shell. target: (N, 3) float32
+        linear RGB texel colours. target_grid, mask: the target on the voxel grid for the losses.
+    """
+    kind = "object"
+
+    def __init__(self, obj, *, ior=1.5, g=0.4, gradient_seed="same"):
+        if obj.texel_colors is None:
+            raise ValueError("mesh: has neither a texture nor vertex/face colours, so there is no target appearance "
+                             "(attach a texture with --texture or use a coloured PLY/GLB)")
+        if obj.shell is None:
+            raise ValueError("obj: expected a voxel object made with shell_mm (voxelize(..., shell_mm=...))")
+        self.obj = obj
+        self.shape = obj.grid_shape
+        self.support = obj.shell.clone()
+        if not bool(self.support.any()):
+            raise ValueError("shell_mm: the shell holds no voxels")
+        self.target = obj.texel_colors.float().clamp(0, 1)
+        self.target_grid = obj.texels_to_grid(self.target)
+        self.mask = obj.texels_to_grid(torch.ones(len(self.target), 1, dtype=torch.bool))[0]
+        self.g, self.ior, self.gradient_seed = g, ior, gradient_seed
+        self.scene = self._scene(obj.voxel_size, obj.sdf.float())
+
+    # ------------------------------------------------------------------------------------------ rendering
+    def _scene(self, voxel_size, sdf):
+        sensor = SurfaceTexels(self.obj.texel_points.double(), self.obj.texel_normals.double(),
+                               footprint_mm=0.5 * self.obj.voxel_size)
+        return Scene(voxel_size=voxel_size, origin=self.obj.origin, boundary=SDFBoundary(sdf.contiguous(), ior=self.ior),
+                     sensor=sensor, emitter=ConstantEnvironment(), g=self.g)
+
+    def render(self, sigma_t, albedo, spp, seed, scene=None):
+        """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
+        scene = self.scene if scene is None else scene
+        seed_grad = seed if self.gradient_seed == "same" else None
+        return render_scene(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=seed_grad)
+
+    def to_grid(self, texels):
+        return self.obj.texels_to_grid(texels)
+
+    def scored(self, texels):
+        """(prediction, target) pairs of (M, 3) colours that are scored (all texels)."""
+        return texels, self.target
+
+    # ------------------------------------------------------------------------------------------ baselines
+    def extrude(self, texel_weights, core):
+        """Per-texel mixtures (N_inks, N) → (N_inks, D, H, W): every shell voxel takes the mixture of its nearest
+        texel (by voxel centre), other voxels ``core`` (N_inks,)."""
+        from scipy.spatial import cKDTree
+
+        d, h, w = self.shape
+        shell = self.support.numpy()
+        tree = cKDTree(self.obj.texel_voxels.numpy().astype(np.float64))
+        kji = np.argwhere(shell).astype(np.float64)
+        _, nearest = tree.query(kji, workers=-1)
+        out = np.broadcast_to(np.asarray(core, np.float64)[:, None], (len(core), d * h * w)).copy()
+        out[:, np.flatnonzero(shell)] = np.asarray(texel_weights, np.float64)[:, nearest]
+        return torch.tensor(out.reshape(len(core), d, h, w), dtype=torch.float32)
+
+    # ------------------------------------------------------------------------------------------ quantisation
+    def quantized_void(self, indices):
+        """Mark the printer micro-voxels whose centres lie outside the object (SDF > 0, trilinear) as VOID."""
+        d, h, w = self.shape
+        dz, hy, wx = indices.shape
+        sdf = self.micro_sdf((dz, hy, wx))
+        centre = (sdf[:-1, :-1, :-1] + sdf[1:, 1:, 1:] + sdf[1:, :-1, :-1] + sdf[:-1, 1:, :-1] + sdf[:-1, :-1, 1:]
+                  + sdf[1:, 1:, :-1] + sdf[1:, :-1, 1:] + sdf[:-1, 1:, 1:]) / 8
+        out = indices.copy()
+        out[centre.numpy() > 0] = VOID
+        return out
+
+    def micro_sdf(self, micro_shape):
+        """The corner SDF trilinearly resampled onto the corners of a micro grid covering the same box."""
+        dz, hy, wx = micro_shape
+        sdf = self.obj.sdf.float()[None, None]
+        return torch.nn.functional.interpolate(sdf, size=(dz + 1, hy + 1, wx + 1), mode="trilinear",
+                                               align_corners=True)[0, 0].contiguous()
+
+    def render_quantized(self, indices, inks, voxel_size, printer_dpi, spp, seed):
+        """(N, 3) texel colours of a printer-resolution index volume (VOID outside), rendered with the object's
+        boundary resampled to the micro grid."""
+        dz, hy, wx = indices.shape
+        edges = micro_grid_pitch(self.shape, voxel_size, printer_dpi)
+        idx = torch.as_tensor(np.where(indices == VOID, 0, indices).astype(np.int64))  # outside: any ink, unseen
+        onehot = torch.nn.functional.one_hot(idx, len(inks)).permute(3, 0, 1, 2).float().contiguous()
+        sigma_t, albedo = mix_inks(onehot, inks)
+        scene = Scene(voxel_size=edges, origin=self.obj.origin,
+                      boundary=SDFBoundary(self.micro_sdf((dz, hy, wx)), ior=self.ior), sensor=self.scene.sensor,
+                      emitter=self.scene.emitter, g=self.g)
+        with torch.no_grad():
+            return render_scene(scene, sigma_t.contiguous(), albedo.contiguous(), spp=spp, seed=seed)
+
+    # ------------------------------------------------------------------------------------------ outputs
+    def save_texels(self, folder, stem, texels):
+        """Write the texel colours as a coloured point cloud ``stem.ply`` (sRGB bytes) and ``stem.npy`` (linear)."""
+        import trimesh
+
+        from ..color import linear_to_srgb
+
+        rgb = np.asarray(texels, np.float32).reshape(-1, 3)
+        ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.npy"), _npy_bytes(rgb))
+        srgb = np.asarray(linear_to_srgb(torch.as_tensor(np.clip(rgb, 0, 1)).double()))
+        colours = np.concatenate([np.round(srgb * 255), np.full((len(rgb), 1), 255)], axis=1).astype(np.uint8)
+        cloud = trimesh.PointCloud(self.obj.texel_points.numpy(), colors=colours)
+        ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.ply"), cloud.export(file_type="ply"))
+
+    def ink_usage_by_depth(self, weights, bins=None):
+        """Mean ink fractions (N, B) of the shell voxels binned by depth below the surface; bin centres (B,) mm."""
+        depth = self.obj.depth.numpy()[self.support.numpy()]
+        w = weights.detach().double().reshape(weights.shape[0], -1)[:, self.support.reshape(-1)].numpy()
+        h = self.obj.voxel_size
+        edges = np.arange(0.0, depth.max() + h, h) if bins is None else bins
+        which = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
+        count = np.bincount(which, minlength=len(edges) - 1).astype(np.float64)
+        usage = np.stack([np.bincount(which, weights=row, minlength=len(edges) - 1) for row in w])
+        keep = count > 0
+        return usage[:, keep] / count[keep], (0.5 * (edges[:-1] + edges[1:]))[keep]
+
+    def describe(self):
+        return {"grid_dhw": list(self.shape), "texels": int(len(self.target)), "shell_voxels": int(self.support.sum()),
+                "inside_voxels": int(self.obj.occupancy.sum()), "voxel_size_mm": self.obj.voxel_size}
+
+
+def _npy_bytes(array):
+    import io
+
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
