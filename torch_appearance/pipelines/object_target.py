@@ -53,6 +53,12 @@ class ObjectTarget:
         self.g, self.ior, self.gradient_seed = g, ior, gradient_seed
         self.scene = self._scene(obj.voxel_size, obj.sdf.float())
 
+    def use_g(self, g):
+        """Render with Henyey–Greenstein ``g`` (a run with another ink set may have another common g)."""
+        if g != self.g:
+            self.g = g
+            self.scene = self._scene(self.obj.voxel_size, self.obj.sdf.float())
+
     # ------------------------------------------------------------------------------------------ rendering
     def _scene(self, voxel_size, sdf):
         sensor = SurfaceTexels(self.obj.texel_points.double(), self.obj.texel_normals.double(),

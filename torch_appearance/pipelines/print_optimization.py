@@ -33,7 +33,7 @@ from ..render.scene import derive_seed_grad
 from ..render.volpath import render_texels
 from .targets import load_target
 
-__all__ = ["PrintConfig", "optimize_print", "slab_texel_grid", "homogeneous_table", "naive_extrusion",
+__all__ = ["PrintConfig", "optimize_print", "build_target", "SlabTarget", "slab_texel_grid", "homogeneous_table", "naive_extrusion",
            "render_quantized", "LOG_FIELDS"]
 
 LOG_FIELDS = ["iteration", "wall_s", "loss", "E1", "E2", "E3", "dE00_mean", "dE00_p95", "dE76_mean", "seed"]
@@ -441,7 +441,18 @@ def _save_texels(target, folder, stem, texels):
 
 
 # ------------------------------------------------------------------------------------------------ the loop
-def optimize_print(cfg: PrintConfig, progress=True, log=print):
+def build_target(cfg: PrintConfig, log=print):
+    """The print target of ``cfg`` (a :class:`SlabTarget`, or with ``cfg.mesh`` an
+    :class:`~torch_appearance.pipelines.object_target.ObjectTarget`), to share between runs that differ only in
+    inks or optimiser settings (``optimize_print(cfg, target=...)``)."""
+    cfg.validate()
+    inks = _load_inks(cfg.inks)
+    if cfg.mesh is not None and cfg.core_ink.lower() not in [n.lower() for n in inks.names]:
+        raise ValueError(f"core_ink: {cfg.core_ink!r} is not in the ink set {list(inks.names)}")
+    return _object_target(cfg, inks, log) if cfg.mesh is not None else _slab_target(cfg, inks)
+
+
+def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     """Run one print optimisation of a slab or, with ``cfg.mesh``, of a textured object, and write ``cfg.out``.
 
     Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (iteration, wall_s, loss, E1, E2,
@@ -455,6 +466,11 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
     ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation; ``cfg.resume`` continues from
     it); ``summary.json``.
 
+    Args:
+        cfg: the settings. progress: show a tqdm bar. log: where one-line messages go.
+        target: optional prebuilt target from :func:`build_target` for the same geometry settings (a run with
+            other inks or optimiser settings reuses the voxelisation and the scene).
+
     Returns:
         The summary dict (also written to ``summary.json``).
     """
@@ -467,9 +483,14 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print):
     inks = _load_inks(cfg.inks)
     if cfg.g is None:
         inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
-    if cfg.mesh is not None and cfg.core_ink.lower() not in [n.lower() for n in inks.names]:
+    if target is None:
+        target = build_target(cfg, log)
+    elif cfg.mesh is not None and cfg.core_ink.lower() not in [n.lower() for n in inks.names]:
         raise ValueError(f"core_ink: {cfg.core_ink!r} is not in the ink set {list(inks.names)}")
-    target = _object_target(cfg, inks, log) if cfg.mesh is not None else _slab_target(cfg, inks)
+    if target.kind == "slab":
+        target.inks = inks  # the slab renders with the run's inks (their g)
+    else:
+        target.use_g(inks.g if cfg.g is None else cfg.g)
     shape = tuple(target.shape)
     os.makedirs(folder, exist_ok=True)  # only once the inputs are known to be good: no partial run folder
 
