@@ -404,7 +404,7 @@ def _object_target(cfg, inks, log):
         f"({time.perf_counter() - t0:.1f} s)")
     g = inks.g if cfg.g is None else cfg.g
     target = ObjectTarget(obj, ior=cfg.ior, g=g, gradient_seed=cfg.gradient_seed)
-    target.mesh_report = report
+    target.mesh, target.mesh_report = mesh, report
     return target
 
 
