@@ -115,3 +115,20 @@ def test_object_without_colours_is_refused(tmp_path):
     with pytest.raises(ValueError, match="neither a texture nor vertex/face colours"):
         optimize_print(config(str(path), out), **QUIET)
     assert not out.exists()
+
+
+def test_textured_object_bakes_colours_into_its_uv_layout(tmp_path):
+    """A glTF with a base-colour texture: the target and final texel colours are also written in the mesh's UV
+    layout, and the baked target resembles the texture where the UV islands lie."""
+    from PIL import Image
+
+    glb = os.path.join(os.path.dirname(__file__), "data", "meshes", "BoxTextured.glb")
+    optimize_print(config(glb, tmp_path / "run", height_mm=2.0, shell_mm=0.5, iterations=1, eval_every=1), **QUIET)
+    baked = np.asarray(Image.open(tmp_path / "run" / "target_uv.png").convert("RGB"), dtype=np.float64)
+    assert (tmp_path / "run" / "final_uv.png").exists() and (tmp_path / "run" / "baseline_uv.png").exists()
+    texture = trimesh.load(glb, force="mesh").visual.material.baseColorTexture.convert("RGB")
+    texture = np.asarray(texture.resize(baked.shape[1::-1]), dtype=np.float64)
+    # texels sample the texture at 10 voxels per face: compare blurred versions
+    from scipy.ndimage import uniform_filter
+    diff = np.abs(uniform_filter(baked, (25, 25, 1)) - uniform_filter(texture, (25, 25, 1)))
+    assert np.median(diff) < 20

@@ -128,18 +128,35 @@ class ObjectTarget:
             return render_scene(scene, sigma_t.contiguous(), albedo.contiguous(), spp=spp, seed=seed)
 
     # ------------------------------------------------------------------------------------------ outputs
+    mesh = None  # the trimesh mesh that was voxelised (set by the pipeline; enables the UV-space bake)
+
     def save_texels(self, folder, stem, texels):
-        """Write the texel colours as a coloured point cloud ``stem.ply`` (sRGB bytes) and ``stem.npy`` (linear)."""
+        """Write the texel colours as a coloured point cloud ``stem.ply`` (sRGB bytes), ``stem.npy`` (linear) and,
+        when the mesh has UVs, ``stem_uv.png`` baked into the mesh's texture layout."""
         import trimesh
 
         from ..color import linear_to_srgb
+        from ..geometry.bake import bake_texels
 
         rgb = np.asarray(texels, np.float32).reshape(-1, 3)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.npy"), _npy_bytes(rgb))
+        if self.mesh is not None and getattr(self.mesh.visual, "uv", None) is not None:
+            image, _ = bake_texels(self.mesh, self.obj.texel_points.numpy(), np.clip(rgb, 0, 1),
+                                   size=self._bake_size())
+            ta_io.write_png(os.path.join(folder, f"{stem}_uv.png"), image)
         srgb = np.asarray(linear_to_srgb(torch.as_tensor(np.clip(rgb, 0, 1)).double()))
         colours = np.concatenate([np.round(srgb * 255), np.full((len(rgb), 1), 255)], axis=1).astype(np.uint8)
         cloud = trimesh.PointCloud(self.obj.texel_points.numpy(), colors=colours)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.ply"), cloud.export(file_type="ply"))
+
+    def _bake_size(self):
+        """The mesh's texture size (capped at 1024 a side), else 512²."""
+        image = getattr(getattr(self.mesh.visual, "material", None), "image", None)
+        if image is None:
+            return (512, 512)
+        w, h = image.size
+        scale = min(1.0, 1024.0 / max(w, h))
+        return (max(1, round(h * scale)), max(1, round(w * scale)))
 
     def ink_usage_by_depth(self, weights, bins=None):
         """Mean ink fractions (N, B) of the shell voxels binned by depth below the surface; bin centres (B,) mm."""
