@@ -62,6 +62,8 @@ def parse_args(argv=None):
                    help="objects: optimised depth below the surface in mm (default: %(default)s)")
     p.add_argument("--core-ink", default=d.core_ink, help="objects: ink of the voxels below the shell "
                    "(default: %(default)s)")
+    p.add_argument("--envmap", default=None, help="objects: a lat-long linear EXR (z up) lighting the print, "
+                   "baked into the optimisation (default: uniform white)")
     p.add_argument("--inks", default=",".join(DEFAULT_INKS),
                    help=f"comma-separated ink names from {sorted(INKS)} or a JSON ink file (default: %(default)s)")
     p.add_argument("--gamma", type=_floats(3, "--gamma"), default=d.gamma,
@@ -104,7 +106,8 @@ def main(argv=None):
                       iterations=args.iterations, optimizer=args.optimizer, lr=args.lr,
                       parameterization=args.parameterization, printer_dpi=args.printer_dpi, ior=args.ior,
                       seed=args.seed, gradient_seed=args.gradient_seed, out=args.out, resume=args.resume,
-                      mesh=args.mesh, texture=args.texture, shell_mm=args.shell_mm, core_ink=args.core_ink)
+                      mesh=args.mesh, texture=args.texture, shell_mm=args.shell_mm, core_ink=args.core_ink,
+                      envmap=args.envmap)
     try:
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

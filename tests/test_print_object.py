@@ -132,3 +132,26 @@ def test_textured_object_bakes_colours_into_its_uv_layout(tmp_path):
     from scipy.ndimage import uniform_filter
     diff = np.abs(uniform_filter(baked, (25, 25, 1)) - uniform_filter(texture, (25, 25, 1)))
     assert np.median(diff) < 20
+
+
+def test_environment_map_lights_the_object(tmp_path):
+    """A uniform lat-long map of radiance 1 lights the object exactly like the default uniform environment, a map
+    of 2 doubles the texels (linear light transport); envmap is refused for slabs and when missing."""
+    from torch_appearance import io as ta_io
+    from torch_appearance.render import EnvironmentMap
+
+    obj = voxelize(trimesh.creation.icosphere(radius=1.0), 0.15, shell_mm=0.4)
+    obj.texel_colors = torch.full((len(obj.texel_voxels), 3), 0.5)
+    sigma_t = torch.full((3, *obj.grid_shape), 8.0)
+    albedo = torch.full((3, *obj.grid_shape), 0.9)
+    plain = ObjectTarget(obj).render(sigma_t, albedo, 4, 7)
+    ones = ObjectTarget(obj, emitter=EnvironmentMap(torch.ones(8, 16, 3))).render(sigma_t, albedo, 4, 7)
+    twos = ObjectTarget(obj, emitter=EnvironmentMap(torch.ones(8, 16, 3), scale=2.0)).render(sigma_t, albedo, 4, 7)
+    assert torch.allclose(ones, plain, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(twos, 2 * plain, rtol=1e-5, atol=1e-6)
+    exr = tmp_path / "env.exr"
+    ta_io.write_exr(str(exr), np.ones((8, 16, 3), np.float32))
+    with pytest.raises(ValueError, match="envmap: environment maps light object prints"):
+        optimize_print(PrintConfig(envmap=str(exr), out=str(tmp_path / "slab")), **QUIET)
+    with pytest.raises(ValueError, match="envmap: no such file"):
+        optimize_print(config("x.ply", tmp_path / "run", envmap=str(tmp_path / "none.exr")), **QUIET)

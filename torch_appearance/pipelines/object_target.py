@@ -29,6 +29,8 @@ class ObjectTarget:
         ior: refractive index of the object's surface (None: index matched).
         g: Henyey–Greenstein g of the inks.
         gradient_seed: ``"same"`` (the replay retraces the forward's paths) or ``"independent"``.
+        emitter: the lighting (default: uniform white, :class:`ConstantEnvironment`); an
+            :class:`~torch_appearance.render.EnvironmentMap` bakes display lighting into the optimisation (§4.8).
 
     Attributes:
         shape: (D, H, W) of the voxel grid. support: (D, H, W) bool, the optimised shell. target: (N, 3) float32
@@ -36,7 +38,7 @@ class ObjectTarget:
     """
     kind = "object"
 
-    def __init__(self, obj, *, ior=1.5, g=0.4, gradient_seed="same"):
+    def __init__(self, obj, *, ior=1.5, g=0.4, gradient_seed="same", emitter=None):
         if obj.texel_colors is None:
             raise ValueError("mesh: has neither a texture nor vertex/face colours, so there is no target appearance "
                              "(attach a texture with --texture or use a coloured PLY/GLB)")
@@ -51,6 +53,7 @@ class ObjectTarget:
         self.target_grid = obj.texels_to_grid(self.target)
         self.mask = obj.texels_to_grid(torch.ones(len(self.target), 1, dtype=torch.bool))[0]
         self.g, self.ior, self.gradient_seed = g, ior, gradient_seed
+        self.emitter = ConstantEnvironment() if emitter is None else emitter
         self.scene = self._scene(obj.voxel_size, obj.sdf.float())
 
     def use_g(self, g):
@@ -64,7 +67,7 @@ class ObjectTarget:
         sensor = SurfaceTexels(self.obj.texel_points.double(), self.obj.texel_normals.double(),
                                footprint_mm=0.5 * self.obj.voxel_size)
         return Scene(voxel_size=voxel_size, origin=self.obj.origin, boundary=SDFBoundary(sdf.contiguous(), ior=self.ior),
-                     sensor=sensor, emitter=ConstantEnvironment(), g=self.g)
+                     sensor=sensor, emitter=self.emitter, g=self.g)
 
     def render(self, sigma_t, albedo, spp, seed, scene=None):
         """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""

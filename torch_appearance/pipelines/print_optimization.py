@@ -29,6 +29,7 @@ from ..fabrication.quantize import PRINTER_DPI, micro_grid_pitch, quantize_mixtu
 from ..metrics import color_report, delta_e_2000
 from ..nn.losses import AppearanceLoss
 from ..nn.mixture import MaterialMixture, mix_inks
+from ..render.emitter import EnvironmentMap
 from ..render.scene import derive_seed_grad
 from ..render.volpath import render_texels
 from .targets import load_target
@@ -71,6 +72,7 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
     out: str = "results/print"
     resume: bool = False
 
@@ -101,9 +103,13 @@ class PrintConfig:
         if self.mesh is not None:
             if self.height_mm is None:
                 raise ValueError("height_mm: an object print needs the object's height in mm (--height-mm)")
+            if self.envmap is not None and not os.path.isfile(self.envmap):
+                raise ValueError(f"envmap: no such file {self.envmap!r}")
             if self.bottom_target is not None or self.width_mm is not None:
                 raise ValueError("mesh: bottom_target and width_mm are slab settings; an object takes its colours "
                                  "from the mesh and its size from height_mm")
+        elif self.envmap is not None:
+            raise ValueError("envmap: environment maps light object prints (--mesh); slabs use uniform light")
         if self.voxel_size > self.thickness_mm * 1.0001:
             raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
                              f"got {self.thickness_mm}")
@@ -403,7 +409,8 @@ def _object_target(cfg, inks, log):
         f"voxels, {shell} in the {cfg.shell_mm} mm shell, {len(obj.texel_voxels)} texels "
         f"({time.perf_counter() - t0:.1f} s)")
     g = inks.g if cfg.g is None else cfg.g
-    target = ObjectTarget(obj, ior=cfg.ior, g=g, gradient_seed=cfg.gradient_seed)
+    emitter = None if cfg.envmap is None else EnvironmentMap.from_exr(cfg.envmap)
+    target = ObjectTarget(obj, ior=cfg.ior, g=g, gradient_seed=cfg.gradient_seed, emitter=emitter)
     target.mesh, target.mesh_report = mesh, report
     return target
 
