@@ -62,6 +62,10 @@ def parse_args(argv=None):
                    help="objects: optimised depth below the surface in mm (default: %(default)s)")
     p.add_argument("--core-ink", default=d.core_ink, help="objects: ink of the voxels below the shell "
                    "(default: %(default)s)")
+    p.add_argument("--fixed", action="append", default=[], metavar="INK=FRACTION:MASK",
+                   help="hold an ink at a fixed fraction (translucency), repeatable; MASK: all, depth:A-B (mm below "
+                   "the surface), a mask PNG (slab texel size, or an object's texture space), terms joined by &; "
+                   "e.g. transparent=0.8:depth:0-0.4")
     p.add_argument("--envmap", default=None, help="objects: a lat-long linear EXR (z up) lighting the print, "
                    "baked into the optimisation (default: uniform white)")
     p.add_argument("--inks", default=",".join(DEFAULT_INKS),
@@ -107,7 +111,7 @@ def main(argv=None):
                       parameterization=args.parameterization, printer_dpi=args.printer_dpi, ior=args.ior,
                       seed=args.seed, gradient_seed=args.gradient_seed, out=args.out, resume=args.resume,
                       mesh=args.mesh, texture=args.texture, shell_mm=args.shell_mm, core_ink=args.core_ink,
-                      envmap=args.envmap)
+                      envmap=args.envmap, fixed=tuple(args.fixed))
     try:
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

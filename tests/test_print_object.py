@@ -155,3 +155,42 @@ def test_environment_map_lights_the_object(tmp_path):
         optimize_print(PrintConfig(envmap=str(exr), out=str(tmp_path / "slab")), **QUIET)
     with pytest.raises(ValueError, match="envmap: no such file"):
         optimize_print(config("x.ply", tmp_path / "run", envmap=str(tmp_path / "none.exr")), **QUIET)
+
+
+def test_fixed_fraction_is_exact_through_optimisation_and_quantisation(sphere_ply, tmp_path):
+    """``transparent=0.8:depth:0-0.3``: every constrained voxel holds exactly 0.8 clear ink after optimisation,
+    and the printer micro-voxels of the region hold exactly round(0.8·n) clear drops."""
+    from torch_appearance.fabrication.quantize import source_index
+
+    out = tmp_path / "run"
+    inks = InkSet.from_names(["cyan", "magenta", "yellow", "black", "white", "transparent"])
+    optimize_print(config(sphere_ply, out, iterations=2, inks=inks.names, table_steps=2,
+                          fixed=("transparent=0.8:depth:0-0.3",)),
+                   **QUIET)
+    obj = VoxelObject.load(str(out / "object.npz"))
+    k = inks.index("transparent")
+    region = (obj.depth < 0.3) & obj.shell
+    weights = np.load(out / "mixture.npz")["weights"]
+    assert region.sum() > 50 and np.all(weights[k][region.numpy()] == np.float32(0.8))
+    indices, _, _ = load_index_volume(str(out / "quantized.npz"))
+    d, h, w = obj.grid_shape
+    iz, iy, ix = (source_index(n, m) for n, m in zip((d, h, w), indices.shape))
+    micro_region = region.numpy()[iz[:, None, None], iy[None, :, None], ix[None, None, :]] & (indices != VOID)
+    n = int(micro_region.sum())
+    assert int((indices[micro_region] == k).sum()) == round(0.8 * n)
+
+
+def test_fixed_fraction_bad_specs(sphere_ply, tmp_path):
+    out = tmp_path / "run"
+    for spec, match in [("gold=0.5:all", "not in the ink set"), ("transparent=1.5:all", r"fraction in \[0, 1\]"),
+                        ("transparent=0.5:elsewhere", "unknown mask term"), ("transparent", "INK=FRACTION:MASK"),
+                        ("transparent=0.5:depth:5-6", "selects no optimised voxel")]:
+        with pytest.raises(ValueError, match=match):
+            optimize_print(config(sphere_ply, out, fixed=(spec,), inks=("cyan", "white", "transparent")), **QUIET)
+        assert not out.exists()
+    mask = tmp_path / "mask.png"
+    import cv2
+    cv2.imwrite(str(mask), np.full((5, 7), 255, np.uint8))
+    with pytest.raises(ValueError, match="expected the same size"):
+        optimize_print(PrintConfig(fixed=(f"white=0.5:{mask}",), out=str(out)), **QUIET)
+    assert not out.exists()

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 __all__ = ["PRINTER_DPI", "micro_voxel_size", "micro_grid_shape", "micro_grid_pitch", "source_index",
-           "resample_nearest", "quantize_mixture", "index_volume_to_weights"]
+           "resample_nearest", "quantize_mixture", "hold_fixed_fractions", "index_volume_to_weights"]
 
 #: Native resolution of Stratasys PolyJet printers (J7/J8 family) in dots per inch along (x, y, z).
 PRINTER_DPI = (600, 300, 940)
@@ -205,6 +205,56 @@ def quantize_mixture(weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0):
             for k in range(n - 1):                    # loop over inks: count the thresholds u has passed
                 index += u >= thresholds[k]
             out[z0:z1] = index
+    return out
+
+
+def hold_fixed_fractions(indices, weights, voxel_size_mm, fixed, printer_dpi=PRINTER_DPI, seed=0):
+    """Make fixed ink fractions exact in a quantised volume (translucency constraints, paper §5.2).
+
+    Independent draws give a fixed ink its fraction f only in expectation. For each constraint, the micro-voxels
+    whose macro voxel lies in its mask get exactly ``round(f · n)`` of that ink (positions uniform at random); the
+    others in the region that held it are drawn again from their macro voxel's mixture without it.
+
+    Args:
+        indices: (Dz, Hy, Wx) uint8 from :func:`quantize_mixture` (values 255 = void are left alone); modified
+            copy returned.
+        weights: the (N, D, H, W) mixture that was quantised.
+        voxel_size_mm, printer_dpi: as for :func:`quantize_mixture`.
+        fixed: sequence of (ink index, fraction, (D, H, W) bool mask).
+        seed: int >= 0.
+
+    Returns:
+        The corrected (Dz, Hy, Wx) uint8 volume.
+    """
+    w = _weights_numpy(weights)
+    n, d, h, wd = w.shape
+    dz, hy, wx = indices.shape
+    if (dz, hy, wx) != micro_grid_shape((d, h, wd), voxel_size_mm, printer_dpi):
+        raise ValueError(f"indices: expected the micro grid {micro_grid_shape((d, h, wd), voxel_size_mm, printer_dpi)}"
+                         f" of the weights, got {indices.shape}")
+    iz, iy, ix = source_index(d, dz), source_index(h, hy), source_index(wd, wx)
+    rng = np.random.Generator(np.random.PCG64(int(seed)))
+    out = indices.copy()
+    for ink, fraction, mask in fixed:
+        mask = np.asarray(mask, dtype=bool)
+        region = mask[iz[:, None, None], iy[None, :, None], ix[None, None, :]] & (out != 255)
+        where = np.flatnonzero(region)
+        want = int(round(fraction * len(where)))
+        chosen = np.zeros(len(where), dtype=bool)
+        chosen[rng.permutation(len(where))[:want]] = True
+        flat = out.reshape(-1)
+        redraw = where[~chosen & (flat[where] == ink)]
+        flat[where[chosen]] = ink
+        if len(redraw):
+            k, j, i = np.unravel_index(redraw, out.shape)
+            rest = w[:, iz[k], iy[j], ix[i]].T.copy()          # (R, N) mixtures of their macro voxels
+            rest[:, ink] = 0.0
+            total = rest.sum(1, keepdims=True)
+            alone = total[:, 0] <= 0                           # only the fixed ink: keep it (f = 1 regions)
+            cdf = np.cumsum(rest / np.where(total > 0, total, 1.0), axis=1)
+            u = rng.random(len(redraw))
+            draw = (u[:, None] >= cdf[:, :-1]).sum(1).astype(np.uint8)
+            flat[redraw] = np.where(alone, ink, draw)
     return out
 
 

@@ -83,19 +83,44 @@ class ObjectTarget:
         return texels, self.target
 
     # ------------------------------------------------------------------------------------------ baselines
+    def nearest_texel(self):
+        """(S,) index of the texel nearest to each shell voxel (voxel centres, C order of the shell), cached."""
+        if getattr(self, "_nearest", None) is None:
+            from scipy.spatial import cKDTree
+
+            tree = cKDTree(self.obj.texel_voxels.numpy().astype(np.float64))
+            _, self._nearest = tree.query(np.argwhere(self.support.numpy()).astype(np.float64), workers=-1)
+        return self._nearest
+
     def extrude(self, texel_weights, core):
         """Per-texel mixtures (N_inks, N) → (N_inks, D, H, W): every shell voxel takes the mixture of its nearest
         texel (by voxel centre), other voxels ``core`` (N_inks,)."""
-        from scipy.spatial import cKDTree
-
         d, h, w = self.shape
         shell = self.support.numpy()
-        tree = cKDTree(self.obj.texel_voxels.numpy().astype(np.float64))
-        kji = np.argwhere(shell).astype(np.float64)
-        _, nearest = tree.query(kji, workers=-1)
         out = np.broadcast_to(np.asarray(core, np.float64)[:, None], (len(core), d * h * w)).copy()
-        out[:, np.flatnonzero(shell)] = np.asarray(texel_weights, np.float64)[:, nearest]
+        out[:, np.flatnonzero(shell)] = np.asarray(texel_weights, np.float64)[:, self.nearest_texel()]
         return torch.tensor(out.reshape(len(core), d, h, w), dtype=torch.float32)
+
+    # ------------------------------------------------------------------------------------------ masks
+    def voxel_depth(self):
+        """(D, H, W) float depth of the voxel centres below the surface, mm (0 outside)."""
+        return self.obj.depth.numpy()
+
+    def uv_mask(self, image, name, spec):
+        """(D, H, W) bool: shell voxels whose nearest texel's UV falls on a white pixel of a texture-space mask."""
+        if self.obj.texel_uv is None:
+            raise ValueError(f"fixed: {spec!r}: the mesh has no UVs, so a texture-space mask cannot be placed")
+        texture = getattr(getattr(getattr(self.mesh, "visual", None), "material", None), "image", None)
+        if texture is not None and tuple(texture.size) != (image.shape[1], image.shape[0]):
+            raise ValueError(f"fixed: {spec!r}: the mask {name!r} is {image.shape[1]}×{image.shape[0]} pixels, the "
+                             f"mesh's texture {texture.size[0]}×{texture.size[1]}; expected the same size")
+        uv = self.obj.texel_uv.numpy().astype(np.float64)[self.nearest_texel()]
+        h, w = image.shape
+        col = np.clip(np.floor((uv[:, 0] % 1.0) * w), 0, w - 1).astype(np.int64)
+        row = np.clip(np.floor((1.0 - uv[:, 1] % 1.0) * h), 0, h - 1).astype(np.int64)
+        out = np.zeros(self.shape, dtype=bool)
+        out[self.support.numpy()] = image[row, col]
+        return out
 
     # ------------------------------------------------------------------------------------------ quantisation
     def quantized_void(self, indices):

@@ -25,13 +25,15 @@ from .. import io as ta_io
 from ..color import rgb_to_lab
 from ..fabrication.export import export_slices, save_index_volume
 from ..fabrication.inks import DEFAULT_INKS, InkSet
-from ..fabrication.quantize import PRINTER_DPI, micro_grid_pitch, quantize_mixture, source_index
+from ..fabrication.quantize import (PRINTER_DPI, hold_fixed_fractions, micro_grid_pitch, quantize_mixture,
+                                    source_index)
 from ..metrics import color_report, delta_e_2000
 from ..nn.losses import AppearanceLoss
 from ..nn.mixture import MaterialMixture, mix_inks
 from ..render.emitter import EnvironmentMap
 from ..render.scene import derive_seed_grad
 from ..render.volpath import render_texels
+from .fixed_fractions import fixed_fractions, parse_fixed
 from .targets import load_target
 
 __all__ = ["PrintConfig", "optimize_print", "build_target", "SlabTarget", "slab_texel_grid", "homogeneous_table", "naive_extrusion",
@@ -72,6 +74,7 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.fixed_fractions)
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
     out: str = "results/print"
     resume: bool = False
@@ -108,7 +111,11 @@ class PrintConfig:
             if self.bottom_target is not None or self.width_mm is not None:
                 raise ValueError("mesh: bottom_target and width_mm are slab settings; an object takes its colours "
                                  "from the mesh and its size from height_mm")
-        elif self.envmap is not None:
+        if isinstance(self.fixed, str) or not isinstance(self.fixed, Sequence):
+            raise TypeError(f"fixed: expected a sequence of INK=FRACTION:MASK strings, got {self.fixed!r}")
+        for spec in self.fixed:
+            parse_fixed(spec)
+        if self.mesh is None and self.envmap is not None:
             raise ValueError("envmap: environment maps light object prints (--mesh); slabs use uniform light")
         if self.voxel_size > self.thickness_mm * 1.0001:
             raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
@@ -173,6 +180,12 @@ class SlabTarget:
     def scored(self, texels):
         """The top face is scored (the bottom face is reported separately)."""
         return texels[0], self.target[0]
+
+    def voxel_depth(self):
+        """(D, H, W) depth of the voxel centres below the top face, mm."""
+        d, h, w = self.shape
+        depth = (d - 1 - np.arange(d) + 0.5) * self.cfg.voxel_size
+        return np.broadcast_to(depth[:, None, None], (d, h, w))
 
     def describe(self):
         return {"grid_dhw": list(self.shape), "faces": self.faces, "texels": self.faces * self.shape[1] * self.shape[2]}
@@ -427,13 +440,17 @@ def _naive_baseline(target, inks, cfg):
     return target.extrude(column[:, 0, :, 0].numpy(), core), table
 
 
-def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed):
-    """Printer-resolution indices of ``weights`` (VOID outside an object) and their rendered texels."""
+def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed, fixed=()):
+    """Printer-resolution indices of ``weights`` (VOID outside an object, fixed fractions exact) and their
+    rendered texels."""
     indices = quantize_mixture(weights, cfg.voxel_size, cfg.printer_dpi, seed=quant_seed)
+    if target.kind == "object":
+        indices = target.quantized_void(indices)
+    if fixed:
+        indices = hold_fixed_fractions(indices, weights, cfg.voxel_size, fixed, cfg.printer_dpi, seed=quant_seed)
     if target.kind == "slab":
         h, w = target.shape[1:]
         return indices, render_quantized(indices, inks, cfg, (h, w), target.faces, spp, seed)
-    indices = target.quantized_void(indices)
     return indices, target.render_quantized(indices, inks, cfg.voxel_size, cfg.printer_dpi, spp, seed)
 
 
@@ -499,6 +516,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     else:
         target.use_g(inks.g if cfg.g is None else cfg.g)
     shape = tuple(target.shape)
+    constraints, fixed = fixed_fractions(target, cfg.fixed, inks)
     os.makedirs(folder, exist_ok=True)  # only once the inputs are known to be good: no partial run folder
 
     ta_io.write_json(os.path.join(folder, "config.json"), {
@@ -511,7 +529,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     _save_texels(target, folder, "target", target.target)
 
     model = MaterialMixture(inks, shape, parameterization=cfg.parameterization, support=target.support,
-                            core_ink=cfg.core_ink if target.support is not None else None)
+                            core_ink=cfg.core_ink if target.support is not None else None, fixed=constraints)
     optim_cls = torch.optim.Adagrad if cfg.optimizer == "adagrad" else torch.optim.Adam
     optimizer = optim_cls(model.parameters(), lr=cfg.lr)
     criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
@@ -594,7 +612,8 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     weights = model.weights().detach()
     optimized = evaluate()
     _save_texels(target, folder, "optimized", optimized)
-    indices, final_img = _quantize_and_render(target, weights, inks, cfg, cfg.eval_spp, eval_seed, quant_seed)
+    indices, final_img = _quantize_and_render(target, weights, inks, cfg, cfg.eval_spp, eval_seed, quant_seed,
+                                              fixed)
     final = {"image": final_img.numpy(), **score(final_img)}
     _save_texels(target, folder, "final", final["image"])
     if target.kind == "slab" and target.faces == 2:
