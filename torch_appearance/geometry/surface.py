@@ -24,7 +24,8 @@ def _barycentric(p, a, b, c):
 
 
 def _texture_lookup(image, uv):
-    """Bilinear lookup of an (h, w, 3) linear-RGB texture at uv (N, 2) (v up, repeat wrap), texel centres."""
+    """Bilinear lookup of an (h, w, 3) linear-RGB texture at uv (N, 2): v up, texel centres at ((i + ½)/w,
+    1 − (j + ½)/h), repeat wrap on both axes (glTF's default sampler)."""
     h, w = image.shape[:2]
     x = (uv[:, 0] % 1.0) * w - 0.5
     y = (1.0 - uv[:, 1] % 1.0) * h - 0.5
@@ -32,9 +33,38 @@ def _texture_lookup(image, uv):
     y0 = np.floor(y).astype(np.int64)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     x0, x1 = x0 % w, (x0 + 1) % w
-    y0c, y1c = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
-    return ((image[y0c, x0] * (1 - fx) + image[y0c, x1] * fx) * (1 - fy)
-            + (image[y1c, x0] * (1 - fx) + image[y1c, x1] * fx) * fy)
+    y0, y1 = y0 % h, (y0 + 1) % h
+    return ((image[y0, x0] * (1 - fx) + image[y0, x1] * fx) * (1 - fy)
+            + (image[y1, x0] * (1 - fx) + image[y1, x1] * fx) * fy)
+
+
+def _is_placeholder_image(image):
+    """True for the stand-in texture trimesh makes when a mesh has UVs but no image (``TextureVisuals(uv=...)``,
+    e.g. an OBJ with ``vt`` lines and no MTL): a 2×2 image in its default grey, made in memory (no file format).
+    Such a texture says nothing about the object's colour."""
+    from trimesh.visual.material import color_image
+
+    if image is None or getattr(image, "format", None) is not None or tuple(image.size) != (2, 2):
+        return False
+    return bool(np.array_equal(np.asarray(image.convert("RGBA")), np.asarray(color_image())))
+
+
+def _base_colour(material):
+    """The base colour a trimesh material gives: (image or None, factor (3,) float64 linear RGB or None).
+
+    ``PBRMaterial`` (glTF): ``baseColorTexture`` and ``baseColorFactor`` (linear, RGBA uint8 in trimesh or float;
+    alpha ignored); the colour is factor × texture, or the factor alone without a texture. ``SimpleMaterial``
+    (OBJ/MTL, PLY): its ``image``, unless it is trimesh's placeholder (:func:`_is_placeholder_image`); its
+    ``diffuse`` is not used, since trimesh fills in a default grey where a file gives none."""
+    from trimesh.visual.color import to_float
+    from trimesh.visual.material import PBRMaterial
+
+    if isinstance(material, PBRMaterial):
+        factor = material.baseColorFactor
+        factor = None if factor is None else np.asarray(to_float(factor), dtype=np.float64).reshape(-1)[:3]
+        return material.baseColorTexture, factor
+    image = getattr(material, "image", None)
+    return (None if _is_placeholder_image(image) else image), None
 
 
 def _corner_normals(V, F, crease_deg=30.0):
@@ -66,22 +96,30 @@ def _corner_normals(V, F, crease_deg=30.0):
 
 
 def _mesh_colours(mesh, faces, bary):
-    """(colours (N, 3) linear RGB or None, uv (N, 2) or None) at points given by face ids and barycentrics."""
+    """(colours (N, 3) float32 linear RGB or None, uv (N, 2) float32 or None) at points given by face ids (N,) and
+    barycentrics (N, 3). Textures (sRGB 8-bit images) are decoded to linear and sampled bilinearly; a glTF
+    ``baseColorFactor`` (linear) multiplies the texture, or is the colour where there is no texture (see
+    :func:`_base_colour`); vertex colours are interpolated, face colours taken per face (both sRGB 8-bit)."""
     from ..color import srgb_to_linear
     visual = mesh.visual
     kind = getattr(visual, "kind", None)
-    if kind == "texture" and getattr(visual, "uv", None) is not None:
-        uv_v = np.asarray(visual.uv, dtype=np.float64)
-        uv = (uv_v[mesh.faces[faces]] * bary[:, :, None]).sum(1)
-        material = visual.material
-        image = getattr(material, "image", None)
-        if image is None:
-            image = getattr(material, "baseColorTexture", None)
-        if image is None:
-            return None, uv.astype(np.float32)
-        tex = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
-        tex = np.asarray(srgb_to_linear(torch.from_numpy(tex)))
-        return _texture_lookup(tex, uv).astype(np.float32), uv.astype(np.float32)
+    if kind == "texture":
+        uv_v = getattr(visual, "uv", None)
+        uv = None
+        if uv_v is not None:
+            uv = (np.asarray(uv_v, dtype=np.float64)[mesh.faces[faces]] * bary[:, :, None]).sum(1)
+        image, factor = _base_colour(visual.material)
+        colours = None
+        if image is not None and uv is not None:
+            tex = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
+            tex = np.asarray(srgb_to_linear(torch.from_numpy(tex)))
+            colours = _texture_lookup(tex, uv)
+            if factor is not None:
+                colours = colours * factor
+        elif factor is not None:
+            colours = np.broadcast_to(factor, (len(faces), 3))
+        return (None if colours is None else colours.astype(np.float32),
+                None if uv is None else uv.astype(np.float32))
     if kind == "vertex":
         vc = np.asarray(visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
         rgb = (vc[mesh.faces[faces]] * bary[:, :, None]).sum(1)
