@@ -32,16 +32,17 @@ def sphere_ply(tmp_path_factory):
 def config(mesh_path, out, **kw):
     kw.setdefault("mesh", mesh_path)
     base = dict( height_mm=2.4, dpi=100.0, shell_mm=0.55, spp=2, eval_spp=8, eval_every=2, iterations=4,
-                printer_dpi=(300.0, 300.0, 300.0), out=str(out))
+                printer_dpi=(300.0, 300.0, 300.0), views=0, view_size=40, out=str(out))
     base.update(kw)
     return PrintConfig(**base)
 
 
 def test_object_run_folder_shell_void_and_resume(sphere_ply, tmp_path):
-    summary = optimize_print(config(sphere_ply, tmp_path / "run"), **QUIET)
+    summary = optimize_print(config(sphere_ply, tmp_path / "run", views=2), **QUIET)
     folder = tmp_path / "run"
     for name in ("config.json", "log.csv", "convergence.png", "ink_usage_by_depth.png", "object.npz", "mixture.npz",
-                 "quantized.npz", "summary.json", "checkpoint.pt", "slices/palette.json"):
+                 "quantized.npz", "summary.json", "checkpoint.pt", "slices/palette.json", "views.png",
+                 "view_0.exr", "view_1.png"):
         assert (folder / name).exists(), name
     for stem in ("target", "baseline", "initial", "optimized", "final"):
         assert (folder / f"{stem}.ply").exists() and (folder / f"{stem}.npy").exists(), stem

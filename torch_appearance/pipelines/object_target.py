@@ -141,19 +141,47 @@ class ObjectTarget:
         return torch.nn.functional.interpolate(sdf, size=(dz + 1, hy + 1, wx + 1), mode="trilinear",
                                                align_corners=True)[0, 0].contiguous()
 
-    def render_quantized(self, indices, inks, voxel_size, printer_dpi, spp, seed):
-        """(N, 3) texel colours of a printer-resolution index volume (VOID outside), rendered with the object's
-        boundary resampled to the micro grid."""
+    def quantized_medium(self, indices, inks, printer_dpi):
+        """σ_t and albedo (3, Dz, Hy, Wx) of a printer-resolution index volume (an ink table lookup; VOID voxels,
+        outside the boundary, take ink 0) and the scene pieces at the micro pitch: (sigma_t, albedo, edges, sdf)."""
         dz, hy, wx = indices.shape
-        edges = micro_grid_pitch(self.shape, voxel_size, printer_dpi)
-        idx = torch.as_tensor(np.where(indices == VOID, 0, indices).astype(np.int64))  # outside: any ink, unseen
-        onehot = torch.nn.functional.one_hot(idx, len(inks)).permute(3, 0, 1, 2).float().contiguous()
-        sigma_t, albedo = mix_inks(onehot, inks)
-        scene = Scene(voxel_size=edges, origin=self.obj.origin,
-                      boundary=SDFBoundary(self.micro_sdf((dz, hy, wx)), ior=self.ior), sensor=self.scene.sensor,
-                      emitter=self.scene.emitter, g=self.g)
+        idx = torch.as_tensor(np.where(indices == VOID, 0, indices).astype(np.int64)).reshape(-1)
+        sigma_t = inks.sigma_t(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
+        albedo = inks.albedo(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
+        edges = micro_grid_pitch(self.shape, self.obj.voxel_size, printer_dpi)
+        return sigma_t, albedo, edges, self.micro_sdf((dz, hy, wx))
+
+    def render_quantized(self, indices, inks, printer_dpi, spp, seed, sensor=None):
+        """(N, 3) texel colours (or the image of ``sensor``, e.g. a camera) of a printer-resolution index volume
+        (VOID outside), rendered with the object's boundary resampled to the micro grid."""
+        sigma_t, albedo, edges, sdf = self.quantized_medium(indices, inks, printer_dpi)
+        scene = Scene(voxel_size=edges, origin=self.obj.origin, boundary=SDFBoundary(sdf, ior=self.ior),
+                      sensor=self.scene.sensor if sensor is None else sensor, emitter=self.emitter, g=self.g)
         with torch.no_grad():
-            return render_scene(scene, sigma_t.contiguous(), albedo.contiguous(), spp=spp, seed=seed)
+            return render_scene(scene, sigma_t, albedo, spp=spp, seed=seed)
+
+    def camera_views(self, n=3, size=256, fov_y_deg=30.0, elevation_deg=20.0):
+        """``n`` perspective cameras around the object (azimuths 360°/n apart, looking at its centre, z up), far
+        enough that its bounding sphere fills the frame."""
+        import math
+
+        from ..render import PerspectiveCamera
+
+        d, h, w = self.shape
+        s = self.obj.voxel_size
+        lo = np.array(self.obj.origin)
+        centre = lo + 0.5 * s * np.array([w, h, d])
+        occ = np.argwhere(self.obj.occupancy.numpy())
+        radius = float(np.linalg.norm((occ[:, ::-1] + 0.5) * s + lo - centre, axis=1).max()) + s
+        distance = 1.05 * radius / math.sin(math.radians(fov_y_deg) / 2)
+        cams = []
+        for k in range(n):
+            az, el = 2 * math.pi * k / n - math.pi / 2, math.radians(elevation_deg)
+            eye = centre + distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                                                math.sin(el)])
+            cams.append(PerspectiveCamera(tuple(eye), tuple(centre), (0.0, 0.0, 1.0), fov_y_deg=fov_y_deg,
+                                          resolution=(size, size)))
+        return cams
 
     # ------------------------------------------------------------------------------------------ outputs
     mesh = None  # the trimesh mesh that was voxelised (set by the pipeline; enables the UV-space bake)

@@ -74,6 +74,8 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
+    view_size: int = 192  # objects: pixels per side of those renders
     fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.fixed_fractions)
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
     out: str = "results/print"
@@ -90,8 +92,10 @@ class PrintConfig:
 
         for name in ("thickness_mm", "dpi", "lr", "shell_mm"):
             positive(name, getattr(self, name))
-        for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps"):
+        for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size"):
             positive(name, getattr(self, name), integer=True)
+        if isinstance(self.views, bool) or not isinstance(self.views, int) or self.views < 0:
+            raise ValueError(f"views: expected an int >= 0, got {self.views!r}")
         for name in ("width_mm", "height_mm"):
             if getattr(self, name) is not None:
                 positive(name, getattr(self, name))
@@ -451,7 +455,26 @@ def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed, fixe
     if target.kind == "slab":
         h, w = target.shape[1:]
         return indices, render_quantized(indices, inks, cfg, (h, w), target.faces, spp, seed)
-    return indices, target.render_quantized(indices, inks, cfg.voxel_size, cfg.printer_dpi, spp, seed)
+    return indices, target.render_quantized(indices, inks, cfg.printer_dpi, spp, seed)
+
+
+def _object_views(folder, target, indices, inks, cfg, seed, log, texel_de=None):
+    """Camera renders of the quantised object (``view_k.exr``/``.png``) and ``views.png`` beside the target
+    texture on the mesh; returns the seconds spent."""
+    if cfg.views == 0:
+        return 0.0
+    from .object_figures import views_figure
+
+    t0 = time.perf_counter()
+    cams = target.camera_views(cfg.views, cfg.view_size)
+    renders = []
+    for k, cam in enumerate(cams):
+        image = target.render_quantized(indices, inks, cfg.printer_dpi, cfg.eval_spp, _iteration_seed(seed, -10 - k),
+                                        sensor=cam)
+        _save_image(folder, f"view_{k}", image.numpy())
+        renders.append(image.numpy())
+    views_figure(os.path.join(folder, "views.png"), target, cams, renders, texel_de=texel_de, log=log)
+    return time.perf_counter() - t0
 
 
 def _save_texels(target, folder, stem, texels):
@@ -623,6 +646,10 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
     export_slices(indices, inks, os.path.join(folder, "slices"))
     _plots(folder, rows, baseline, weights, inks, cfg, target, final)
+    view_seconds = 0.0
+    if target.kind == "object":
+        texel_de = np.asarray(delta_e_2000(torch.as_tensor(final["image"]).double(), target.target.double()))
+        view_seconds = _object_views(folder, target, indices, inks, cfg, eval_seed, log, texel_de)
 
     opt_rows = [r for r in rows if r["iteration"] > 0]
     summary = {
@@ -637,7 +664,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
         "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
         "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
-        "parameters": int(model.logits.numel()),
+        "parameters": int(model.logits.numel()), "views_s": view_seconds,
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
     log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
