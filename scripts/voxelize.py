@@ -1,20 +1,30 @@
 #!/usr/bin/env python
 """Voxelise a textured mesh for printing: occupancy, exact SDF band, surface texels with normals and colours.
 
-Loads MODEL (OBJ + MTL + texture, GLB/GLTF, PLY, STL), scales it to ``--height-mm`` (or by ``--scale``), voxelises
-it at ``--dpi`` (isotropic voxels of 25.4/dpi mm) and writes to ``--out``:
+Loads MODEL (OBJ + MTL + texture, GLB/GLTF, PLY, STL; ``--texture`` gives or replaces its colour image), scales it
+to ``--height-mm`` (or by ``--scale``), voxelises it at ``--dpi`` (isotropic voxels of 25.4/dpi mm) and writes to
+``--out``:
 
     object.npz          the VoxelObject (torch_appearance.geometry.VoxelObject.load reads it)
-    summary.json        counts, timings, peak memory, watertightness, units guess, max texel-to-surface distance
-    texels_color.png    the texels seen from three sides, coloured by their target colour
-    texels_normal.png   the same, coloured by their normals
+    summary.json        counts, timings, peak memory, watertightness, units guess, max texel-to-surface distance,
+                        preview_backend
+    texels_color.png    the texels from three sides (front-left above, back-right above, front-right below; z up,
+                        front = -y), coloured by their target colour (sRGB); only when the mesh has colours
+    texels_normal.png   the same, coloured by their normals (0.5 + 0.5 n)
     sdf_slice.png       the SDF through the middle of the object (xz plane), with its zero level
+
+The texel pictures are rendered offscreen with pyvista/VTK (EGL or OSMesa where there is no X display); where that
+is impossible they are matplotlib scatter plots instead, with a warning, and summary.json says which
+("preview_backend": "pyvista" or "matplotlib"; TA_PREVIEW_BACKEND=matplotlib forces the fallback). Progress goes to
+stderr (--quiet: none), the summary as one JSON line to stdout.
 
 Usage::
 
     python scripts/voxelize.py model.obj --height-mm 30 --dpi 300 --shell-mm 2 --out results/voxelize
+    python scripts/voxelize.py model.ply --texture albedo.png --scale 1000 --out results/voxelize
 """
 import argparse
+import inspect
 import json
 import os
 import resource
@@ -31,62 +41,70 @@ except ModuleNotFoundError as error:  # running from a checkout that is not inst
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from torch_appearance import io as ta_io
 from torch_appearance.geometry import load_mesh, voxelize
+from torch_appearance.geometry.preview import write_previews
 
 
-def previews(obj, folder):
-    from matplotlib.figure import Figure
+def _accepts_keyword(fn, name):
+    try:
+        parameters = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return True
+    return name in parameters or any(p.kind is p.VAR_KEYWORD for p in parameters.values())
 
-    pts = obj.texel_points.numpy()
-    colours = {"color": None if obj.texel_colors is None else np.clip(obj.texel_colors.numpy(), 0, 1) ** (1 / 2.2),
-               "normal": 0.5 + 0.5 * obj.texel_normals.numpy()}
-    for name, c in colours.items():
-        if c is None:
-            continue
-        fig = Figure(figsize=(12, 4))
-        for k, (elev, azim) in enumerate([(20, -60), (20, 60), (80, 0)]):
-            ax = fig.add_subplot(1, 3, k + 1, projection="3d")
-            step = max(1, len(pts) // 60000)
-            ax.scatter(pts[::step, 0], pts[::step, 1], pts[::step, 2], c=c[::step], s=1, depthshade=False)
-            ax.view_init(elev=elev, azim=azim)
-            ax.set_box_aspect(np.ptp(pts, axis=0) + 1e-9)
-            ax.set_axis_off()
-        fig.suptitle(f"{len(pts)} texels coloured by {name}")
-        ta_io.save_figure(fig, os.path.join(folder, f"texels_{name}.png"))
-    d, h, w = obj.grid_shape
-    sdf = obj.sdf.numpy()[:, (h + 1) // 2, :]
-    fig = Figure(figsize=(6, 6))
-    ax = fig.add_subplot(1, 1, 1)
-    x0, z0 = obj.origin[0], obj.origin[2]
-    extent = (x0, x0 + w * obj.voxel_size, z0, z0 + d * obj.voxel_size)
-    im = ax.imshow(sdf, origin="lower", extent=extent, cmap="RdBu", vmin=-obj.band_mm, vmax=obj.band_mm)
-    ax.contour(sdf, levels=[0.0], colors="k", origin="lower", extent=extent, linewidths=0.8)
-    fig.colorbar(im, ax=ax, label="signed distance [mm] (clamped to the band)")
-    ax.set(xlabel="x [mm]", ylabel="z [mm]", title="SDF, middle xz slice")
-    ta_io.save_figure(fig, os.path.join(folder, "sdf_slice.png"))
+
+class Progress:
+    """Step lines on stderr ("[voxelize 1.2 s] voxelising …"), unless quiet."""
+
+    def __init__(self, quiet=False):
+        self.quiet, self.t0 = quiet, time.perf_counter()
+
+    def __call__(self, message):
+        if not self.quiet:
+            print(f"[voxelize {time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr, flush=True)
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", help="mesh file (OBJ + MTL + texture, GLB/GLTF, PLY, STL)")
+    p.add_argument("--texture", default=None, metavar="PATH",
+                   help="base-colour image (sRGB PNG/JPEG) for a mesh with UVs, e.g. an OBJ with vt lines but no "
+                        "MTL; it replaces any material the file has")
     p.add_argument("--height-mm", type=float, default=None, help="scale to this z extent in mm")
     p.add_argument("--scale", type=float, default=None, help="factor from file units to mm (instead of --height-mm)")
     p.add_argument("--dpi", type=float, default=300.0, help="voxel pitch in DPI (default: %(default)s ≈ 0.0847 mm)")
     p.add_argument("--shell-mm", type=float, default=None, help="depth of the printable shell in mm")
     p.add_argument("--out", default="results/voxelize", help="output folder (default: %(default)s)")
     p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = p.parse_args(argv)
     if not args.dpi > 0:
         p.error(f"--dpi: expected > 0, got {args.dpi}")
+    load_kwargs = dict(height_mm=args.height_mm, scale=args.scale)
+    if args.texture is not None:
+        if not _accepts_keyword(load_mesh, "texture"):
+            p.error("--texture: this version of torch_appearance.geometry.load_mesh takes no texture= yet")
+        load_kwargs["texture"] = args.texture
+    progress = Progress(args.quiet)
     try:
         t0 = time.perf_counter()
-        mesh, report = load_mesh(args.model, height_mm=args.height_mm, scale=args.scale)
+        progress(f"loading {args.model}" + (f" with texture {args.texture}" if args.texture else "") + " …")
+        mesh, report = load_mesh(args.model, **load_kwargs)
         t1 = time.perf_counter()
-        obj = voxelize(mesh, 25.4 / args.dpi, shell_mm=args.shell_mm)
+        if report.get("hint"):
+            progress(f"hint: {report['hint']}")
+        size = 25.4 / args.dpi
+        extent = mesh.bounds[1] - mesh.bounds[0]
+        dims = " × ".join(str(int(round(e / size))) for e in extent)
+        progress(f"loaded {report.get('triangles')} triangles, colour {report.get('colour')}, {extent[0]:.1f} × "
+                 f"{extent[1]:.1f} × {extent[2]:.1f} mm (x × y × z); voxelising at {size:.4g} mm (about {dims} voxels) …")
+        obj = voxelize(mesh, size, shell_mm=args.shell_mm)
         t2 = time.perf_counter()
     except (ValueError, TypeError) as error:
         print(f"voxelize.py: error: {error}", file=sys.stderr)
         return 2
+    progress(f"voxelised in {t2 - t1:.1f} s: grid {' × '.join(map(str, obj.grid_shape))} (D×H×W), "
+             f"{len(obj.texel_voxels)} texels; writing object.npz …")
     os.makedirs(args.out, exist_ok=True)
     obj.save(os.path.join(args.out, "object.npz"))
     centres = (obj.texel_voxels.numpy()[:, ::-1] + 0.5) * obj.voxel_size + np.array(obj.origin)
@@ -95,13 +113,24 @@ def main(argv=None):
         "grid_dhw": list(obj.grid_shape), "inside_voxels": int(obj.occupancy.sum()),
         "texels": int(len(obj.texel_voxels)), "shell_voxels": None if obj.shell is None else int(obj.shell.sum()),
         "band_mm": obj.band_mm,
-        "max_texel_centre_to_surface_mm": float(np.linalg.norm(centres - obj.texel_points.numpy(), axis=1).max()),
+        "max_texel_centre_to_surface_mm": float(np.linalg.norm(centres - obj.texel_points.numpy(), axis=1).max())
+        if len(centres) else None,
         "load_s": t1 - t0, "voxelize_s": t2 - t1,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "preview_backend": None,
     }
-    ta_io.write_json(os.path.join(args.out, "summary.json"), summary)
+    if args.texture is not None:
+        summary["texture"] = os.path.abspath(args.texture)
+    summary_path = os.path.join(args.out, "summary.json")
+    ta_io.write_json(summary_path, summary)  # written now, so a failing preview leaves it behind
     if not args.no_previews:
-        previews(obj, args.out)
+        t3 = time.perf_counter()
+        result = write_previews(obj, args.out, progress=progress)
+        summary["preview_backend"] = result["backend"]
+        summary["preview_s"] = time.perf_counter() - t3
+        summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        ta_io.write_json(summary_path, summary)
+    progress(f"done: {args.out}")
     print(json.dumps(summary))
     return 0
 

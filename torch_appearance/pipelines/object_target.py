@@ -14,7 +14,6 @@ import torch
 from .. import io as ta_io
 from ..fabrication.export import VOID
 from ..fabrication.quantize import micro_grid_pitch
-from ..nn.mixture import mix_inks
 from ..render import ConstantEnvironment, Scene, SDFBoundary, SurfaceTexels
 from ..render.volpath import render_scene
 
