@@ -480,3 +480,28 @@ def test_bad_input_is_refused_with_a_named_message(index):
 def test_module_constants_match_the_paper():
     assert losses.SSIM_C1 == 0.01**2 and losses.SSIM_C2 == 0.03**2
     assert math.isclose(losses._EDGE_FACTOR, 100 / 3 / 4 / 32)
+
+
+def test_losses_on_the_curved_texel_shell_of_a_voxelised_sphere():
+    """Object prints put texel colours on the voxel grid (VoxelObject.texels_to_grid) and mask the texels: on the
+    curved one-voxel shell of a sphere (rows and layers with texels only at their ends, padding planes empty) E1,
+    E2 and E3 equal the explicit references computed from the texel list."""
+    import trimesh
+
+    from torch_appearance.geometry import voxelize
+
+    obj = voxelize(trimesh.creation.icosphere(subdivisions=3, radius=1.0), 0.2)
+    n = len(obj.texel_voxels)
+    g = torch.Generator().manual_seed(3)
+    pred, target = 0.05 + 0.9 * torch.rand(n, 3, generator=g, dtype=torch.float64), \
+        0.05 + 0.9 * torch.rand(n, 3, generator=g, dtype=torch.float64)
+    pred_grid, target_grid = obj.texels_to_grid(pred), obj.texels_to_grid(target)
+    m = obj.texels_to_grid(torch.ones(n, 1, dtype=torch.bool))[0]
+    assert 100 < n == int(m.sum()) and not bool(m[0].any())  # a padding layer without texels
+    mn = m.numpy()
+    ssim = _ssim_reference(_norm_lab(pred_grid), _norm_lab(target_grid), mn)
+    assert abs(float(ssim_loss_3d(pred_grid, target_grid, m)) - (1.0 - ssim.mean())) < 1e-10
+    expected = _edge_reference(_norm_lab(pred_grid), _norm_lab(target_grid), mn)
+    assert float(edge_loss_3d(pred_grid, target_grid, m)) == pytest.approx(expected, rel=1e-10)
+    assert float(color_loss(pred_grid, target_grid, m)) == pytest.approx(
+        _color_reference(pred_grid, target_grid, mn), rel=1e-12)
