@@ -55,7 +55,7 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         height_mm: scale uniformly so that the z extent is this many mm (> 0); or
         scale: a factor from file units to mm (> 0), e.g. 1000 for a model in metres. Neither: file units are mm.
         texture: optional path of a base-colour image (sRGB, e.g. PNG) for a mesh with UVs, e.g. an OBJ with ``vt``
-            lines but no MTL; it replaces any material the file has.
+            lines but no MTL; it replaces any material the file has (``hint`` says so when the file had a texture).
 
     Returns:
         (mesh, report): a ``trimesh.Trimesh`` in mm that keeps its UVs and texture (or vertex/face colours), and a
@@ -109,9 +109,12 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
     else:
         factor = 1.0
     uv = getattr(mesh.visual, "uv", None) if getattr(mesh.visual, "kind", None) == "texture" else None
+    replaced = None
     if image is not None:
         if uv is None or len(uv) != len(mesh.vertices):
             raise ValueError(f"texture: the mesh in {path!r} has no texture coordinates (UVs) to map an image with")
+        own = _base_colour(mesh.visual.material)[0]
+        replaced = None if own is None else tuple(int(n) for n in own.size)
         mesh.visual = trimesh.visual.TextureVisuals(uv=np.asarray(uv), image=image)
     elif uv is not None and _is_placeholder_image(getattr(mesh.visual.material, "image", None)):
         mesh.visual.material.image = None  # trimesh's stand-in for "no image", not the file's colour
@@ -132,6 +135,8 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         if kind == "none":
             hint = ("the mesh has texture coordinates but no texture image: pass texture=PATH (the base-colour "
                     "image) to attach one" if uv is not None else None)
+    if replaced is not None:
+        hint = f"texture= replaced the file's own {replaced[0]}x{replaced[1]} texture"
     report = {"triangles": int(len(mesh.faces)), "vertices": int(len(mesh.vertices)),
               "watertight": bool(merged.is_watertight), "colour": kind, "texture_size": size,
               "texture_source": None if size is None else ("argument" if image is not None else "file"),

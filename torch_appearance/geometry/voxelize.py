@@ -129,11 +129,26 @@ class VoxelObject:
 
 
 def _oriented(mesh):
-    """(mesh with outward faces, merged vertices V (n, 3), faces F (m, 3), closed): the mesh is inverted when its
-    signed volume is negative (faces wound inward); ``closed`` (watertight with consistent winding after merging
-    seam-split vertices) allows the pseudonormal sign and ray parity, otherwise the winding number decides."""
+    """(mesh with outward faces, merged vertices V (n, 3), faces F (m, 3), closed, fixes): faces wound against
+    their neighbours are flipped (trimesh.repair.fix_winding; the textured mesh gets the same flips, so face ids
+    and UVs stay valid), and the whole mesh is inverted when its signed volume is negative (wound inward).
+    ``closed`` (watertight with consistent winding after merging seam-split vertices) allows the pseudonormal sign
+    and ray parity; otherwise the winding number decides. ``fixes``: {"flipped_faces", "inverted"}."""
+    import trimesh
+
     merged = mesh.copy()
     merged.merge_vertices(merge_tex=True, merge_norm=True)
+    flipped = 0
+    if not merged.is_winding_consistent:
+        before = np.asarray(merged.faces).copy()
+        trimesh.repair.fix_winding(merged)
+        changed = np.flatnonzero((np.asarray(merged.faces) != before).any(1))
+        if len(changed):
+            faces = np.asarray(mesh.faces).copy()
+            faces[changed] = faces[changed][:, ::-1]
+            mesh = mesh.copy()
+            mesh.faces = faces
+            flipped = int(len(changed))
     inverted = bool(merged.volume < 0)
     if inverted:
         mesh = mesh.copy()
@@ -142,7 +157,7 @@ def _oriented(mesh):
     closed = bool(merged.is_watertight and merged.is_winding_consistent)
     V = np.ascontiguousarray(merged.vertices, dtype=np.float64)
     F = np.ascontiguousarray(merged.faces, dtype=np.int64)
-    return mesh, V, F, closed, inverted
+    return mesh, V, F, closed, {"flipped_faces": flipped, "inverted": inverted}
 
 
 def _signed_band(P, V, F, closed, band):
@@ -264,7 +279,7 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     if need > max_bytes:
         raise ValueError(f"voxel_size: {h:g} mm gives a {d}×{hh}×{w} grid that needs about {need / 2**30:.1f} GiB "
                          f"(limit {max_bytes / 2**30:.1f} GiB); use a larger voxel or a smaller object")
-    mesh, V, F, closed, inverted = _oriented(mesh)
+    mesh, V, F, closed, fixes = _oriented(mesh)
     lap("prepare")
     band = band_voxels * h
     depth_limit = band if shell_mm is None else max(band, shell_mm + 2 * h)
@@ -299,7 +314,7 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     lap("band")
 
     # 3. the sign of far corners: a 6-connected far region cannot cross the surface
-    parity_fallback = 0
+    parity_fallback, far_asked = 0, 0
     try:
         import trimesh.ray.ray_pyembree  # noqa: F401  (embreex; without it the winding number signs the far regions)
         rays = closed
@@ -317,19 +332,32 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
         sdf[far] = np.where(inside[far], -band, band)
         del inside
     else:
-        from scipy import ndimage
-        labels, count = ndimage.label(far)
-        if count:
-            _, first = np.unique(labels.ravel(), return_index=True)
-            first = first[1:] if labels.ravel()[first[0]] == 0 else first  # label 0 is the band
-            kji = np.stack(np.unravel_index(first, labels.shape), axis=1)
-            region_inside = _inside_winding(origin + kji[:, ::-1] * h, V, F)
-            sdf[far] = np.where(region_inside[labels[far] - 1], -band, band)
-        del labels
+        # open meshes: the winding number's ½ level may cross space far from the surface (across a hole), so far
+        # corners cannot share one sign per connected region. The coarse corners get the winding number; a far
+        # corner in a coarse cell whose 8 corners agree takes their sign, the others are asked directly.
+        coarse_in = _inside_winding(Pc, V, F).reshape(nc)
+        agree = np.ones([n - 1 for n in nc], dtype=bool)
+        first = coarse_in[:-1, :-1, :-1]
+        for dz in (0, 1):
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    agree &= coarse_in[dz:dz + nc[0] - 1, dy:dy + nc[1] - 1, dx:dx + nc[2] - 1] == first
+        cell = [np.minimum(np.arange(n + 1) // 4, m - 2) for n, m in zip((d, hh, w), nc)]
+        uniform = agree[np.ix_(*cell)]
+        inside = first[np.ix_(*cell)]
+        ask = far & ~uniform
+        if ask.any():
+            kji = np.argwhere(ask)
+            inside[ask] = _inside_winding(origin + kji[:, ::-1] * h, V, F)
+            far_asked = int(ask.sum())
+        sdf[far] = np.where(inside[far], -band, band)
+        del inside, uniform
     lap("far_sign")
 
-    # 4. occupancy of the voxel centres: cells with only far corners share their sign; a near cell takes the sign
-    #    of a corner farther than the half diagonal from the surface; the rest ask a signed query at the centre
+    # 4. occupancy of the voxel centres. Closed meshes: cells with only far corners share their sign; a near cell
+    #    takes the sign of a corner farther than the half diagonal from the surface (no surface can lie between);
+    #    the rest ask a signed query at the centre. Open meshes: the winding number at every centre near the
+    #    surface or with corners of both signs (the ½ level crossing a hole), the corners' sign elsewhere.
     near_corner = ~far
     del far
     cell_near = np.zeros((d, hh, w), dtype=bool)
@@ -339,25 +367,34 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
                 cell_near |= near_corner[dz:dz + d, dy:dy + hh, dx:dx + w]
     del near_corner
     occ = sdf[:-1, :-1, :-1] < 0
-    kji = np.argwhere(cell_near)
-    flat = (kji[:, 0] * (hh + 1) + kji[:, 1]) * (w + 1) + kji[:, 2]
-    offsets = np.array([(dz * (hh + 1) + dy) * (w + 1) + dx for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])
-    corner_values = sdf.ravel()[flat[:, None] + offsets[None, :]]
-    decisive = np.abs(corner_values) > half_diag * h * (1 + 1e-6)
-    decided = decisive.any(1)
-    pick = np.argmax(decisive, axis=1)
-    near_occ = corner_values[np.arange(len(flat)), pick] < 0
-    open_cells = ~decided
-    if open_cells.any():
-        centres = origin + (kji[open_cells][:, ::-1] + 0.5) * h
-        if closed:
-            S, _, _, _ = igl.signed_distance(np.ascontiguousarray(centres), V, F,
+    if closed:
+        kji = np.argwhere(cell_near)
+        flat = (kji[:, 0] * (hh + 1) + kji[:, 1]) * (w + 1) + kji[:, 2]
+        offsets = np.array([(dz * (hh + 1) + dy) * (w + 1) + dx
+                            for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])
+        corner_values = sdf.ravel()[flat[:, None] + offsets[None, :]]
+        decisive = np.abs(corner_values) > half_diag * h * (1 + 1e-6)
+        near_occ = corner_values[np.arange(len(flat)), np.argmax(decisive, axis=1)] < 0
+        ask = ~decisive.any(1)
+        if ask.any():
+            S, _, _, _ = igl.signed_distance(np.ascontiguousarray(origin + (kji[ask][:, ::-1] + 0.5) * h), V, F,
                                              sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
-            near_occ[open_cells] = S < 0
-        else:
-            near_occ[open_cells] = _inside_winding(centres, V, F)
-    occ[cell_near] = near_occ
-    del cell_near, kji, flat, corner_values, decisive
+            near_occ[ask] = S < 0
+        occ[cell_near] = near_occ
+        asked = int(ask.sum())
+        del kji, flat, corner_values, decisive
+    else:
+        negative = sdf < 0
+        ask = cell_near
+        for dz in (0, 1):
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    ask |= negative[dz:dz + d, dy:dy + hh, dx:dx + w] != occ
+        del negative
+        kji = np.argwhere(ask)
+        occ[ask] = _inside_winding(origin + (kji[:, ::-1] + 0.5) * h, V, F)
+        asked = len(kji)
+    del cell_near
     lap("occupancy")
 
     # 5. texels: inside voxels with an outside 6-neighbour; their closest surface points, normals and colours
@@ -394,8 +431,8 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
     depth[maybe] = np.where(np.isfinite(dist), np.minimum(dist, depth_limit), depth_limit)
     shell = None if shell_mm is None else torch.from_numpy(occ & (depth < shell_mm))
     lap("depth")
-    info = {"closed": closed, "inverted": inverted, "ray_parity": rays, "band_corners": int(len(cand)),
-            "parity_fallback_columns": parity_fallback, "open_centres": int(open_cells.sum()),
+    info = {"closed": closed, **fixes, "ray_parity": rays, "band_corners": int(len(cand)),
+            "parity_fallback_columns": parity_fallback, "far_corners_asked": far_asked, "centres_asked": asked,
             "depth_queries": int(len(kji)), "timings_s": timings}
     return VoxelObject(origin=tuple(float(v) for v in origin), voxel_size=h, occupancy=torch.from_numpy(occ),
                        sdf=torch.from_numpy(sdf), band_mm=float(band), texel_voxels=torch.from_numpy(texel_kji),
