@@ -115,7 +115,7 @@ def main(argv=None):
         "band_mm": obj.band_mm,
         "max_texel_centre_to_surface_mm": float(np.linalg.norm(centres - obj.texel_points.numpy(), axis=1).max())
         if len(centres) else None,
-        "load_s": t1 - t0, "voxelize_s": t2 - t1,
+        "load_s": t1 - t0, "voxelize_s": t2 - t1, "voxelize_info": obj.info,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "preview_backend": None,
     }
