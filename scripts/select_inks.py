@@ -60,6 +60,7 @@ except ModuleNotFoundError as error:  # running from a checkout that is not inst
 from torch_appearance import io as ta_io
 from torch_appearance.fabrication.inks import INKS, InkSet
 from torch_appearance.pipelines.print_optimization import PrintConfig, build_target, optimize_print
+from torch_appearance.pipelines.print_cli import add_optimization_arguments, add_target_arguments, config_from_args
 
 DEFAULT_CANDIDATES = ("cyan", "cyan2", "magenta", "magenta2", "yellow", "yellow2", "orange")
 DEFAULT_FIXED = ("black", "white")
@@ -76,38 +77,12 @@ class SelectionError(ValueError):
 
 
 # ------------------------------------------------------------------------------------------------ arguments
-def _floats(n, name):
-    def parse(text):
-        try:
-            values = tuple(float(v) for v in text.split(","))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: expected {n} comma-separated numbers, got {text!r}")
-        if len(values) != n:
-            raise argparse.ArgumentTypeError(f"{name}: expected {n} comma-separated numbers, got {text!r}")
-        return values
-    return parse
-
-
 def parse_args(argv=None):
-    d = PrintConfig()
+    d = PrintConfig(iterations=40, spp=4, eval_spp=32, eval_every=5, table_steps=3)  # short runs
     p = argparse.ArgumentParser(prog="select_inks.py", description=__doc__.split("\n\n")[0],
                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     g = p.add_argument_group("target (as scripts/optimize_print.py)")
-    g.add_argument("--target", default=d.target,
-                   help="top-face target: 'zebra', 'colorchecker', or an sRGB PNG/JPG or linear EXR (default: %(default)s)")
-    g.add_argument("--bottom-target", default=None, help="optional bottom-face target (same size as the top)")
-    g.add_argument("--thickness-mm", type=float, default=d.thickness_mm, help="slab thickness (default: %(default)s)")
-    g.add_argument("--dpi", type=float, default=d.dpi, help="optimisation voxel pitch (default: %(default)s)")
-    g.add_argument("--width-mm", type=float, default=None, help="slab width; default: target width × voxel pitch")
-    g.add_argument("--height-mm", type=float, default=None, help="slab height (default: target height × voxel "
-                   "pitch), or with --mesh the object's z extent in mm")
-    g.add_argument("--mesh", default=None, help="a textured mesh to print as an object instead of a slab")
-    g.add_argument("--texture", default=None, help="base-colour image for a mesh with UVs but no material")
-    g.add_argument("--shell-mm", type=float, default=d.shell_mm,
-                   help="objects: optimised depth below the surface in mm (default: %(default)s)")
-    g.add_argument("--core-ink", default=d.core_ink,
-                   help="objects: ink below the shell, must be one of --always-inks (default: %(default)s)")
-    g.add_argument("--envmap", default=None, help="objects: a lat-long linear EXR lighting the print")
+    add_target_arguments(g, d, fixed=False)
 
     g = p.add_argument_group("ink sets")
     g.add_argument("--candidates", default=None,
@@ -120,28 +95,8 @@ def parse_args(argv=None):
     g.add_argument("--always-inks", default=",".join(DEFAULT_FIXED),
                    help="comma-separated inks in every set, '' for none (default: %(default)s)")
 
-    g = p.add_argument_group("each run (short, at low spp)")
-    g.add_argument("--iterations", type=int, default=40, help="(default: %(default)s)")
-    g.add_argument("--spp", type=int, default=4, help="samples per texel per iteration (default: %(default)s)")
-    g.add_argument("--eval-spp", type=int, default=32,
-                   help="samples per texel of the CIEDE2000 evaluations and the final quantised render "
-                        "(default: %(default)s)")
-    g.add_argument("--eval-every", type=int, default=5, help="evaluate every k iterations (default: %(default)s)")
-    g.add_argument("--table-steps", type=int, default=3,
-                   help="naive-extrusion baseline of each run: mixtures in steps of 1/N (reported as "
-                        "naive_dE00_mean, not used for the ranking; default: %(default)s)")
-    g.add_argument("--gamma", type=_floats(3, "--gamma"), default=d.gamma,
-                   help="weights γ1,γ2,γ3 of ΔE76², SSIM, Sobel (default: 1,3,1)")
-    g.add_argument("--optimizer", choices=("adagrad", "adam"), default=d.optimizer, help="(default: %(default)s)")
-    g.add_argument("--lr", type=float, default=d.lr, help="learning rate (default: %(default)s)")
-    g.add_argument("--parameterization", choices=("sigmoid", "softmax"), default=d.parameterization,
-                   help="mixture parameterisation (default: %(default)s)")
-    g.add_argument("--printer-dpi", type=_floats(3, "--printer-dpi"), default=d.printer_dpi,
-                   help="native printer resolution x,y,z for quantisation (default: 600,300,940)")
-    g.add_argument("--ior", type=float, default=d.ior, help="refractive index of the print (default: %(default)s)")
-    g.add_argument("--seed", type=int, default=d.seed, help="the same for every set (default: %(default)s)")
-    g.add_argument("--gradient-seed", choices=("same", "independent"), default=d.gradient_seed,
-                   help="gradient replay seeds (default: %(default)s)")
+    g = p.add_argument_group("each run (short, at low spp; the same seed for every set)")
+    add_optimization_arguments(g, d)
 
     g = p.add_argument_group("output")
     g.add_argument("--out", default="results/select_inks", help="output folder (default: %(default)s)")
@@ -243,14 +198,10 @@ def make_plan(args):
     if args.table_steps < 1:
         raise SelectionError(f"--table-steps: expected >= 1, got {args.table_steps}")
 
-    cfg = PrintConfig(target=args.target, bottom_target=args.bottom_target, thickness_mm=args.thickness_mm,
-                      dpi=args.dpi, width_mm=args.width_mm, height_mm=args.height_mm, gamma=args.gamma,
-                      spp=args.spp, eval_spp=args.eval_spp, eval_every=args.eval_every, iterations=args.iterations,
-                      optimizer=args.optimizer, lr=args.lr, parameterization=args.parameterization,
-                      printer_dpi=args.printer_dpi, ior=args.ior, seed=args.seed, gradient_seed=args.gradient_seed,
-                      table_steps=args.table_steps, mesh=args.mesh, texture=args.texture, shell_mm=args.shell_mm,
-                      core_ink=args.core_ink, envmap=args.envmap, resume=True,
-                      inks=tuple(i.name for i in candidates[:args.k] + fixed))
+    try:
+        cfg = config_from_args(args, resume=True, inks=tuple(i.name for i in candidates[:args.k] + fixed))
+    except (TypeError, ValueError) as error:
+        raise SelectionError(str(error)) from None
     try:
         cfg.validate()
     except (TypeError, ValueError) as error:
