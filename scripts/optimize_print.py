@@ -39,6 +39,9 @@ def parse_args(argv=None):
     add_target_arguments(p)
     p.add_argument("--inks", default=",".join(DEFAULT_INKS), help=f"{ink_names_help()} (default: %(default)s)")
     add_optimization_arguments(p)
+    p.add_argument("--remap-baseline", action="store_true",
+                   help="objects: also score the 2.5D remapped baseline (a slab optimised in the mesh's UV space with "
+                        "the same settings, wrapped around the object by UV and depth; costs a second optimisation)")
     p.add_argument("--views", type=int, default=PrintConfig.views,
                    help="objects: camera renders of the quantised print (default: %(default)s)")
     p.add_argument("--view-size", type=int, default=PrintConfig.view_size,

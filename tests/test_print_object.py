@@ -195,3 +195,19 @@ def test_fixed_fraction_bad_specs(sphere_ply, tmp_path):
     with pytest.raises(ValueError, match="expected the same size"):
         optimize_print(PrintConfig(fixed=(f"white=0.5:{mask}",), out=str(out)), **QUIET)
     assert not out.exists()
+
+
+def test_remap_baseline_is_scored_beside_ours(tmp_path):
+    """--remap-baseline: the 2.5D remapped baseline (a slab optimised in UV space and wrapped around the object)
+    is quantised, rendered and scored like the others, and kept through a resume."""
+    glb = os.path.join(os.path.dirname(__file__), "data", "meshes", "BoxTextured.glb")
+    out = tmp_path / "run"
+    kw = dict(height_mm=2.0, shell_mm=0.5, eval_every=1, remap_baseline=True, table_steps=2)
+    summary = optimize_print(config(glb, out, iterations=1, **kw), **QUIET)
+    remap = summary["baseline_remap_25d"]
+    assert remap is not None and remap["dE00_mean"] > 0 and (out / "remap25d" / "slab" / "mixture.npz").exists()
+    assert np.load(out / "baseline_remap.npy").shape == (summary["texels"], 3)
+    resumed = optimize_print(config(glb, out, iterations=2, resume=True, **kw), **QUIET)
+    assert resumed["baseline_remap_25d"]["dE00_mean"] == remap["dE00_mean"]
+    with pytest.raises(ValueError, match="remap_baseline"):
+        optimize_print(PrintConfig(remap_baseline=True, out=str(tmp_path / "slab")), **QUIET)

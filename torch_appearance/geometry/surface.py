@@ -5,22 +5,21 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["surface_attributes"]
+__all__ = ["surface_attributes", "barycentric"]
 
 
-def _barycentric(p, a, b, c):
-    """Barycentric coordinates (N, 3) of points p in triangles (a, b, c), each (N, 3)."""
+def barycentric(p, a, b, c):
+    """Barycentric coordinates (N, 3) of points p (N, 3) in triangles (a, b, c), each (N, 3), clipped to the
+    triangle (negative weights of points off it set to 0, renormalised)."""
     v0, v1, v2 = b - a, c - a, p - a
-    d00 = (v0 * v0).sum(1)
-    d01 = (v0 * v1).sum(1)
-    d11 = (v1 * v1).sum(1)
-    d20 = (v2 * v0).sum(1)
-    d21 = (v2 * v1).sum(1)
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
     den = d00 * d11 - d01 * d01
     den = np.where(np.abs(den) > 1e-300, den, 1.0)
     v = (d11 * d20 - d01 * d21) / den
     w = (d00 * d21 - d01 * d20) / den
-    return np.stack([1 - v - w, v, w], axis=1)
+    bary = np.clip(np.stack([1 - v - w, v, w], axis=1), 0, None)
+    return bary / np.maximum(bary.sum(1, keepdims=True), 1e-300)
 
 
 def _texture_lookup(image, uv):
@@ -145,9 +144,7 @@ def surface_attributes(mesh, faces, points):
     F = np.asarray(mesh.faces, dtype=np.int64)
     faces = np.asarray(faces, dtype=np.int64)
     tri = V[F[faces]]
-    bary = _barycentric(np.asarray(points, dtype=np.float64), tri[:, 0], tri[:, 1], tri[:, 2])
-    bary = np.clip(bary, 0, None)
-    bary /= bary.sum(1, keepdims=True)
+    bary = barycentric(np.asarray(points, dtype=np.float64), tri[:, 0], tri[:, 1], tri[:, 2])
     normals = (_corner_normals(V, F)[faces] * bary[:, :, None]).sum(1)
     fn = np.asarray(mesh.face_normals, dtype=np.float64)[faces]
     bad = ~(np.linalg.norm(normals, axis=1) > 1e-12)

@@ -74,6 +74,7 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
     view_size: int = 192  # objects: pixels per side of those renders
     fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.fixed_fractions)
@@ -107,6 +108,8 @@ class PrintConfig:
             raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
         if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
             raise ValueError(f"printer_dpi: expected three positive DPI values (x, y, z), got {self.printer_dpi!r}")
+        if self.remap_baseline and self.mesh is None:
+            raise ValueError("remap_baseline: the 2.5D remapped baseline is for objects (--mesh)")
         if self.mesh is not None:
             if self.height_mm is None:
                 raise ValueError("height_mm: an object print needs the object's height in mm (--height-mm)")
@@ -331,7 +334,7 @@ def _iteration_seed(seed, iteration):
     return (z ^ (z >> 31)) >> 1
 
 
-def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
+def _plots(folder, rows, baseline, weights, inks, cfg, target, final, remap=None):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -344,6 +347,8 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final):
     ax[1].plot([r["wall_s"] for r in ev], [r["dE00_mean"] for r in ev], "o-", ms=3, label="mean ΔE00 (continuous)")
     ax[1].plot([r["wall_s"] for r in ev], [r["dE00_p95"] for r in ev], "s--", ms=3, label="p95 ΔE00")
     ax[1].axhline(baseline["dE00_mean"], color="k", ls=":", label="naive extrusion (mean)")
+    if remap is not None:
+        ax[1].axhline(remap["dE00_mean"], color="C2", ls="--", label="2.5D remapped (mean)")
     ax[1].axhline(final["dE00_mean"], color="C3", ls="-.", label="final quantised (mean)")
     ax[1].set(xlabel="wall-clock time [s]", ylabel="CIEDE2000", title=f"evaluation at {cfg.eval_spp} spp")
     ax[1].legend(fontsize=7)
@@ -565,10 +570,10 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         rows, start, wall_offset = state["rows"], state["iteration"], state["wall_s"]
-        baseline = state["baseline"]
+        baseline, remap = state["baseline"], state.get("baseline_remap")
         log(f"optimize_print: resuming {folder} at iteration {start}")
     else:
-        baseline = None
+        baseline, remap = None, None
 
     eval_seed = _iteration_seed(cfg.seed, -1)
     quant_seed = _iteration_seed(cfg.seed, -2)
@@ -596,6 +601,14 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         initial = evaluate()
         _save_texels(target, folder, "initial", initial)
         rows.append({"iteration": 0, "wall_s": 0.0, **loss_row(initial), **score(initial), "seed": eval_seed})
+    if target.kind == "object" and cfg.remap_baseline and remap is None:  # 2.5D: a slab in UV space, wrapped on
+        from .remap25d import remap_baseline
+        t0 = time.perf_counter()
+        remap_w, remap_info = remap_baseline(target, inks, cfg, work_dir=os.path.join(folder, "remap25d"), log=log)
+        _, remap_img = _quantize_and_render(target, remap_w, inks, cfg, cfg.eval_spp, eval_seed, quant_seed, fixed)
+        remap = {"image": remap_img.numpy(), **score(remap_img), "info": remap_info,
+                 "seconds": time.perf_counter() - t0}
+        _save_texels(target, folder, "baseline_remap", remap["image"])
 
     # ---- optimisation
     try:
@@ -622,6 +635,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         if "dE00_mean" in row:
             _atomic_torch_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "rows": rows,
                                 "iteration": it + 1, "wall_s": row["wall_s"], "baseline": baseline,
+                                "baseline_remap": remap,
                                 "grid_dhw": list(shape), "inks": list(inks.names)}, ckpt_path)
             ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
         if bar is not None:
@@ -645,7 +659,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         weights=weights.numpy().astype(np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
     save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
     export_slices(indices, inks, os.path.join(folder, "slices"))
-    _plots(folder, rows, baseline, weights, inks, cfg, target, final)
+    _plots(folder, rows, baseline, weights, inks, cfg, target, final, remap)
     view_seconds = 0.0
     if target.kind == "object":
         texel_de = np.asarray(delta_e_2000(torch.as_tensor(final["image"]).double(), target.target.double()))
@@ -661,15 +675,17 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         "final_quantized": {k: v for k, v in final.items() if k != "image"},
         "optimized_continuous": score(optimized),
         "baseline_naive_extrusion": {k: v for k, v in baseline.items() if k != "image"},
+        "baseline_remap_25d": None if remap is None else {k: v for k, v in remap.items() if k != "image"},
         "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
         "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
         "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
         "parameters": int(model.logits.numel()), "views_s": view_seconds,
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
+    remap_text = "" if remap is None else f", 2.5D remapped {remap['dE00_mean']:.2f}/{remap['dE00_p95']:.2f}"
     log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
         f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}, naive extrusion "
-        f"{baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f} -> {folder}")
+        f"{baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f}{remap_text} -> {folder}")
     return summary
 
 

@@ -14,8 +14,8 @@ Steps (:func:`remap_baseline`):
    should not see artificial contrast between islands and background, which it would compensate at the island
    borders).
 2. **Planar optimisation.** :func:`~torch_appearance.pipelines.print_optimization.optimize_print` of a slab as
-   thick as the shell (``cfg.shell_mm``) with the run's inks, spp, iterations and seed, written to
-   ``work_dir/slab``; its ``mixture.npz`` holds the slab's weights (N, D_s, H_s, W_s).
+   thick as the shell (``cfg.shell_mm``) with the run's inks, spp, iterations, seed and fixed ink fractions,
+   written to ``work_dir/slab``; its ``mixture.npz`` holds the slab's weights (N, D_s, H_s, W_s).
 3. **Remap.** Per shell voxel: the closest surface point (libigl AABB tree), its UV by barycentric interpolation,
    the slab column ``row = ⌊(1 − v)·H_s⌋, col = ⌊u·W_s⌋`` (v up, as image files store textures; UVs outside
    [0, 1] wrap), the layer ``D_s − 1 − ⌊depth / h⌋`` clipped to the slab; every other voxel holds the core ink.
@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from .. import io as ta_io
+from ..geometry.surface import barycentric
 
 __all__ = ["remap_baseline", "slab_size", "uv_target_image", "remap_slab", "MAX_SLAB_TEXELS"]
 
@@ -107,21 +108,10 @@ def slab_size(mesh, voxel_size, max_texels=MAX_SLAB_TEXELS):
 
 
 def _uv_coverage(mesh, size):
-    """(H, W) bool: texel centres covered by a UV triangle, each triangle shifted by whole units towards the unit
-    square (tiled layouts that repeat the texture are covered too)."""
-    import cv2
+    """(H, W) bool: texels whose centre lies in a (non-collapsed) UV triangle, tiled layouts included."""
+    from ..geometry.bake import uv_face_image
 
-    uv = _uv_layout(mesh)[np.asarray(mesh.faces, dtype=np.int64)]            # (M, 3, 2)
-    uv = uv - np.floor(uv.mean(1, keepdims=True))
-    h, w = size
-    shift = 4
-    xy = np.stack([uv[..., 0] * w - 0.5, (1.0 - uv[..., 1]) * h - 0.5], axis=-1)
-    fixed = np.round(xy * (1 << shift)).astype(np.int32)
-    mask = np.zeros((h, w), dtype=np.uint8)
-    inside = (fixed.max(1) >= 0).all(1) & (fixed.min(1)[:, 0] < w << shift) & (fixed.min(1)[:, 1] < h << shift)
-    for tri in fixed[inside]:
-        cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=shift)
-    return mask.astype(bool)
+    return uv_face_image(mesh, size) >= 0
 
 
 def _base_colour_texture(mesh, texture=None):
@@ -169,19 +159,6 @@ def uv_target_image(mesh, voxel_size, *, texture=None, fill=True, max_texels=MAX
 
 
 # ------------------------------------------------------------------------------------------------ remap
-def _barycentric(p, a, b, c):
-    """Barycentric coordinates (N, 3) of points p in triangles (a, b, c), each (N, 3), clipped to the triangle."""
-    v0, v1, v2 = b - a, c - a, p - a
-    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(np.abs(den) > 1e-300, den, 1.0)
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    bary = np.clip(np.stack([1 - v - w, v, w], axis=1), 0, None)
-    return bary / np.maximum(bary.sum(1, keepdims=True), 1e-300)
-
-
 def _wrap(t):
     """Texture coordinates outside [0, 1] wrap (repeat); [0, 1] itself is kept, so an island's edge at 1 stays."""
     return np.where((t < 0) | (t > 1), t - np.floor(t), t)
@@ -225,7 +202,7 @@ def remap_slab(target, slab_weights, core, *, chunk=1 << 20):
         centres = origin + (np.stack([i, j, k], axis=1) + 0.5) * h
         _, fid, closest = igl.point_mesh_squared_distance(np.ascontiguousarray(centres), V, F)
         tri = V[F[fid]]
-        bary = _barycentric(closest, tri[:, 0], tri[:, 1], tri[:, 2])
+        bary = barycentric(closest, tri[:, 0], tri[:, 1], tri[:, 2])
         p_uv = (uv[F[fid]] * bary[:, :, None]).sum(1)
         u, v = _wrap(p_uv[:, 0]), _wrap(p_uv[:, 1])
         row = np.clip(np.floor((1.0 - v) * hs).astype(np.int64), 0, hs - 1)
@@ -240,6 +217,33 @@ def remap_slab(target, slab_weights, core, *, chunk=1 << 20):
 
 
 # ------------------------------------------------------------------------------------------------ the baseline
+def _slab_fixed(specs, size, work_dir):
+    """The object run's ``INK=FRACTION:MASK`` constraints for the UV-space slab: ``all`` and ``depth:A-B`` (depth
+    below the surface = below the slab's top face) stay; a texture-space PNG mask is resampled (nearest) to the
+    slab's (H_s, W_s) and written to ``work_dir``."""
+    import cv2
+
+    from .fixed_fractions import parse_fixed
+
+    out = []
+    for n, spec in enumerate(specs):
+        ink, fraction, terms = parse_fixed(spec)
+        slab_terms = []
+        for t, term in enumerate(terms):
+            if term.lower().endswith(".png"):
+                raw = np.fromfile(term, dtype=np.uint8)
+                mask = cv2.imdecode(raw, cv2.IMREAD_GRAYSCALE) if raw.size else None
+                if mask is None:
+                    raise ValueError(f"fixed: mask image {term!r} is not a readable PNG")
+                mask = cv2.resize(mask, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+                term = os.path.join(work_dir, f"fixed_{n}_{t}.png")
+                _, png = cv2.imencode(".png", mask)
+                ta_io.atomic_write_bytes(term, png.tobytes())
+            slab_terms.append(term)
+        out.append(f"{ink}={fraction!r}:{'&'.join(slab_terms)}")
+    return tuple(out)
+
+
 def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None, progress=False,
                    max_texels=MAX_SLAB_TEXELS):
     """The 2.5D remapped baseline of an object print (thesis part II §3.2).
@@ -249,8 +253,9 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
             mesh that was voxelised, mm) has UVs and a base-colour texture (or ``cfg.texture``).
         inks: the run's :class:`~torch_appearance.fabrication.InkSet`.
         cfg: the object run's :class:`~torch_appearance.pipelines.print_optimization.PrintConfig`; the slab run
-            keeps its inks, gamma, optimiser, spp, iterations, seed, printer DPI and table; its voxel pitch is the
-            object's, its thickness ``cfg.shell_mm``.
+            keeps its inks, gamma, optimiser, spp, iterations, seed, printer DPI, table and fixed ink fractions
+            (:func:`_slab_fixed`); its voxel pitch is the object's, its thickness ``cfg.shell_mm``; an environment
+            map (objects only) is dropped: the slab is lit uniformly.
         work_dir: folder for ``uv_target.exr`` and the slab's run folder ``slab/``.
         log: one-line messages. slab_weights: optional (N, D_s, H_s, W_s) slab mixture that replaces steps 1–2
             (tests). progress: the slab run's tqdm bar. max_texels: cap on the slab's H_s·W_s.
@@ -286,9 +291,11 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
         log(f"remap_baseline: UV-space slab {image.shape[0]}×{image.shape[1]} texels ({size_info['mm_per_u']:.1f} × "
             f"{size_info['mm_per_v']:.1f} mm per UV unit, {100 * size_info['covered_fraction']:.0f}% covered), "
             f"{cfg.shell_mm} mm thick")
-        slab_cfg = dataclasses.replace(
-            cfg, mesh=None, texture=None, target=exr, bottom_target=None, thickness_mm=cfg.shell_mm,
-            dpi=25.4 / h, width_mm=None, height_mm=None, out=os.path.join(work_dir, "slab"))
+        # an environment map lights objects only; fixed fractions carry over (texture-space masks resampled)
+        fixed = _slab_fixed(getattr(cfg, "fixed", ()), image.shape[:2], work_dir)
+        slab_cfg = dataclasses.replace(cfg, mesh=None, texture=None, envmap=None, fixed=fixed, target=exr,
+                                       bottom_target=None, thickness_mm=cfg.shell_mm, dpi=25.4 / h, width_mm=None,
+                                       height_mm=None, remap_baseline=False, out=os.path.join(work_dir, "slab"))
         summary = optimize_print(slab_cfg, progress=progress, log=log)
         with np.load(os.path.join(slab_cfg.out, "mixture.npz")) as data:
             slab_weights = data["weights"]
@@ -303,7 +310,8 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
         raise ValueError(f"slab_weights: expected ({len(inks)}, D, H, W) for the inks {list(inks.names)}, got shape "
                          f"{slab_weights.shape}")
     weights, remap_info = remap_slab(target, slab_weights, core)
-    info.update(remap_info, slab_depth=int(slab_weights.shape[1]), slab_hw=list(slab_weights.shape[2:]))
+    info.update(remap_info, slab_depth=int(slab_weights.shape[1]), slab_hw=list(slab_weights.shape[2:]),
+                texels=int(len(target.obj.texel_voxels)))
     log(f"remap_baseline: {remap_info['shell_voxels']} shell voxels remapped from a {slab_weights.shape[1]}-layer "
         f"slab in {remap_info['remap_s']:.1f} s")
     return weights, info
