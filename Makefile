@@ -9,7 +9,7 @@ BUILD_STAMP := .build-stamp
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: demo render-demo test build bench bench-peer clean venv
+.PHONY: demo demo-object render-demo test build bench bench-peer clean venv
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -34,6 +34,14 @@ build: $(BUILD_STAMP)
 demo: build
 	rm -rf results/demo
 	$(PY) scripts/optimize_print.py --target colorchecker $(DEMO_ARGS) --out results/demo
+
+# The object job: a short print optimisation of the textured Spot model (public domain, in tests/data), with the
+# naive and 2.5D remapped baselines and camera renders of the quantised print (a few minutes on 2 cores).
+demo-object: build
+	rm -rf results/demo-object
+	$(PY) scripts/optimize_print.py --mesh tests/data/meshes/spot/spot_triangulated.obj \
+		--texture tests/data/meshes/spot/spot_texture.png --height-mm 8 --dpi 150 --shell-mm 1.5 --spp 8 \
+		--iterations 60 --eval-every 10 --eval-spp 64 --remap-baseline $(DEMO_ARGS) --out results/demo-object
 
 # The tracer alone: renders the built-in ink slab (PNG + EXR + timings).
 render-demo: build
