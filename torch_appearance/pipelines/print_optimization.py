@@ -420,7 +420,7 @@ def _object_target(cfg, inks, log):
     from ..geometry import load_mesh, voxelize
     from .object_target import ObjectTarget
 
-    mesh, report = load_mesh(cfg.mesh, height_mm=cfg.height_mm, **({} if cfg.texture is None else {"texture": cfg.texture}))
+    mesh, report = load_mesh(cfg.mesh, height_mm=cfg.height_mm, texture=cfg.texture)
     t0 = time.perf_counter()
     obj = voxelize(mesh, cfg.voxel_size, shell_mm=cfg.shell_mm)
     inside, shell = int(obj.occupancy.sum()), int(obj.shell.sum())
