@@ -211,3 +211,19 @@ def test_remap_baseline_is_scored_beside_ours(tmp_path):
     assert resumed["baseline_remap_25d"]["dE00_mean"] == remap["dE00_mean"]
     with pytest.raises(ValueError, match="remap_baseline"):
         optimize_print(PrintConfig(remap_baseline=True, out=str(tmp_path / "slab")), **QUIET)
+
+
+def test_views_figure_without_offscreen_rendering(monkeypatch, tmp_path):
+    """Where pyvista cannot render offscreen, views.png still shows the rendered print (no mesh pictures)."""
+    import torch_appearance.geometry.preview as preview
+    from torch_appearance.pipelines.object_figures import views_figure
+
+    monkeypatch.setattr(preview, "_probe_result", (False, "test: no OpenGL"))
+    obj = voxelize(trimesh.creation.icosphere(radius=1.0), 0.25, shell_mm=0.4)
+    obj.texel_colors = torch.full((len(obj.texel_voxels), 3), 0.5)
+    target = ObjectTarget(obj)
+    target.mesh = trimesh.creation.icosphere(radius=1.0)
+    cams = target.camera_views(2, 24)
+    rows = views_figure(str(tmp_path / "views.png"), target, cams, [np.full((24, 24, 3), 0.5)] * 2,
+                        texel_de=np.ones(len(obj.texel_voxels)), log=lambda *_: None)
+    assert rows == 1 and (tmp_path / "views.png").exists()

@@ -29,6 +29,12 @@ def mesh_views(mesh, cams, *, scalars=None, cmap="magma", clim=None):
     Returns:
         List of (rows, cols, 3) uint8 sRGB images, or None when offscreen rendering fails here (reason on stderr).
     """
+    from ..geometry.preview import offscreen_rendering
+
+    ok, why = offscreen_rendering()  # checked once in a child process: a VTK crash cannot end this run
+    if not ok:
+        print(f"object figures: no mesh pictures, pyvista cannot render offscreen here ({why})", file=sys.stderr)
+        return None
     try:
         import pyvista as pv
 
