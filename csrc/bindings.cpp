@@ -29,7 +29,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("seed", &TraceOptions::seed)
       .def_readwrite("max_depth", &TraceOptions::max_depth)
       .def_readwrite("rr_depth", &TraceOptions::rr_depth)
-      .def_readwrite("lanes", &TraceOptions::lanes);
+      .def_readwrite("lanes", &TraceOptions::lanes)
+      .def_readwrite("part_rank", &TraceOptions::part_rank)
+      .def_readwrite("part_world", &TraceOptions::part_world);
 
   using ta::volpath::BoundaryOptions;
   using ta::volpath::EmitterOptions;
@@ -78,7 +80,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("seed", &SceneOptions::seed)
       .def_readwrite("max_depth", &SceneOptions::max_depth)
       .def_readwrite("rr_depth", &SceneOptions::rr_depth)
-      .def_readwrite("lanes", &SceneOptions::lanes);
+      .def_readwrite("lanes", &SceneOptions::lanes)
+      .def_readwrite("part_rank", &SceneOptions::part_rank)
+      .def_readwrite("part_world", &SceneOptions::part_world);
 
   py::class_<ta::volpath::ForwardCounts>(m, "ForwardCounts")
       .def_readonly("scatter_events", &ta::volpath::ForwardCounts::scatter_events)

@@ -41,6 +41,8 @@ struct TraceOptions {
   int64_t max_depth = 1;
   int64_t rr_depth = 0;
   int64_t lanes = 1;
+  int64_t part_rank = 0;   // data-parallel share: this process traces the sensor elements t with
+  int64_t part_world = 1;  // t % part_world == part_rank (others: 0 in the image, no gradient)
 };
 
 // ---- general scenes: one struct per piece, flattened from the Python dataclass of the same role
@@ -80,6 +82,9 @@ struct SceneOptions {
   int64_t max_depth = 1;
   int64_t rr_depth = 0;
   int64_t lanes = 1;
+  int64_t part_rank = 0;   // data-parallel share: this process traces the sensor elements t with
+  int64_t part_world = 1;  // t % part_world == part_rank (others: 0 in the image, no gradient); the random
+                           // numbers are keyed by the global t, so the shares of all ranks sum to the full image
 };
 
 struct ForwardCounts {

@@ -81,6 +81,8 @@ void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
   TORCH_CHECK(o.max_depth >= 1, "max_depth: expected >= 1, got ", o.max_depth);
   TORCH_CHECK(o.rr_depth >= 0, "rr_depth: expected >= 0, got ", o.rr_depth);
   TORCH_CHECK(o.lanes == 1 || o.lanes == 3, "lanes: expected 1 or 3, got ", o.lanes);
+  TORCH_CHECK(o.part_world >= 1 && o.part_rank >= 0 && o.part_rank < o.part_world,
+              "partition: expected 0 <= rank < world, got rank ", o.part_rank, " of ", o.part_world);
   // boundary
   const auto& b = o.boundary;
   TORCH_CHECK(b.kind == 0 || b.kind == 1, "boundary: expected kind 0 (box) or 1 (sdf), got ", b.kind);
@@ -158,6 +160,8 @@ SceneOptions slab_scene(const TraceOptions& t) {
   o.max_depth = t.max_depth;
   o.rr_depth = t.rr_depth;
   o.lanes = t.lanes;
+  o.part_rank = t.part_rank;
+  o.part_world = t.part_world;
   return o;
 }
 
@@ -263,10 +267,18 @@ void for_each_chunk(int64_t nchunks, const F& body) {
   });
 }
 
+// The sensor elements this process traces: t = rank + world·u for u < count (all of them when world = 1).
+struct Share {
+  int64_t rank = 0, world = 1, count = 0;
+  Share(int64_t n, int64_t r, int64_t w) : rank(r), world(w), count(r < n ? (n - r + w - 1) / w : 0) {}
+  int64_t element(int64_t u) const { return rank + world * u; }
+};
+
 template <typename F>
-void for_elements_of_chunk(int64_t c, int64_t nchunks, int64_t n, const F& body) {
+void for_elements_of_chunk(int64_t c, int64_t nchunks, const Share& share, const F& body) {
+  const int64_t n = share.count;
   for (int64_t b0 = c * kTexelBlock; b0 < n; b0 += nchunks * kTexelBlock)
-    for (int64_t t = b0, e = std::min(n, b0 + kTexelBlock); t < e; ++t) body(t);
+    for (int64_t u = b0, e = std::min(n, b0 + kTexelBlock); u < e; ++u) body(share.element(u));
 }
 
 int64_t num_chunks(int64_t n) {
@@ -275,15 +287,14 @@ int64_t num_chunks(int64_t n) {
 }
 
 template <typename T, int LANES, int B, bool DIEL, bool RATIO>
-ForwardCounts forward_kernel(const Scene<T>& S, T* out) {
-  const int64_t n = S.elements();
-  const int64_t nchunks = num_chunks(n);
+ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
+  const int64_t nchunks = num_chunks(share.count);
   const bool constant = S.emitter.kind == core::kConstant;
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
   for_each_chunk(nchunks, [&](int64_t c) {
     int64_t ev = 0, cut = 0;
-    for_elements_of_chunk(c, nchunks, n, [&](int64_t t) {
+    for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
       T Le[3];
       for (int64_t s = 0; s < S.spp; ++s) {
@@ -346,9 +357,8 @@ inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* 
 }
 
 template <typename T, int LANES, int B, bool DIEL>
-int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga) {
-  const int64_t ntex = S.elements();
-  const int64_t nchunks = num_chunks(ntex);
+int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share) {
+  const int64_t nchunks = num_chunks(share.count);
   const int64_t n = 3 * S.medium.voxels();
   // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
   std::vector<std::vector<T>> bufs_s(gs ? nchunks - 1 : 0), bufs_a(ga ? nchunks - 1 : 0);
@@ -365,7 +375,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga) {
       else { bufs_a[c - 1].assign(n, T(0)); A.grad_albedo = bufs_a[c - 1].data(); }
     }
     int64_t ev = 0;
-    for_elements_of_chunk(c, nchunks, ntex, [&](int64_t t) {
+    for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
       const T* g = grad_out + t * 3;
       bool live[3], any = false;  // channels whose paths can carry a derivative
       for (int ch = 0; ch < 3; ++ch) {
@@ -454,7 +464,8 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
                                                            const torch::Tensor& ref_albedo, bool ratio,
                                                            const SceneOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
-  auto out = torch::empty(image_shape(opt, sigma_t), sigma_t.options());
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t), sigma_t.options())
+                                : torch::empty(image_shape(opt, sigma_t), sigma_t.options());
   ForwardCounts counts;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
@@ -464,8 +475,9 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
       constexpr int L = decltype(lanes_c)::value;
       constexpr int B = decltype(bound_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
-      counts = ratio ? forward_kernel<T, L, B, DIEL, true>(S, out.data_ptr<T>())
-                     : forward_kernel<T, L, B, DIEL, false>(S, out.data_ptr<T>());
+      const Share share(S.elements(), opt.part_rank, opt.part_world);
+      counts = ratio ? forward_kernel<T, L, B, DIEL, true>(S, out.data_ptr<T>(), share)
+                     : forward_kernel<T, L, B, DIEL, false>(S, out.data_ptr<T>(), share);
     });
   });
   return {out, counts};
@@ -502,7 +514,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
       constexpr int L = decltype(lanes_c)::value;
       constexpr int B = decltype(bound_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
-      events = backward_kernel<T, L, B, DIEL>(S, g, pgs, pga);
+      events = backward_kernel<T, L, B, DIEL>(S, g, pgs, pga, Share(S.elements(), opt.part_rank, opt.part_world));
     });
   });
   return {gs, ga, events};

@@ -9,7 +9,7 @@ __all__ = ["render_texels", "render_scene"]
 
 def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0,
                   max_depth=None, rr_depth=None, sampling_sigma_t=None, sampling_albedo=None,
-                  sigma_t_floor=None, albedo_floor=0.05, stats=None, seed_grad=None):
+                  sigma_t_floor=None, albedo_floor=0.05, stats=None, seed_grad=None, partition=None):
     """Render the radiance leaving a voxel slab along the face normal, one texel per voxel column.
 
     The slab is D×H×W voxels of edge ``voxel_size`` mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W,
@@ -50,6 +50,9 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         seed_grad: seed of the gradient replay; default None = ``seed`` (the replay retraces the forward's own
             random numbers, with the floored reference). :func:`torch_appearance.render.derive_seed_grad` gives
             an independent one (as :func:`render_scene` does by default).
+        partition: optional (rank, world): trace only the texels t (flat index) with t % world == rank, the others
+            are 0 and get no gradient; random numbers are keyed by the global t, so the images of all ranks sum to
+            the full image (see :mod:`torch_appearance.distributed`).
 
     Returns:
         (H, W, 3) linear RGB texel radiance for one face, (2, H, W, 3) for "both" (0 = top, 1 = bottom).
@@ -74,7 +77,7 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
                              max_depth=max_depth, rr_depth=rr_depth, sigma_t_floor=sigma_t_floor,
                              albedo_floor=albedo_floor, seed_grad=seed_grad)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
-    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, scene, stats)
+    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, partitioned(scene, partition), stats)
 
 
 def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
@@ -94,7 +97,7 @@ def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
 
 
 def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, sampling_sigma_t=None,
-                 sampling_albedo=None, stats=None):
+                 sampling_albedo=None, stats=None, partition=None):
     """Render what ``scene``'s sensor sees of a heterogeneous voxel medium, differentiably.
 
     The medium (per-voxel, per-channel σ_t and albedo, piecewise constant, exact regular tracking) fills the grid
@@ -119,6 +122,9 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
         sampling_sigma_t, sampling_albedo: optional detached (3, D, H, W) sampling medium (see render_texels).
         stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes`` and, after backward,
             ``backward_s`` and ``backward_scatter_events``.
+        partition: optional (rank, world): trace only the sensor elements t (flat texel or pixel index) with
+            t % world == rank; the others are 0 and get no gradient. The random numbers are keyed by the global t,
+            so the images of all ranks sum to the full image (see :mod:`torch_appearance.distributed`).
 
     Returns:
         Linear RGB radiance: (rows, cols, 3) for a camera (row 0 is the camera's up side), (N, 3) for surface texels,
@@ -153,4 +159,32 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     seed_grad = derive_seed_grad(seed) if seed_grad is None else check_seed("seed_grad", seed_grad)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
     job = _TraceJob(scene, spp, seed, seed_grad)
-    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
+    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, partitioned(job, partition), stats)
+
+
+class _Partitioned:
+    """A trace job restricted to one rank's share of the sensor elements (see ``partition``)."""
+
+    def __init__(self, job, rank, world):
+        self.job, self.rank, self.world = job, rank, world
+
+    def __getattr__(self, name):
+        return getattr(self.job, name)
+
+    def scene_options(self, lanes, seed, grid_shape, dtype):
+        opt = self.job.scene_options(lanes, seed, grid_shape, dtype)
+        opt.part_rank, opt.part_world = self.rank, self.world
+        return opt
+
+
+def partitioned(job, partition):
+    """``job`` restricted to ``partition`` = (rank, world), or unchanged for None / world 1."""
+    if partition is None:
+        return job
+    if (not isinstance(partition, (tuple, list)) or len(partition) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in partition)):
+        raise TypeError(f"partition: expected (rank, world), two ints, got {partition!r}")
+    rank, world = partition
+    if not (world >= 1 and 0 <= rank < world):
+        raise ValueError(f"partition: expected 0 <= rank < world, got rank {rank} of world {world}")
+    return job if world == 1 else _Partitioned(job, rank, world)

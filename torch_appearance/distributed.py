@@ -1,0 +1,109 @@
+"""Data-parallel rendering over several processes or machines with ``torch.distributed`` (gloo, CPU).
+
+Every rank holds the whole medium (the grids are small next to the work of tracing them) and traces a fixed
+interleaved share of the sensor elements: element t belongs to rank ``t % world``. The random numbers of a path are
+keyed by the global element index, so the shares sum to exactly the single-process image. The forward image is
+combined with one ``all_reduce`` (sum) and is then the same on every rank; in the backward pass each rank replays
+only its own paths and the gradients of σ_t and albedo are combined with one ``all_reduce`` each, so every rank
+takes the same optimiser step. Nothing else changes: the loss, the optimiser and the parameters stay replicated.
+
+Communication per iteration: the image (sensor elements × 3 values) forward, and 2 × 3·D·H·W values backward
+(σ_t and albedo gradients), in the grids' dtype. Memory per rank: the grids, their gradient buffers (one per
+thread inside the tracer) and the image.
+
+Usage (on one machine with 2 processes: ``torchrun --nproc_per_node 2 script.py``; on several machines
+``torchrun --nnodes N --node_rank K --nproc_per_node P --rdzv_endpoint HOST:PORT script.py``)::
+
+    import torch.distributed as dist
+    from torch_appearance import distributed
+    dist.init_process_group("gloo")
+    image = distributed.render(torch_appearance.render_scene, scene, sigma_t, albedo, spp=32, seed=it)
+    loss(image).backward()          # sigma_t.grad / albedo.grad (and the parameters') equal on every rank
+"""
+import torch
+
+__all__ = ["rank_and_world", "render", "all_reduce_sum", "reduce_gradient"]
+
+
+def rank_and_world(group=None):
+    """(rank, world size) of the default (or given) process group, or (0, 1) when torch.distributed is not
+    initialised."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()):
+        return 0, 1
+    return dist.get_rank(group), dist.get_world_size(group)
+
+
+class _AllReduceSum(torch.autograd.Function):
+    """Sum over ranks forward; the gradient of each rank's share is the (replicated) gradient of the sum."""
+
+    @staticmethod
+    def forward(ctx, x, group):
+        import torch.distributed as dist
+
+        out = x.detach().clone()
+        dist.all_reduce(out, op=dist.ReduceOp.SUM, group=group)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad, None
+
+
+class _ReduceGradient(torch.autograd.Function):
+    """Identity forward; the gradient is summed over ranks (each rank's replay covers its share of the paths)."""
+
+    @staticmethod
+    def forward(ctx, x, group):
+        ctx.group = group
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        import torch.distributed as dist
+
+        grad = grad.contiguous().clone()
+        dist.all_reduce(grad, op=dist.ReduceOp.SUM, group=ctx.group)
+        return grad, None
+
+
+def all_reduce_sum(x, group=None):
+    """Differentiable sum of ``x`` over the ranks (identity when not distributed)."""
+    return x if rank_and_world(group)[1] == 1 else _AllReduceSum.apply(x, group)
+
+
+def reduce_gradient(x, group=None):
+    """``x`` unchanged, its gradient summed over the ranks (identity when not distributed)."""
+    if rank_and_world(group)[1] == 1 or not x.requires_grad:
+        return x
+    return _ReduceGradient.apply(x, group)
+
+
+def render(render_fn, *args, group=None, **kwargs):
+    """Data-parallel ``render_fn`` (:func:`torch_appearance.render_scene` or :func:`torch_appearance.render_texels`).
+
+    The medium arguments (the two tensors among ``args``/``kwargs`` named or placed as σ_t and albedo) must be the
+    same on every rank; so must every other argument (seed included). Returns the full image on every rank,
+    differentiable; without torch.distributed it is just ``render_fn(*args, **kwargs)``.
+
+    Args:
+        render_fn: ``render_scene(scene, sigma_t, albedo, ...)`` or ``render_texels(sigma_t, albedo, ...)``.
+        group: optional process group.
+    """
+    rank, world = rank_and_world(group)
+    if world == 1:
+        return render_fn(*args, **kwargs)
+    if "partition" in kwargs:
+        raise ValueError("partition: set by torch_appearance.distributed.render from the process group; do not pass "
+                         "it")
+    args = list(args)
+    first = 1 if args and not isinstance(args[0], torch.Tensor) else 0  # render_scene takes the scene first
+    for k in (first, first + 1):
+        if k < len(args):
+            args[k] = reduce_gradient(args[k], group)
+    for name in ("sigma_t", "albedo"):
+        if name in kwargs:
+            kwargs[name] = reduce_gradient(kwargs[name], group)
+    share = render_fn(*args, partition=(rank, world), **kwargs)
+    return _AllReduceSum.apply(share, group)
