@@ -87,3 +87,59 @@ def test_partition_shares_sum_to_the_image_and_are_checked():
         ta.render_texels(sigma_t, albedo, voxel_size=0.1, partition=(0.0, 2))
     assert distributed.rank_and_world() == (0, 1)
     assert distributed.render(ta.render_scene, scene, s2, a2, spp=2, seed=5).equal(full)
+
+
+def _print_worker(rank, world, store, out):
+    import torch.distributed as dist
+
+    from torch_appearance.pipelines import PrintConfig, optimize_print
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world)
+    try:
+        optimize_print(PrintConfig(**_PRINT, out=out), progress=False, log=lambda *_: None)
+    finally:
+        dist.destroy_process_group()
+
+
+_PRINT = dict(target="colorchecker", width_mm=1.2, dpi=150.0, thickness_mm=0.5, spp=2, eval_spp=4, eval_every=2,
+              iterations=3, table_steps=2, printer_dpi=(300.0, 300.0, 300.0))
+
+
+def test_print_optimisation_under_two_ranks_follows_one_process(tmp_path):
+    """optimize_print unchanged under torch.distributed: rank 0 writes the run folder (the other rank nothing), and
+    the log follows the single-process run (the same images; gradients equal to round-off)."""
+    import csv
+
+    from torch_appearance.pipelines import PrintConfig, optimize_print
+
+    torch.set_num_threads(1)
+    before = _rank_folders()
+    optimize_print(PrintConfig(**_PRINT, out=str(tmp_path / "one")), progress=False, log=lambda *_: None)
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_print_worker, args=(r, 2, str(tmp_path / "store"), str(tmp_path / "two")))
+             for r in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=240)
+        if p.is_alive():
+            p.kill()
+            pytest.fail("a rank did not finish within 240 s")
+        assert p.exitcode == 0
+    one = list(csv.DictReader(open(tmp_path / "one" / "log.csv")))
+    two = list(csv.DictReader(open(tmp_path / "two" / "log.csv")))
+    assert len(one) == len(two) == 4
+    assert float(two[0]["loss"]) == float(one[0]["loss"])  # iteration 0: the same image
+    for a, b in zip(one, two):
+        assert float(b["loss"]) == pytest.approx(float(a["loss"]), rel=1e-4)
+        if a["dE00_mean"]:
+            assert float(b["dE00_mean"]) == pytest.approx(float(a["dE00_mean"]), rel=1e-3)
+    import json
+    assert json.load(open(tmp_path / "two" / "config.json"))["ranks"] == 2
+    assert _rank_folders() == before  # rank 1's private folder is gone
+
+
+def _rank_folders():
+    import tempfile
+    return sorted(n for n in os.listdir(tempfile.gettempdir()) if n.startswith("optimize_print_rank"))

@@ -11,6 +11,7 @@ import os
 import numpy as np
 import torch
 
+from .. import distributed
 from .. import io as ta_io
 from ..fabrication.export import VOID
 from ..fabrication.quantize import micro_grid_pitch
@@ -72,7 +73,7 @@ class ObjectTarget:
         """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
         scene = self.scene if scene is None else scene
         seed_grad = seed if self.gradient_seed == "same" else None
-        return render_scene(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=seed_grad)
+        return distributed.render(render_scene, scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=seed_grad)
 
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)
@@ -157,7 +158,7 @@ class ObjectTarget:
         scene = Scene(voxel_size=edges, origin=self.obj.origin, boundary=SDFBoundary(sdf, ior=self.ior),
                       sensor=self.scene.sensor if sensor is None else sensor, emitter=self.emitter, g=self.g)
         with torch.no_grad():
-            return render_scene(scene, sigma_t, albedo, spp=spp, seed=seed)
+            return distributed.render(render_scene, scene, sigma_t, albedo, spp=spp, seed=seed)
 
     def camera_views(self, n=3, size=256, fov_y_deg=30.0, elevation_deg=20.0):
         """``n`` perspective cameras around the object (azimuths 360°/n apart, looking at its centre, z up), far

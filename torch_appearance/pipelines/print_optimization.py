@@ -21,6 +21,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from .. import distributed
 from .. import io as ta_io
 from ..color import rgb_to_lab
 from ..fabrication.export import export_slices, save_index_volume
@@ -201,9 +202,10 @@ class SlabTarget:
 def _render_faces(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None):
     g = inks.g if cfg.g is None else cfg.g  # the inks' common HG g unless the run overrides it
     seed_grad = derive_seed_grad(seed) if cfg.gradient_seed == "independent" else None
-    image = render_texels(sigma_t, albedo, voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
-                          face="both" if faces == 2 else "top", g=g, ior=cfg.ior, spp=spp, seed=seed,
-                          seed_grad=seed_grad)
+    image = distributed.render(render_texels, sigma_t, albedo,
+                               voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
+                               face="both" if faces == 2 else "top", g=g, ior=cfg.ior, spp=spp, seed=seed,
+                               seed_grad=seed_grad)
     return image if faces == 2 else image.unsqueeze(0)
 
 
@@ -527,6 +529,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         The summary dict (also written to ``summary.json``).
     """
     cfg.validate()
+    rank, world = distributed.rank_and_world()
     folder = cfg.out
     ckpt_path = os.path.join(folder, CHECKPOINT)
     if os.path.exists(ckpt_path) and not cfg.resume:
@@ -545,12 +548,28 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         target.use_g(inks.g if cfg.g is None else cfg.g)
     shape = tuple(target.shape)
     constraints, fixed = fixed_fractions(target, cfg.fixed, inks)
+    if rank != 0:
+        # under torchrun every rank runs the same loop (the renders are collective); only rank 0 writes the run
+        # folder, the others write to a private temporary one that is removed at the end
+        import tempfile
+        folder = tempfile.mkdtemp(prefix=f"optimize_print_rank{rank}_")
+        progress, log = False, (lambda *args, **kwargs: None)
     os.makedirs(folder, exist_ok=True)  # only once the inputs are known to be good: no partial run folder
+    try:
+        return _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, progress, log, world)
+    finally:
+        if rank != 0:
+            import shutil
+            shutil.rmtree(folder, ignore_errors=True)
 
+
+def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, progress, log, world):
+    """The body of :func:`optimize_print` once the inputs are checked; writes to ``folder``, resumes from
+    ``ckpt_path``."""
     ta_io.write_json(os.path.join(folder, "config.json"), {
         **dataclasses.asdict(cfg), "inks": [dataclasses.asdict(i) for i in inks], "voxel_size_mm": cfg.voxel_size,
         "kind": target.kind, **target.describe(), "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(), **({"mesh_report": target.mesh_report}
+        "torch_threads": torch.get_num_threads(), "ranks": world, **({"mesh_report": target.mesh_report}
                                                      if target.kind == "object" else {})})
     if target.kind == "object":
         target.obj.save(os.path.join(folder, "object.npz"))
@@ -636,7 +655,8 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
             _atomic_torch_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "rows": rows,
                                 "iteration": it + 1, "wall_s": row["wall_s"], "baseline": baseline,
                                 "baseline_remap": remap,
-                                "grid_dhw": list(shape), "inks": list(inks.names)}, ckpt_path)
+                                "grid_dhw": list(shape), "inks": list(inks.names)},
+                               os.path.join(folder, CHECKPOINT))
             ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
         if bar is not None:
             bar.update(1)
