@@ -227,3 +227,24 @@ def test_views_figure_without_offscreen_rendering(monkeypatch, tmp_path):
     rows = views_figure(str(tmp_path / "views.png"), target, cams, [np.full((24, 24, 3), 0.5)] * 2,
                         texel_de=np.ones(len(obj.texel_voxels)), log=lambda *_: None)
     assert rows == 1 and (tmp_path / "views.png").exists()
+
+
+def test_mesh_views_follow_each_camera():
+    """The mesh pictures of a list of cameras equal those of each camera alone (no frame from the previous
+    camera), and different cameras give different pictures."""
+    from torch_appearance.geometry.preview import offscreen_rendering
+    from torch_appearance.pipelines.object_figures import mesh_views
+
+    if not offscreen_rendering()[0]:
+        pytest.skip("no offscreen OpenGL here")
+    mesh = trimesh.creation.box((1.0, 2.0, 3.0))
+    mesh.visual.vertex_colors = np.c_[(np.abs(mesh.vertex_normals) * 255).astype(np.uint8),
+                                      np.full(len(mesh.vertices), 255, np.uint8)]
+    obj = voxelize(mesh, 0.25, shell_mm=0.3)
+    obj.texel_colors = torch.full((len(obj.texel_voxels), 3), 0.5)
+    cams = ObjectTarget(obj).camera_views(3, 48)
+    together = mesh_views(mesh, cams)
+    for k, cam in enumerate(cams):
+        alone = mesh_views(mesh, [cam])[0]
+        assert np.abs(together[k].astype(int) - alone.astype(int)).mean() < 1.0, k
+    assert np.abs(together[0].astype(int) - together[1].astype(int)).mean() > 5.0

@@ -66,6 +66,7 @@ def mesh_views(mesh, cams, *, scalars=None, cmap="magma", clim=None):
                 plotter.camera.up = cam.up
                 plotter.camera.view_angle = cam.fov_y_deg
                 plotter.camera.clipping_range = (1e-3, 1e6)
+                plotter.render()  # without it the screenshot shows the previous camera's frame
                 out.append(np.asarray(plotter.screenshot(return_img=True))[..., :3].copy())
         finally:
             plotter.close()
