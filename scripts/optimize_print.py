@@ -65,11 +65,18 @@ def main(argv=None):
             raise SystemExit(f"--threads: expected >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     cfg = config_from_args(args)
+    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # started by torchrun: data-parallel rendering
+    if distributed:
+        import torch.distributed as dist
+        dist.init_process_group("gloo")
     try:
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         print(f"optimize_print.py: error: {error}", file=sys.stderr)
         return 2
+    finally:
+        if distributed:
+            dist.destroy_process_group()
     return 0
 
 
