@@ -41,7 +41,8 @@ demo-object: build
 	rm -rf results/demo-object
 	$(PY) scripts/optimize_print.py --mesh tests/data/meshes/spot/spot_triangulated.obj \
 		--texture tests/data/meshes/spot/spot_texture.png --height-mm 8 --dpi 150 --shell-mm 1.5 --spp 8 \
-		--iterations 60 --eval-every 10 --eval-spp 64 --remap-baseline $(DEMO_ARGS) --out results/demo-object
+		--iterations 60 --eval-every 10 --eval-spp 64 --table-steps 4 --remap-baseline $(DEMO_ARGS) \
+		--out results/demo-object
 
 # The tracer alone: renders the built-in ink slab (PNG + EXR + timings).
 render-demo: build

@@ -39,6 +39,8 @@ def parse_args(argv=None):
     add_target_arguments(p)
     p.add_argument("--inks", default=",".join(DEFAULT_INKS), help=f"{ink_names_help()} (default: %(default)s)")
     add_optimization_arguments(p)
+    p.add_argument("--no-naive-baseline", dest="naive_baseline", action="store_false",
+                   help="skip the naive-extrusion baseline (a table of homogeneous renders and a quantised render)")
     p.add_argument("--remap-baseline", action="store_true",
                    help="objects: also score the 2.5D remapped baseline (a slab optimised in the mesh's UV space with "
                         "the same settings, wrapped around the object by UV and depth; costs a second optimisation)")

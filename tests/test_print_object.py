@@ -248,3 +248,9 @@ def test_mesh_views_follow_each_camera():
         alone = mesh_views(mesh, [cam])[0]
         assert np.abs(together[k].astype(int) - alone.astype(int)).mean() < 1.0, k
     assert np.abs(together[0].astype(int) - together[1].astype(int)).mean() > 5.0
+
+
+def test_naive_baseline_can_be_skipped(sphere_ply, tmp_path):
+    summary = optimize_print(config(sphere_ply, tmp_path / "run", naive_baseline=False, iterations=2), **QUIET)
+    assert summary["baseline_naive_extrusion"] is None and not (tmp_path / "run" / "baseline.npy").exists()
+    assert (tmp_path / "run" / "convergence.png").exists()

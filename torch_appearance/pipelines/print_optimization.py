@@ -75,6 +75,7 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    naive_baseline: bool = True  # score the naive extrusion (costs a table of homogeneous renders)
     remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
     view_size: int = 192  # objects: pixels per side of those renders
@@ -348,7 +349,8 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final, remap=None
     ev = [r for r in rows if r.get("dE00_mean") is not None]
     ax[1].plot([r["wall_s"] for r in ev], [r["dE00_mean"] for r in ev], "o-", ms=3, label="mean ΔE00 (continuous)")
     ax[1].plot([r["wall_s"] for r in ev], [r["dE00_p95"] for r in ev], "s--", ms=3, label="p95 ΔE00")
-    ax[1].axhline(baseline["dE00_mean"], color="k", ls=":", label="naive extrusion (mean)")
+    if baseline is not None:
+        ax[1].axhline(baseline["dE00_mean"], color="k", ls=":", label="naive extrusion (mean)")
     if remap is not None:
         ax[1].axhline(remap["dE00_mean"], color="C2", ls="--", label="2.5D remapped (mean)")
     ax[1].axhline(final["dE00_mean"], color="C3", ls="-.", label="final quantised (mean)")
@@ -610,13 +612,14 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
             loss, parts = criterion.forward_parts(target.to_grid(texels), target.target_grid, target.mask)
         return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
-    if baseline is None:  # naive extrusion, quantised and scored the same way as the result
-        t0 = time.perf_counter()
-        base_w, table = _naive_baseline(target, inks, cfg)
-        _, base_img = _quantize_and_render(target, base_w, inks, cfg, cfg.eval_spp, eval_seed, quant_seed)
-        baseline = {"image": base_img.numpy(), **score(base_img), "table": table,
-                    "seconds": time.perf_counter() - t0}
-        _save_texels(target, folder, "baseline", baseline["image"])
+    if not rows:  # a fresh run: the naive extrusion, quantised and scored the same way as the result
+        if cfg.naive_baseline:
+            t0 = time.perf_counter()
+            base_w, table = _naive_baseline(target, inks, cfg)
+            _, base_img = _quantize_and_render(target, base_w, inks, cfg, cfg.eval_spp, eval_seed, quant_seed)
+            baseline = {"image": base_img.numpy(), **score(base_img), "table": table,
+                        "seconds": time.perf_counter() - t0}
+            _save_texels(target, folder, "baseline", baseline["image"])
         initial = evaluate()
         _save_texels(target, folder, "initial", initial)
         rows.append({"iteration": 0, "wall_s": 0.0, **loss_row(initial), **score(initial), "seed": eval_seed})
@@ -694,7 +697,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         **target.describe(), "spp": cfg.spp, "eval_spp": cfg.eval_spp,
         "final_quantized": {k: v for k, v in final.items() if k != "image"},
         "optimized_continuous": score(optimized),
-        "baseline_naive_extrusion": {k: v for k, v in baseline.items() if k != "image"},
+        "baseline_naive_extrusion": None if baseline is None else {k: v for k, v in baseline.items() if k != "image"},
         "baseline_remap_25d": None if remap is None else {k: v for k, v in remap.items() if k != "image"},
         "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
         "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
@@ -702,10 +705,11 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         "parameters": int(model.logits.numel()), "views_s": view_seconds,
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
+    naive_text = "" if baseline is None else \
+        f", naive extrusion {baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f}"
     remap_text = "" if remap is None else f", 2.5D remapped {remap['dE00_mean']:.2f}/{remap['dE00_p95']:.2f}"
     log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
-        f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}, naive extrusion "
-        f"{baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f}{remap_text} -> {folder}")
+        f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}{naive_text}{remap_text} -> {folder}")
     return summary
 
 

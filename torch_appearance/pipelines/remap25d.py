@@ -295,7 +295,8 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
         fixed = _slab_fixed(getattr(cfg, "fixed", ()), image.shape[:2], work_dir)
         slab_cfg = dataclasses.replace(cfg, mesh=None, texture=None, envmap=None, fixed=fixed, target=exr,
                                        bottom_target=None, thickness_mm=cfg.shell_mm, dpi=25.4 / h, width_mm=None,
-                                       height_mm=None, remap_baseline=False, out=os.path.join(work_dir, "slab"))
+                                       height_mm=None, remap_baseline=False, naive_baseline=False, views=0,
+                                       out=os.path.join(work_dir, "slab"))
         summary = optimize_print(slab_cfg, progress=progress, log=log)
         with np.load(os.path.join(slab_cfg.out, "mixture.npz")) as data:
             slab_weights = data["weights"]
@@ -303,8 +304,7 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
         if names != list(inks.names):
             raise ValueError(f"slab run: its mixture is for inks {names}, this run has {list(inks.names)}")
         info.update(slab_dir=slab_cfg.out, uv_target=exr, slab_s=time.perf_counter() - t0,
-                    slab_final_dE00_mean=summary["final_quantized"]["dE00_mean"],
-                    slab_naive_dE00_mean=summary["baseline_naive_extrusion"]["dE00_mean"])
+                    slab_final_dE00_mean=summary["final_quantized"]["dE00_mean"])
     slab_weights = np.asarray(slab_weights, dtype=np.float32)
     if slab_weights.ndim != 4 or slab_weights.shape[0] != len(inks):
         raise ValueError(f"slab_weights: expected ({len(inks)}, D, H, W) for the inks {list(inks.names)}, got shape "
