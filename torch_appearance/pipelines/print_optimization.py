@@ -342,10 +342,12 @@ def _plots(folder, rows, baseline, weights, inks, cfg, target, final, remap=None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    t = [r["wall_s"] for r in rows]
+    # row 0 is scored at eval_spp, the others at spp: only the training rows share a noise level
+    train = [r for r in rows if r["iteration"] > 0]
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
-    ax[0].plot(t, [r["loss"] for r in rows], lw=1)
-    ax[0].set(xlabel="wall-clock time [s]", ylabel="appearance loss E", yscale="log", title="training loss")
+    ax[0].plot([r["wall_s"] for r in train], [r["loss"] for r in train], lw=1)
+    ax[0].set(xlabel="wall-clock time [s]", ylabel="appearance loss E", yscale="log",
+              title=f"training loss at {cfg.spp} spp (includes render noise)")
     ev = [r for r in rows if r.get("dE00_mean") is not None]
     ax[1].plot([r["wall_s"] for r in ev], [r["dE00_mean"] for r in ev], "o-", ms=3, label="mean ΔE00 (continuous)")
     ax[1].plot([r["wall_s"] for r in ev], [r["dE00_p95"] for r in ev], "s--", ms=3, label="p95 ΔE00")
