@@ -62,6 +62,11 @@ def add_optimization_arguments(p, d=None):
     p.add_argument("--iterations", type=int, default=d.iterations, help="(default: %(default)s)")
     p.add_argument("--table-steps", type=int, default=d.table_steps,
                    help="naive-extrusion baseline: mixtures in steps of 1/N (default: %(default)s)")
+    p.add_argument("--estimator", choices=("ema", "plain"), default=d.estimator,
+                   help="ema: the loss gradient with respect to the texel colours at the running mean of past renders, "
+                        "applied to this render (unbiased by this render's noise); plain: at this render "
+                        "(default: %(default)s)")
+    p.add_argument("--ema-beta", type=float, default=d.ema_beta, help="decay of that mean (default: %(default)s)")
     p.add_argument("--optimizer", choices=("adagrad", "adam"), default=d.optimizer, help="(default: %(default)s)")
     p.add_argument("--lr", type=float, default=d.lr, help="learning rate (default: %(default)s)")
     p.add_argument("--parameterization", choices=("sigmoid", "softmax"), default=d.parameterization,

@@ -75,6 +75,8 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    estimator: str = "ema"  # "ema": loss gradient at the running mean of past renders; "plain": at this render
+    ema_beta: float = 0.98  # decay of that running mean (about 1/(1 − β) renders)
     naive_baseline: bool = True  # score the naive extrusion (costs a table of homogeneous renders)
     remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
@@ -104,6 +106,11 @@ class PrintConfig:
                 positive(name, getattr(self, name))
         if self.gradient_seed not in ("same", "independent"):
             raise ValueError(f"gradient_seed: expected 'same' or 'independent', got {self.gradient_seed!r}")
+        if self.estimator not in ("ema", "plain"):
+            raise ValueError(f"estimator: expected 'ema' or 'plain', got {self.estimator!r}")
+        if isinstance(self.ema_beta, bool) or not isinstance(self.ema_beta, (int, float)) or \
+                not 0.0 <= self.ema_beta < 1.0:
+            raise ValueError(f"ema_beta: expected a number in [0, 1), got {self.ema_beta!r}")
         if self.optimizer not in ("adagrad", "adam"):
             raise ValueError(f"optimizer: expected 'adagrad' or 'adam', got {self.optimizer!r}")
         if len(tuple(self.gamma)) != 3 or min(self.gamma) < 0 or sum(self.gamma) <= 0:
@@ -585,6 +592,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
     optimizer = optim_cls(model.parameters(), lr=cfg.lr)
     criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
     rows, start, wall_offset = [], 0, 0.0
+    ema = {"sum": None, "count": 0}  # estimator "ema": running mean of the renders (checkpointed)
     if cfg.resume and os.path.exists(ckpt_path):
         state = torch.load(ckpt_path, weights_only=False)
         if tuple(state["grid_dhw"]) != shape or state["inks"] != list(inks.names):
@@ -593,6 +601,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         rows, start, wall_offset = state["rows"], state["iteration"], state["wall_s"]
+        ema = state.get("ema", ema)
         baseline, remap = state["baseline"], state.get("baseline_remap")
         log(f"optimize_print: resuming {folder} at iteration {start}")
     else:
@@ -646,9 +655,23 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         seed = _iteration_seed(cfg.seed, it)
         sigma_t, albedo = model()
         image = target.render(sigma_t, albedo, cfg.spp, seed)
-        loss, parts = criterion.forward_parts(target.to_grid(image), target.target_grid, target.mask)
+        if cfg.estimator == "ema":
+            # the loss's gradient with respect to the texel colours is taken at the running mean of the past
+            # renders and applied to this render: the adjoint no longer shares this render's noise (that
+            # correlation biases the plain estimator at low spp towards less noisy, not more accurate, media)
+            now = image.detach()
+            primal = now if ema["count"] == 0 else ema["sum"] / (1.0 - cfg.ema_beta ** ema["count"])
+            x = primal.clone().requires_grad_(True)
+            loss, parts = criterion.forward_parts(target.to_grid(x), target.target_grid, target.mask)
+            (adjoint,) = torch.autograd.grad(loss, x)
+            ema["sum"] = (1.0 - cfg.ema_beta) * now + (0.0 if ema["sum"] is None else cfg.ema_beta * ema["sum"])
+            ema["count"] += 1
+            surrogate = (adjoint * image).sum()
+        else:
+            loss, parts = criterion.forward_parts(target.to_grid(image), target.target_grid, target.mask)
+            surrogate = loss
         optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        surrogate.backward()
         optimizer.step()
         row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
         if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
@@ -659,7 +682,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         if "dE00_mean" in row:
             _atomic_torch_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "rows": rows,
                                 "iteration": it + 1, "wall_s": row["wall_s"], "baseline": baseline,
-                                "baseline_remap": remap,
+                                "baseline_remap": remap, "ema": ema,
                                 "grid_dhw": list(shape), "inks": list(inks.names)},
                                os.path.join(folder, CHECKPOINT))
             ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
