@@ -54,7 +54,6 @@ except ModuleNotFoundError as error:  # running from a checkout that is not inst
     if error.name != "torch_appearance":
         raise
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import torch_appearance
 from torch_appearance.color import rgb_to_lab
 from torch_appearance.nn.losses import AppearanceLoss
 from torch_appearance.nn.mixture import MaterialMixture
@@ -92,8 +91,9 @@ def write_json(path, obj):
 
 
 def build_info():
+    import torch_appearance as ta
     from torch_appearance._ext import _C
-    return {"torch_appearance": os.path.dirname(torch_appearance.__file__), "build_hash": _C.source_hash,
+    return {"torch_appearance": os.path.dirname(ta.__file__), "build_hash": _C.source_hash,
             "torch": torch.__version__, "threads": torch.get_num_threads()}
 
 
@@ -138,6 +138,7 @@ def loss_and_image(target, model, spp, seed, criterion, estimator):
 def cmd_baseline(args):
     torch.set_num_threads(args.threads)
     cfg = make_cfg(args)
+    os.makedirs(args.study, exist_ok=True)
     path = os.path.join(args.study, "baseline.json")
     target = build_target(cfg, log=lambda *a: None)
     inks = target.inks
@@ -450,9 +451,13 @@ def _read_log(path):
         return [{k: (float(v) if v not in ("", None) else None) for k, v in r.items()} for r in csv.DictReader(f)]
 
 
-def _at_time(rows, t, clock="wall_s"):
-    """Last evaluated dE00 at or before optimisation time t on ``clock`` (wall_s or cpu_s)."""
-    ev = [r for r in rows if r.get("dE00_mean") is not None and r[clock] <= t + 1e-9]
+def _at_time(rows, t, clock="wall_s", tol=1.0):
+    """Last evaluated dE00 at or before optimisation time t (+ tol: the evaluation scheduled at t runs after the
+    iteration that crosses it) on ``clock`` (wall_s or cpu_s); None if the run ended before t."""
+    ev = [r for r in rows if r.get("dE00_mean") is not None]
+    if not ev or ev[-1][clock] < t - tol:
+        return None
+    ev = [r for r in ev if r[clock] <= t + tol]
     return ev[-1]["dE00_mean"] if ev else None
 
 
@@ -531,21 +536,34 @@ def cmd_report(args):
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines))
 
-    fig, ax = plt.subplots(figsize=(10, 6))
-    styles = {"plain": "-", "mean2": ":", "decorr": "--"}
-    for k, (name, s, rows) in enumerate(runs):
-        ev = [r for r in rows if r.get("dE00_mean") is not None]
-        ax.plot([r[clock] for r in ev], [r["dE00_mean"] for r in ev], styles.get(s["estimator"], "-"),
-                marker="o", ms=2.5, lw=1.3, color=plt.cm.tab20(k % 20), label=name)
-    ax.axhline(naive, color="k", ls=":", lw=2, label=f"naive extrusion (quantised) {naive:.2f}")
-    ax.set(xlabel=f"optimisation {args.clock} time [s] ({clock}; evaluation renders excluded)",
-           ylabel=f"mean CIEDE2000 (continuous mixture, {eval_spp} spp)",
-           title=f"ColorChecker slab: ΔE00 against {args.clock} time", ylim=(args.ymin, args.ymax))
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=2, loc="upper right")
+    # left: the library's estimator ("plain") from the white start; right: other estimators and starts, with the
+    # plain 4- and 64-spp runs repeated for reference
+    groups = [[r for r in runs if r[1]["estimator"] == "plain" and r[1].get("init", "white") == "white"],
+              [r for r in runs if r[1]["estimator"] != "plain" or r[1].get("init", "white") != "white"
+               or r[0] in args.context.split(",")]]
+    titles = ["library loop (one render, AppearanceLoss): optimiser × lr × spp",
+              "other estimators / naive start (dashed: decorr, dotted: mean2, solid: ema / plain)"]
+    styles = {"plain": "-", "mean2": ":", "decorr": "--", "ema": "-"}
+    fig, axes = plt.subplots(1, 2, figsize=(16, 6.5), sharey=True)
+    for ax, group, title in zip(axes, groups, titles):
+        for k, (name, s, rows) in enumerate(group):
+            ev = [r for r in rows if r.get("dE00_mean") is not None]
+            lw = 2.2 if s["estimator"] == "ema" else 1.3
+            ax.plot([r[clock] for r in ev], [r["dE00_mean"] for r in ev], styles.get(s["estimator"], "-"),
+                    marker="o" if s.get("init", "white") == "white" else "^", ms=2.5, lw=lw,
+                    color=plt.cm.tab20(k % 20), label=name)
+        ax.axhline(naive, color="k", ls=":", lw=2, label=f"naive extrusion, quantised ({naive:.2f})")
+        ax.axhline(base[f"continuous_spp{eval_spp}"]["dE00_mean"], color="0.5", ls="-.", lw=1.2,
+                   label=f"naive extrusion, continuous ({base[f'continuous_spp{eval_spp}']['dE00_mean']:.2f})")
+        ax.set(xlabel=f"optimisation {args.clock} time [s] ({clock}; evaluation renders excluded)",
+               title=title, ylim=(args.ymin, args.ymax))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2, loc="upper right")
+    axes[0].set_ylabel(f"mean CIEDE2000 of the continuous mixture ({eval_spp}-spp render, fixed seed)")
+    fig.suptitle(f"ColorChecker slab {base['config']['grid_dhw']} (D×H×W): ΔE00 against {args.clock} time")
     fig.tight_layout()
-    fig.savefig(os.path.join(args.study, "convergence.png"), dpi=120)
-    print("wrote", os.path.join(args.study, "convergence.png"))
+    fig.savefig(os.path.join(args.study, args.plot_name), dpi=120)
+    print("wrote", os.path.join(args.study, args.plot_name))
 
 
 # ------------------------------------------------------------------------------------------------ main
@@ -607,7 +625,10 @@ def parse_args(argv=None):
     t = sub.add_parser("report", help="tables and convergence.png")
     t.add_argument("--study", default="/tmp/study")
     t.add_argument("--times", default="30,60,120,240", help="table columns: ΔE00 at these wall times")
+    t.add_argument("--context", default="ada1_s4_same,ada1_s64_same",
+                   help="plain runs repeated in the right panel of the plot (default: %(default)s)")
     t.add_argument("--clock", choices=("wall", "cpu"), default="cpu", help="time axis (default: %(default)s)")
+    t.add_argument("--plot-name", default="convergence.png", help="(default: %(default)s)")
     t.add_argument("--ymin", type=float, default=10.0)
     t.add_argument("--ymax", type=float, default=45.0)
     return p.parse_args(argv)
