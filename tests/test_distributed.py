@@ -50,21 +50,25 @@ def _worker(rank, world, store, out):
         dist.destroy_process_group()
 
 
-def test_two_ranks_equal_one_process(tmp_path):
-    torch.set_num_threads(1)
-    single = _run(lambda fn, *a, **k: fn(*a, **k))
+def _spawn_ranks(target, store, out, timeout, world=2):
+    """Run ``target(rank, world, store, out)`` in ``world`` spawned processes; fail after ``timeout`` s or on a
+    non-zero exit."""
     ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_worker, args=(r, 2, str(tmp_path / "store"), str(tmp_path / "out")))
-             for r in range(2)]
+    procs = [ctx.Process(target=target, args=(r, world, store, out)) for r in range(world)]
     for p in procs:
         p.start()
     for p in procs:
-        p.join(timeout=180)
-    for p in procs:
+        p.join(timeout=timeout)
         if p.is_alive():
             p.kill()
-            pytest.fail("a rank did not finish within 180 s")
+            pytest.fail(f"a rank did not finish within {timeout} s")
         assert p.exitcode == 0, f"rank exited with {p.exitcode}"
+
+
+def test_two_ranks_equal_one_process(tmp_path):
+    torch.set_num_threads(1)
+    single = _run(lambda fn, *a, **k: fn(*a, **k))
+    _spawn_ranks(_worker, str(tmp_path / "store"), str(tmp_path / "out"), timeout=180)
     ranks = [torch.load(tmp_path / f"out.{r}") for r in range(2)]
     for r in ranks:
         # the images are sums of disjoint shares of the same paths: bitwise equal
@@ -116,17 +120,7 @@ def test_print_optimisation_under_two_ranks_follows_one_process(tmp_path):
     torch.set_num_threads(1)
     before = _rank_folders()
     optimize_print(PrintConfig(**_PRINT, out=str(tmp_path / "one")), progress=False, log=lambda *_: None)
-    ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_print_worker, args=(r, 2, str(tmp_path / "store"), str(tmp_path / "two")))
-             for r in range(2)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(timeout=240)
-        if p.is_alive():
-            p.kill()
-            pytest.fail("a rank did not finish within 240 s")
-        assert p.exitcode == 0
+    _spawn_ranks(_print_worker, str(tmp_path / "store"), str(tmp_path / "two"), timeout=240)
     one = list(csv.DictReader(open(tmp_path / "one" / "log.csv")))
     two = list(csv.DictReader(open(tmp_path / "two" / "log.csv")))
     assert len(one) == len(two) == 4

@@ -6,6 +6,7 @@ along the inward normal; only a shell of voxels within ``shell_mm`` of the surfa
 voxels hold the core ink. The appearance losses see the texel colours placed on the voxel grid
 (:meth:`VoxelObject.texels_to_grid`), masked to the texels.
 """
+import io
 import os
 
 import numpy as np
@@ -195,7 +196,9 @@ class ObjectTarget:
         from ..geometry.bake import bake_texels
 
         rgb = np.asarray(texels, np.float32).reshape(-1, 3)
-        ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.npy"), _npy_bytes(rgb))
+        buffer = io.BytesIO()
+        np.save(buffer, rgb)
+        ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.npy"), buffer.getvalue())
         if self.mesh is not None and getattr(self.mesh.visual, "uv", None) is not None:
             image, _ = bake_texels(self.mesh, self.obj.texel_points.numpy(), np.clip(rgb, 0, 1),
                                    size=self._bake_size())
@@ -229,11 +232,3 @@ class ObjectTarget:
     def describe(self):
         return {"grid_dhw": list(self.shape), "texels": int(len(self.target)), "shell_voxels": int(self.support.sum()),
                 "inside_voxels": int(self.obj.occupancy.sum()), "voxel_size_mm": self.obj.voxel_size}
-
-
-def _npy_bytes(array):
-    import io
-
-    buffer = io.BytesIO()
-    np.save(buffer, array)
-    return buffer.getvalue()
