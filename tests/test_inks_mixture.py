@@ -457,3 +457,42 @@ def test_support_mixture_matches_full_grid_and_holds_the_core():
     inside[2, 3, 3] = True
     fixed = MaterialMixture(inks, shape, support=support, fixed=[FixedFraction(inside, "white", 0.25)])
     assert float(fixed.weights().detach()[inks.index("white"), 2, 3, 3]) == 0.25
+
+
+@pytest.mark.parametrize("parameterization", ["sigmoid", "softmax"])
+def test_set_weights_starts_from_given_mixtures(parameterization):
+    """set_weights (the naive-extrusion warm start): weights() reproduces the given mixtures up to the floor (an
+    absent ink starts at about `floor`), on a support the core stays and fixed fractions stay exact."""
+    inks = InkSet.from_names()
+    shape = (3, 4, 5)
+    gen = torch.Generator().manual_seed(1)
+    target = torch.rand((len(inks), *shape), generator=gen, dtype=torch.float64) ** 4
+    target[1, 0] = 0.0  # an absent ink
+    target /= target.sum(0, keepdim=True)
+    floor = 1e-3
+    mixture = MaterialMixture(inks, shape, parameterization=parameterization, dtype=torch.float64)
+    assert mixture.set_weights(target, floor=floor) is mixture
+    w = mixture.weights().detach()
+    assert torch.allclose(w, target, atol=len(inks) * floor, rtol=0)
+    assert float(w[1, 0].min()) > 0.5 * floor  # the absent ink can still move
+    clamped = target.clamp(floor, 1 - floor)
+    assert torch.allclose(w, clamped / clamped.sum(0, keepdim=True), atol=1e-12, rtol=0)
+
+    support = torch.zeros(shape, dtype=torch.bool)
+    support[1:, 1:3] = True
+    mask = torch.zeros(shape, dtype=torch.bool)
+    mask[2, 2, 2] = True
+    shell = MaterialMixture(inks, shape, parameterization=parameterization, dtype=torch.float64, support=support,
+                            core_ink="white", fixed=[FixedFraction(mask, "cyan", 0.8)])
+    shell.set_weights(target, floor=floor)
+    w = shell.weights().detach()
+    free = support & ~mask
+    assert torch.allclose(w[:, free], (clamped / clamped.sum(0, keepdim=True))[:, free], atol=1e-12, rtol=0)
+    assert bool((w[inks.index("white"), ~support] == 1).all())
+    assert float(w[inks.index("cyan"), 2, 2, 2]) == 0.8
+    with pytest.raises(ValueError, match=r"weights: expected shape \(5, 3, 4, 5\)"):
+        mixture.set_weights(target[:, :2])
+    with pytest.raises(ValueError, match="floor"):
+        mixture.set_weights(target, floor=0.7)
+    with pytest.raises(ValueError, match="weights >= 0"):
+        mixture.set_weights(-target)

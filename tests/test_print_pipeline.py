@@ -160,3 +160,21 @@ def test_bad_targets(tmp_path):
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": nan}).write(str(raw))
     with pytest.raises(ValueError, match="target: expected finite values"):
         load_target(str(raw))
+
+
+def test_init_naive_starts_from_the_naive_extrusion(tmp_path):
+    """init='naive': the run's starting mixture is the naive extrusion (to the 1e-3 floor), so its initial render
+    scores like the naive baseline's continuous mixture, and the white start does not."""
+    tiny_target(tmp_path / "t.exr")
+    kw = dict(target=str(tmp_path / "t.exr"), thickness_mm=0.34, spp=2, eval_spp=8, eval_every=1, table_steps=2,
+              iterations=1, lr=1e-9, seed=3)
+    optimize_print(PrintConfig(init="naive", out=str(tmp_path / "naive"), **kw), progress=False,
+                   log=lambda *_: None)
+    cfg = PrintConfig(**kw)
+    naive, _ = naive_extrusion(tiny_target(tmp_path / "u.exr"), InkSet.from_names(cfg.inks), cfg)
+    weights = np.load(tmp_path / "naive" / "mixture.npz")["weights"]
+    assert weights.shape == tuple(naive.shape)
+    assert np.abs(weights - naive.numpy()).max() < 5 * 1e-3
+    optimize_print(PrintConfig(out=str(tmp_path / "white"), **kw), progress=False, log=lambda *_: None)
+    white = np.load(tmp_path / "white" / "mixture.npz")["weights"]
+    assert np.abs(white - naive.numpy()).max() > 0.3

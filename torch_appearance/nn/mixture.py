@@ -323,6 +323,37 @@ class MaterialMixture(torch.nn.Module):
         remaining = (1.0 - total).clamp_min(0.0).unsqueeze(0)
         return mask, value.to(dtype), remaining.to(dtype)
 
+    @torch.no_grad()
+    def set_weights(self, weights, floor=1e-3):
+        """Start from given mixtures (e.g. the naive extrusion): set the logits so that ``weights()`` ≈ ``weights``.
+
+        Each weight is clamped to [``floor``, 1 − ``floor``] before the inverse parameterisation (logit for
+        sigmoid, log for softmax), so that every ink keeps a non-zero gradient; the result is then renormalised,
+        so an ink at weight 0 ends at about ``floor``. Fixed fractions stay exact (their logits are unused), and
+        voxels outside the support keep the core ink.
+
+        Args:
+            weights: (N, D, H, W) non-negative mixture weights (tensor or ndarray), N = ``n_inks``, (D, H, W) =
+                ``shape``; each voxel's weights should sum to 1.
+            floor: in (0, 0.5): the smallest weight an ink starts with.
+
+        Returns:
+            self.
+        """
+        weights = _check_weights("weights", weights, self.n_inks)
+        if tuple(weights.shape[1:]) != self.shape:
+            raise ValueError(f"weights: expected shape ({self.n_inks}, {', '.join(map(str, self.shape))}), "
+                             f"got {tuple(weights.shape)}")
+        if isinstance(floor, bool) or not isinstance(floor, numbers.Real) or not 0.0 < floor < 0.5:
+            raise ValueError(f"floor: expected a number in (0, 0.5), got {floor!r}")
+        w = weights.detach().to(torch.float64).reshape(self.n_inks, -1)
+        if self.support_index is not None:
+            w = w[:, self.support_index.cpu()]
+        w = w.clamp(floor, 1.0 - floor)
+        logits = torch.log(w) - torch.log1p(-w) if self.parameterization == "sigmoid" else torch.log(w)
+        self.logits.copy_(logits.view(self.logits.shape).to(self.logits.dtype))
+        return self
+
     @property
     def n_inks(self):
         """Number of inks N."""

@@ -62,6 +62,9 @@ def add_optimization_arguments(p, d=None):
     p.add_argument("--iterations", type=int, default=d.iterations, help="(default: %(default)s)")
     p.add_argument("--table-steps", type=int, default=d.table_steps,
                    help="naive-extrusion baseline: mixtures in steps of 1/N (default: %(default)s)")
+    p.add_argument("--init", choices=("white", "naive"), default=d.init,
+                   help="starting mixture: 97 %% white everywhere (the paper), or the naive extrusion (each "
+                        "voxel the best homogeneous mixture for its texel) (default: %(default)s)")
     p.add_argument("--estimator", choices=("ema", "plain"), default=d.estimator,
                    help="ema: the loss gradient with respect to the texel colours at the running mean of past renders, "
                         "applied to this render (unbiased by this render's noise); plain: at this render "

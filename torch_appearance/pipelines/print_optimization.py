@@ -75,6 +75,7 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
+    init: str = "white"  # "white": 97 % white everywhere (the paper); "naive": start from the naive extrusion
     estimator: str = "ema"  # "ema": loss gradient at the running mean of past renders; "plain": at this render
     ema_beta: float = 0.98  # decay of that running mean (about 1/(1 − β) renders)
     naive_baseline: bool = True  # score the naive extrusion (costs a table of homogeneous renders)
@@ -106,6 +107,8 @@ class PrintConfig:
                 positive(name, getattr(self, name))
         if self.gradient_seed not in ("same", "independent"):
             raise ValueError(f"gradient_seed: expected 'same' or 'independent', got {self.gradient_seed!r}")
+        if self.init not in ("white", "naive"):
+            raise ValueError(f"init: expected 'white' or 'naive', got {self.init!r}")
         if self.estimator not in ("ema", "plain"):
             raise ValueError(f"estimator: expected 'ema' or 'plain', got {self.estimator!r}")
         if isinstance(self.ema_beta, bool) or not isinstance(self.ema_beta, (int, float)) or \
@@ -624,6 +627,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
     if not rows:  # a fresh run: the naive extrusion, quantised and scored the same way as the result
+        base_w = None
         if cfg.naive_baseline:
             t0 = time.perf_counter()
             base_w, table = _naive_baseline(target, inks, cfg)
@@ -631,6 +635,8 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
             baseline = {"image": base_img.numpy(), **score(base_img), "table": table,
                         "seconds": time.perf_counter() - t0}
             _save_texels(target, folder, "baseline", baseline["image"])
+        if cfg.init == "naive":  # warm start: the optimisation begins where the naive extrusion ends
+            model.set_weights(_naive_baseline(target, inks, cfg)[0] if base_w is None else base_w)
         initial = evaluate()
         _save_texels(target, folder, "initial", initial)
         rows.append({"iteration": 0, "wall_s": 0.0, **loss_row(initial), **score(initial), "seed": eval_seed})
