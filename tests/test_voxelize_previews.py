@@ -131,3 +131,25 @@ def test_write_previews_and_cli(ball, tmp_path):
     assert summary["preview_backend"] in ("pyvista", "matplotlib") and summary["colour"] == "texture"
     pixels = _pixels(out / "texels_color.png", (1200, 400))
     assert _share_with_hue_of(pixels, BLUE) > 0.1
+
+
+def test_optimiser_after_an_offscreen_render_does_not_crash(tmp_path):
+    """A pyvista render (Mesa's LLVM) followed by the first torch.optim optimiser (which imports torch._dynamo and
+    Triton's LLVM) in one process: this used to end in a segfault, e.g. scripts/voxelize.py then optimize_print in
+    one pytest worker. Run in a child process so that a crash fails this test instead of the whole session."""
+    import subprocess
+    import sys
+
+    ok, detail = preview.offscreen_rendering()
+    if not ok:
+        pytest.skip(f"no offscreen rendering here: {detail}")
+    code = (
+        "import sys, trimesh, torch\n"
+        "from torch_appearance.geometry import voxelize, preview\n"
+        "obj = voxelize(trimesh.creation.box(extents=(1, 1, 1)), 0.1)\n"
+        "preview.write_previews(obj, sys.argv[1], backend='pyvista')\n"
+        "torch.optim.Adagrad([torch.zeros(2, requires_grad=True)])\n"
+        "print('survived')\n")
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "previews")], capture_output=True, text=True,
+                         timeout=300, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert run.returncode == 0 and "survived" in run.stdout, (run.returncode, run.stderr[-2000:])

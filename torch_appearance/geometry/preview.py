@@ -74,6 +74,18 @@ def _prepare_environment():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
+def _load_triton_before_mesa():
+    """Import torch._dynamo (and with it Triton's LLVM) before VTK renders in this process.
+
+    Offscreen rendering goes through Mesa's llvmpipe, which loads its own LLVM; Triton loaded after it crashes the
+    interpreter (a segfault inside ``import triton``, e.g. at the first ``torch.optim`` optimiser, which imports
+    torch._dynamo). The other order works, so every in-process render calls this first."""
+    try:
+        import torch._dynamo  # noqa: F401
+    except Exception:  # pragma: no cover - a torch without dynamo cannot crash this way
+        pass
+
+
 def offscreen_rendering(timeout=90.0):
     """Whether pyvista can render offscreen in this process's environment (checked once, in a child process).
 
@@ -81,6 +93,7 @@ def offscreen_rendering(timeout=90.0):
         (ok, detail): ``ok`` bool; ``detail`` names the render window class and versions when ok, else why not.
     """
     global _probe_result
+    _load_triton_before_mesa()  # every in-process render asks this first
     if _probe_result is not None:
         return _probe_result
     forced = os.environ.get("TA_PREVIEW_BACKEND", "").strip().lower()
