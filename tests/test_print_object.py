@@ -254,3 +254,54 @@ def test_naive_baseline_can_be_skipped(sphere_ply, tmp_path):
     summary = optimize_print(config(sphere_ply, tmp_path / "run", naive_baseline=False, iterations=2), **QUIET)
     assert summary["baseline_naive_extrusion"] is None and not (tmp_path / "run" / "baseline.npy").exists()
     assert (tmp_path / "run" / "convergence.png").exists()
+
+
+def two_material_cube(folder):
+    """A unit cube OBJ whose top face (z = 1) is material 'lid' (blue) and the other five 'body' (red)."""
+    (folder / "cube.mtl").write_text("newmtl body\nKd 0.8 0.1 0.1\nnewmtl lid\nKd 0.1 0.1 0.8\n")
+    corners = "".join(f"v {x} {y} {z}\n" for z in (0, 1) for y in (0, 1) for x in (0, 1))
+    quads = {"body": [(1, 3, 4, 2), (1, 2, 6, 5), (2, 4, 8, 6), (4, 3, 7, 8), (3, 1, 5, 7)], "lid": [(5, 6, 8, 7)]}
+    faces = "".join(f"usemtl {name}\n" + "".join(f"f {a} {b} {c}\nf {a} {c} {d}\n" for a, b, c, d in qs)
+                    for name, qs in quads.items())
+    path = folder / "cube.obj"
+    path.write_text("mtllib cube.mtl\n" + corners + faces)
+    return str(path)
+
+
+def test_fixed_fraction_by_material_name(tmp_path):
+    """``transparent=0.6:material:lid`` holds 60 % clear ink exactly in the shell voxels under the lid (their
+    nearest texel is on the top face, told here from the texel normals), nowhere else; unknown names and
+    material masks on a slab are refused."""
+    from torch_appearance.geometry import load_mesh
+
+    path = two_material_cube(tmp_path)
+    mesh, report = load_mesh(path, height_mm=2.0)
+    assert sorted(report["materials"]) == ["body", "lid"]
+    lid = mesh.metadata["face_materials"] == report["materials"].index("lid")
+    assert lid.sum() == 2 and np.allclose(mesh.face_normals[lid], [0, 0, 1])
+    inks = ("cyan", "magenta", "yellow", "black", "white", "transparent")
+    out = tmp_path / "run"
+    optimize_print(config(path, out, height_mm=2.0, shell_mm=0.3, iterations=1, eval_every=1, inks=inks,
+                          table_steps=2, fixed=("transparent=0.6:material:lid",)), **QUIET)
+    obj = VoxelObject.load(str(out / "object.npz"))
+    target = ObjectTarget(obj)
+    shell = obj.shell.numpy()
+    nearest = target.nearest_texel()
+    top = obj.texel_normals.numpy()[:, 2] > 0.9
+    expected = np.zeros(obj.grid_shape, dtype=bool)
+    expected[shell] = top[nearest]
+    side = obj.texel_normals.numpy()[:, 2] < 0.1  # side texels: the top rim's nearest face can be either
+    clear_texels = np.abs(obj.texel_normals.numpy()[:, 2]) > 0.9
+    decided = np.zeros(obj.grid_shape, dtype=bool)
+    decided[shell] = clear_texels[nearest] | (side[nearest] & (obj.texel_points.numpy()[nearest, 2]
+                                                                < obj.texel_points.numpy()[:, 2].max() - 0.2))
+    weights = np.load(out / "mixture.npz")["weights"][inks.index("transparent")]
+    held = weights == np.float32(0.6)
+    assert expected.sum() > 20 and decided.sum() > 0.8 * shell.sum()
+    assert np.array_equal(held[decided], expected[decided])
+    with pytest.raises(ValueError, match=r"no material 'cap'; its materials are \[('body', 'lid'|'lid', 'body')\]"):
+        optimize_print(config(path, tmp_path / "bad", height_mm=2.0, shell_mm=0.3, inks=inks,
+                              fixed=("transparent=0.6:material:cap",)), **QUIET)
+    with pytest.raises(ValueError, match="a slab has no materials"):
+        optimize_print(PrintConfig(fixed=("white=0.5:material:lid",), out=str(tmp_path / "slab")), **QUIET)
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "slab").exists()

@@ -63,7 +63,9 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         (``texture``: an image; ``material``: a uniform glTF ``baseColorFactor``; ``vertex``/``face`` colours;
         ``none``), ``texture_size`` (w, h) or None, ``texture_source`` (``file``, ``argument`` or None), ``uv``
         (whether the mesh has texture coordinates), ``extent_file_units``, ``units_guess`` (what the extent
-        suggests the file's units were), ``scale_to_mm`` and ``hint`` (a suggestion, or None). An OBJ with UVs and
+        suggests the file's units were), ``scale_to_mm``, ``hint`` (a suggestion, or None) and ``materials`` (the
+        names of the file's materials, or of its parts where they have none). ``mesh.metadata`` holds the same
+        ``material_names`` and ``face_materials``, (F,) int32 indices into them. An OBJ with UVs and
         no texture gets a placeholder image from trimesh; it is removed (the material keeps no image), so the
         mesh reports, and voxelises with, no colour.
 
@@ -90,11 +92,19 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         if missing:
             raise ValueError(f"path: {path!r} names texture/material files that are missing: {missing}")
     try:
-        mesh = trimesh.load(path, force="mesh")
+        # what trimesh.load(force="mesh") does (scene → baked parts → one mesh), keeping each face's material
+        parts = [g for g in trimesh.load_scene(path).dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+        mesh = trimesh.util.concatenate(parts) if parts else None
     except Exception as error:  # trimesh raises many kinds for unreadable input
         raise ValueError(f"path: could not read {path!r} as a mesh ({type(error).__name__}: {error})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"path: {path!r} holds no triangles")
+    names = [str(getattr(getattr(g.visual, "material", None), "name", None) or g.metadata.get("name") or f"part{i}")
+             for i, g in enumerate(parts)]
+    material_names = list(dict.fromkeys(names))
+    mesh.metadata["material_names"] = material_names
+    mesh.metadata["face_materials"] = np.repeat(np.array([material_names.index(n) for n in names], np.int32),
+                                                [len(g.faces) for g in parts])
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise ValueError(f"path: {path!r} has non-finite vertex coordinates")
@@ -141,5 +151,5 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
               "watertight": bool(merged.is_watertight), "colour": kind, "texture_size": size,
               "texture_source": None if size is None else ("argument" if image is not None else "file"),
               "uv": uv is not None, "extent_file_units": extent.tolist(), "units_guess": guess,
-              "scale_to_mm": float(factor), "hint": hint}
+              "scale_to_mm": float(factor), "hint": hint, "materials": material_names}
     return mesh, report

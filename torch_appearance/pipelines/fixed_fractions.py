@@ -6,7 +6,9 @@ MASK selects voxels of the print target; terms joined by ``&`` intersect:
 * ``depth:A-B``: voxels whose centre lies between A and B mm below the surface (the top face of a slab);
 * ``PATH.png``: a mask image, white = selected. For a slab it has the slab's texel size (H × W) and selects whole
   columns; for an object it is painted in the mesh's texture space (same size as the mesh's texture when it has
-  one) and every shell voxel takes the mask value at the UV of its nearest surface texel.
+  one) and every shell voxel takes the mask value at the UV of its nearest surface texel;
+* ``material:NAME``: objects only: shell voxels whose nearest surface texel lies on a face of the mesh's material
+  NAME (``load_mesh``'s report lists the names: an OBJ's ``usemtl`` materials, a glTF's materials).
 
 Example: ``transparent=0.8:depth:0-0.4`` makes the outer 0.4 mm 80 % clear.
 """
@@ -42,11 +44,13 @@ def parse_fixed(spec):
     for term in terms:
         if term == "all" or _DEPTH.match(term):
             continue
+        if term.startswith("material:") and term[len("material:"):].strip():
+            continue
         if term.lower().endswith(".png"):
             if not os.path.isfile(term):
                 raise ValueError(f"fixed: {spec!r}: mask image {term!r} does not exist")
             continue
-        raise ValueError(f"fixed: {spec!r}: unknown mask term {term!r} (expected all, depth:A-B or a .png image)")
+        raise ValueError(f"fixed: {spec!r}: unknown mask term {term!r} (expected all, depth:A-B, material:NAME or a .png image)")
     return ink, fraction, terms
 
 
@@ -72,6 +76,11 @@ def _term_mask(target, term, spec):
             raise ValueError(f"fixed: {spec!r}: expected depth:A-B with 0 <= A < B (mm), got {term!r}")
         depth = target.voxel_depth()
         return (depth >= a) & (depth < b)
+    if term.startswith("material:"):
+        if target.kind == "slab":
+            raise ValueError(f"fixed: {spec!r}: material:NAME masks select parts of a mesh (--mesh); a slab has no "
+                             f"materials")
+        return target.material_mask(term[len("material:"):].strip(), spec)
     image = _read_mask(term)
     if target.kind == "slab":
         if image.shape != shape[1:]:

@@ -123,6 +123,22 @@ class ObjectTarget:
         out[self.support.numpy()] = image[row, col]
         return out
 
+    def material_mask(self, name, spec):
+        """(D, H, W) bool: shell voxels whose nearest texel lies on a face of the mesh's material ``name``."""
+        mesh = getattr(self, "mesh", None)
+        names = [] if mesh is None else list(mesh.metadata.get("material_names", []))
+        if name not in names:
+            raise ValueError(f"fixed: {spec!r}: the mesh has no material {name!r}; its materials are {names}")
+        import igl
+
+        points = self.obj.texel_points.numpy().astype(np.float64)
+        _, face, _ = igl.point_mesh_squared_distance(points, np.asarray(mesh.vertices, np.float64),
+                                                     np.asarray(mesh.faces, np.int64))
+        on = np.asarray(mesh.metadata["face_materials"])[np.asarray(face, np.int64)] == names.index(name)
+        out = np.zeros(self.shape, dtype=bool)
+        out[self.support.numpy()] = on[self.nearest_texel()]
+        return out
+
     # ------------------------------------------------------------------------------------------ quantisation
     def quantized_void(self, indices):
         """Mark the printer micro-voxels whose centres lie outside the object (SDF > 0, trilinear) as VOID."""
@@ -189,7 +205,7 @@ class ObjectTarget:
 
     def save_texels(self, folder, stem, texels):
         """Write the texel colours as a coloured point cloud ``stem.ply`` (sRGB bytes), ``stem.npy`` (linear) and,
-        when the mesh has UVs, ``stem_uv.png`` baked into the mesh's texture layout."""
+        when the mesh has a UV layout, ``stem_uv.png`` baked into it."""
         import trimesh
 
         from ..color import linear_to_srgb
@@ -199,7 +215,7 @@ class ObjectTarget:
         buffer = io.BytesIO()
         np.save(buffer, rgb)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.npy"), buffer.getvalue())
-        if self.mesh is not None and getattr(self.mesh.visual, "uv", None) is not None:
+        if self._has_uv_layout():
             image, _ = bake_texels(self.mesh, self.obj.texel_points.numpy(), np.clip(rgb, 0, 1),
                                    size=self._bake_size())
             ta_io.write_png(os.path.join(folder, f"{stem}_uv.png"), image)
@@ -207,6 +223,16 @@ class ObjectTarget:
         colours = np.concatenate([np.round(srgb * 255), np.full((len(rgb), 1), 255)], axis=1).astype(np.uint8)
         cloud = trimesh.PointCloud(self.obj.texel_points.numpy(), colors=colours)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.ply"), cloud.export(file_type="ply"))
+
+    def _has_uv_layout(self):
+        """Whether the mesh's UV triangles cover pixels of the bake image (cached). A mesh coloured by materials
+        only (an OBJ with Kd colours and no ``vt``) gets degenerate UVs from trimesh's material atlas: no layout."""
+        if getattr(self, "_uv_layout", None) is None:
+            from ..geometry.bake import uv_face_image
+
+            self._uv_layout = (self.mesh is not None and getattr(self.mesh.visual, "uv", None) is not None
+                               and bool((uv_face_image(self.mesh, self._bake_size()) >= 0).any()))
+        return self._uv_layout
 
     def _bake_size(self):
         """The mesh's texture size (capped at 1024 a side), else 512²."""

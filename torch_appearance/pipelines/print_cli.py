@@ -44,8 +44,9 @@ def add_target_arguments(p, d=None, *, fixed=True):
     if fixed:
         p.add_argument("--fixed", action="append", default=[], metavar="INK=FRACTION:MASK",
                        help="hold an ink at a fixed fraction (translucency), repeatable; MASK: all, depth:A-B (mm "
-                       "below the surface), a mask PNG (slab texel size, or an object's texture space), terms joined "
-                       "by &; e.g. transparent=0.8:depth:0-0.4")
+                       "below the surface), a mask PNG (slab texel size, or an object's texture space), "
+                       "material:NAME (objects: the faces of one of the mesh's materials), terms joined by &; e.g. "
+                       "transparent=0.8:depth:0-0.4")
     p.add_argument("--envmap", default=None, help="objects: a lat-long linear EXR (z up) lighting the print, "
                    "baked into the optimisation (default: uniform white)")
 
