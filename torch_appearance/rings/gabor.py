@@ -641,8 +641,9 @@ def curved_gabor_response(image: torch.Tensor, theta, frequency, normal=None, p:
 class CurvedGaborFilter(torch.nn.Module):
     """:func:`curved_gabor_response` with the curved patches traced once (in ``__init__``) and kept as buffers.
 
-    Memory: ``(2p + 2q) * H * W * 8`` bytes of sample positions plus ``(2p + 1) * H * W * 8`` bytes of
-    coefficients (p = q = 20 on 256 x 256: about 0.2 GB); meant for loss images of moderate size.
+    Memory: about ``(32 p + 24 q) * H * W`` bytes of float32 buffers (sample positions, weights, coefficients;
+    p = q = 20 on 256 x 256: 73 MB), so it is meant for loss images of moderate size; a forward pass holds
+    ``(2p + 2q + 1) * B * H * W`` more samples.
 
     Args:
         theta, frequency, normal, p, q, sigma_along, sigma_across, normal_reference, chunk_size: as in
@@ -703,9 +704,12 @@ class CurvedGaborFilter(torch.nn.Module):
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         """Complex response ``(H, W)`` / ``(B, H, W)`` of ``image`` ``(H, W)`` / ``(B, H, W)`` (differentiable)."""
         img, batched = _check_response_image(image, self.shape)
+        if img.device != self.coef.device:
+            raise ValueError(f"image: expected a tensor on the filter's device {self.coef.device}, got {img.device} "
+                             "(move one of them with .to())")
         geom = {name: getattr(self, name) for name in ("along_grid", "along_weight", "along_scale", "along_w0",
                                                        "across_grid", "coef")}
-        out = _apply_geometry(geom, img.to(self.coef.device))
+        out = _apply_geometry(geom, img)
         return out if batched else out[0]
 
     def extra_repr(self) -> str:
