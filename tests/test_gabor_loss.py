@@ -8,7 +8,7 @@ import torch
 
 from torch_appearance.nn import GaborPhaseLoss, WoodModel, gabor_phase_loss
 from torch_appearance.rings import synthetic_board
-from torch_appearance.rings.gabor import CurvedGaborFilter, curved_gabor, curved_gabor_response
+from torch_appearance.rings.gabor import CurvedGaborFilter, curved_gabor_response
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
