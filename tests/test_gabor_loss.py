@@ -150,6 +150,34 @@ def test_loss_recovers_wood_ring_scale():
     assert min(losses[-10:]) < 0.01 * losses[0]
 
 
+def test_wood_render_gradient_matches_finite_differences():
+    """End to end in float64: d loss / d log s_r of a WoodModel render whose colour map is periodic in the lateness
+    (no jump at ring boundaries, so the render is differentiable) equals the central finite difference."""
+    h = w = 40
+    model = WoodModel(ring_scale_mm=0.8, distortion=None, n_rings=4, dtype=torch.float64)
+    with torch.no_grad():
+        model.translation.copy_(torch.tensor([-1.8, -2.2, 0.0], dtype=torch.float64))
+        late = torch.linspace(0, 1, model.color_bins, dtype=torch.float64)
+        model.color_map.copy_((0.5 - 0.3 * torch.cos(2 * math.pi * late))[None, :, None].expand_as(model.color_map))
+        target = model.render_board(h, w, 0.1)["image"].permute(2, 0, 1)
+    loss_fn = GaborPhaseLoss(target, p=10, q=8)
+
+    def loss_at(log_s):
+        with torch.no_grad():
+            model.log_ring_scale.fill_(log_s)
+            return loss_fn(model.render_board(h, w, 0.1)["image"].permute(2, 0, 1)).item()
+
+    for factor in (1.03, 0.96):
+        log_s = math.log(0.8 * factor)
+        loss_at(log_s)
+        model.zero_grad()
+        loss_fn(model.render_board(h, w, 0.1)["image"].permute(2, 0, 1)).backward()
+        # small step: the colour map is piecewise linear in the lateness, and a larger step straddles its kinks
+        fd = (loss_at(log_s + 1e-7) - loss_at(log_s - 1e-7)) / 2e-7
+        assert abs(fd) > 1.0
+        assert model.log_ring_scale.grad.item() == pytest.approx(fd, rel=1e-6), factor
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # bad input
 
