@@ -111,6 +111,8 @@ def test_loss_values_against_truth():
     wh = GaborPhaseLoss(half, p=12, q=8).weight
     assert float(wh[14:34, 30:40].mean() / wh[14:34, 8:18].mean()) == pytest.approx(0.25, rel=0.05)
     # RGB (C, H, W) and batches: grey by Rec. 709 luminance, the batch mean
+    # Rec. 709 grey of (t, -t, t) is -0.4304 t: half a period away
+    assert float(loss_fn(torch.stack([target, -target, target]))) == pytest.approx(math.pi ** 2, rel=1e-4)
     rgb = torch.stack([target, target, target])
     assert float(GaborPhaseLoss(rgb, p=12, q=8)(torch.stack([rgb, -rgb]))) == pytest.approx(math.pi ** 2 / 2,
                                                                                             rel=1e-4)
