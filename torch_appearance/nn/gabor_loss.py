@@ -15,7 +15,10 @@ Loss (per image, averaged over a batch)::
                                                 or 2 (1 - cos d) ("cosine": smooth, = d^2 + O(d^4))
     w(x)  = min(|R_target(x)| / mean |R_target|, weight_cap) * mask(x)
 
-The amplitude weight trusts pixels where the target has clear rings (as the wood-fit pipeline does). The phase of a
+The loss is cyclic: rings that are a whole ring off also agree, so it has local minima at whole-ring offsets and
+a start should be within about half a ring of the target where the weight is (e.g. from
+:func:`~torch_appearance.rings.estimate_board`). The amplitude weight trusts pixels where the target has clear
+rings (as the wood-fit pipeline does). The phase of a
 response is undefined where it vanishes; such pixels (``|R_pred| = 0`` exactly) contribute zero loss and gradient.
 A note on piecewise-constant renders: autograd does not see pixels that jump across a ring boundary (the colour map
 of :class:`~torch_appearance.nn.WoodModel` is discontinuous there), so the gradient of a render with respect to the
