@@ -45,6 +45,8 @@ def parse_args(argv=None):
     for name in ("size", "pq", "repeat", "threads"):
         if getattr(args, name) < 1:
             p.error(f"--{name}: expected an integer >= 1, got {getattr(args, name)}")
+    if args.compare and not os.path.isfile(args.compare):
+        p.error(f"--compare: expected an existing .npz written by --save, got {args.compare!r}")
     if args.gabor_size is None:
         args.gabor_size = args.size
     if args.gabor_size < 0:
@@ -94,7 +96,8 @@ def main(argv=None):
                 diff = np.abs(value.astype(np.float64) - old[key].astype(np.float64))
                 if "/1" in key and "curved" in key:  # phase: cyclic difference
                     diff = np.abs(np.angle(np.exp(1j * (value.astype(np.float64) - old[key]))))
-                if key.startswith("orientation") and key.endswith("/0"):  # orientation mod pi
+                if (key.startswith("orientation") and key.endswith("/0")) or ("curved" in key and key.endswith("/3")):
+                    # orientation mod pi
                     diff = np.abs(np.angle(np.exp(2j * (value.astype(np.float64) - old[key])))) / 2
                 print(f"max |diff| {key:45s} {diff.max():.3e}   (99.9 %: {np.quantile(diff, 0.999):.3e})")
     if args.save:
