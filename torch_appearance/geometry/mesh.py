@@ -10,10 +10,11 @@ from ..render.checks import check_real
 __all__ = ["load_mesh"]
 
 
-def _obj_missing_textures(path):
-    """Texture files named by the MTL libraries of an OBJ that do not exist (names may contain spaces)."""
+def _obj_textures(path):
+    """Texture files named by the MTL libraries of an OBJ (names may contain spaces): (missing names, paths of the
+    existing ones)."""
     folder = os.path.dirname(os.path.abspath(path))
-    missing = []
+    missing, present = [], []
     with open(path, "r", errors="replace") as handle:
         libs = [line.split(None, 1)[1].strip() for line in handle if line.startswith("mtllib ") and len(line.split()) > 1]
     for lib in libs:
@@ -24,27 +25,75 @@ def _obj_missing_textures(path):
         with open(mtl, "r", errors="replace") as handle:
             for line in handle:
                 m = re.match(r"\s*map_Kd\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", line)
-                if m and not os.path.exists(os.path.join(os.path.dirname(mtl), m.group(1))):
-                    missing.append(m.group(1))
-    return missing
+                if m:
+                    texture = os.path.join(os.path.dirname(mtl), m.group(1))
+                    (present if os.path.exists(texture) else missing).append(texture if os.path.exists(texture)
+                                                                             else m.group(1))
+    return missing, present
 
 
-def _read_texture(texture):
-    """A base-colour image file opened (and decoded, so unreadable files fail here) as a PIL image."""
+def _read_texture(texture, name="texture"):
+    """A base-colour image file read by :func:`torch_appearance.io.read_image` (decoded completely, so truncated or
+    corrupt files fail here; sRGB kept, grey repeated over R, G, B, palette expanded, alpha dropped) as an 8-bit
+    RGB PIL image, the form trimesh's materials hold. 16-bit textures are rounded to 8 bits."""
     from PIL import Image
 
+    from .. import io as ta_io
+
     if not isinstance(texture, (str, os.PathLike)):
-        raise TypeError(f"texture: expected an image file path, got {type(texture).__name__}")
+        raise TypeError(f"{name}: expected an image file path, got {type(texture).__name__}")
     texture = os.fspath(texture)
     if not os.path.isfile(texture):
-        raise ValueError(f"texture: no such file {texture!r}")
+        raise ValueError(f"{name}: no such file {texture!r}")
+    srgb = ta_io.read_image(texture, space="srgb", name=name)
+    return Image.fromarray(np.rint(np.clip(srgb, 0.0, 1.0) * 255.0).astype(np.uint8), "RGB")
+
+
+def _checked_image(image, source):
+    """A texture trimesh opened itself (lazily, with PIL), read again through :func:`torch_appearance.io.read_image`
+    from the bytes it was opened from, so that a truncated or corrupt embedded texture is refused (``ValueError``);
+    returned as an 8-bit RGB PIL image. ``source`` names the texture in messages."""
+    from PIL import Image, ImageFile
+
+    from .. import io as ta_io
+
+    fp = getattr(image, "fp", None)
+    data = None
+    if fp is not None and hasattr(fp, "getvalue"):
+        data = fp.getvalue()
+    elif fp is not None and hasattr(fp, "read") and hasattr(fp, "seek"):
+        fp.seek(0)
+        data = fp.read()
+    if data is not None:
+        srgb = ta_io.read_image_bytes(data, source=source, space="srgb", name="path")
+        return Image.fromarray(np.rint(np.clip(srgb, 0.0, 1.0) * 255.0).astype(np.uint8), "RGB")
+    truncated = ImageFile.LOAD_TRUNCATED_IMAGES  # already decoded or made in memory: decode strictly once more
+    ImageFile.LOAD_TRUNCATED_IMAGES = False
     try:
-        image = Image.open(texture)
         image.load()
-    except Exception as error:  # PIL raises UnidentifiedImageError, OSError, SyntaxError, ... for bad files
-        raise ValueError(f"texture: could not read {texture!r} as an image ({type(error).__name__}: {error})") \
-            from None
+    except Exception as error:
+        raise ValueError(f"path: {source} is a truncated or corrupt image ({type(error).__name__}: {error})") from None
+    finally:
+        ImageFile.LOAD_TRUNCATED_IMAGES = truncated
     return image
+
+
+def _check_loaded_textures(mesh, path):
+    """Replace the base-colour texture trimesh loaded with a checked copy (:func:`_checked_image`)."""
+    from trimesh.visual.material import PBRMaterial
+
+    from .surface import _is_placeholder_image
+
+    material = getattr(mesh.visual, "material", None)
+    if material is None:
+        return
+    attribute = "baseColorTexture" if isinstance(material, PBRMaterial) else "image"
+    image = getattr(material, attribute, None)
+    if image is None or _is_placeholder_image(image):
+        return
+    label = image.info.get("file_path") if hasattr(image, "info") else None
+    source = f"{path} (texture {label})" if label else f"{path} (embedded texture)"
+    setattr(material, attribute, _checked_image(image, source))
 
 
 def load_mesh(path, *, height_mm=None, scale=None, texture=None):
@@ -86,15 +135,22 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         raise ValueError("height_mm, scale: expected at most one of them, got both")
     image = None if texture is None else _read_texture(texture)
     if path.lower().endswith(".obj"):
-        missing = _obj_missing_textures(path)
+        missing, present = _obj_textures(path)
         if missing:
             raise ValueError(f"path: {path!r} names texture/material files that are missing: {missing}")
+        for texture_path in present:  # trimesh drops a texture it cannot open without a word: check each first
+            try:
+                _read_texture(texture_path)
+            except ValueError as error:
+                raise ValueError(f"path: {path!r} names a texture that cannot be read: {error}") from None
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as error:  # trimesh raises many kinds for unreadable input
         raise ValueError(f"path: could not read {path!r} as a mesh ({type(error).__name__}: {error})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"path: {path!r} holds no triangles")
+    if image is None:
+        _check_loaded_textures(mesh, path)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise ValueError(f"path: {path!r} has non-finite vertex coordinates")
