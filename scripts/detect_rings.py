@@ -37,7 +37,8 @@ PROG = "detect_rings.py"
 def parse_args(argv=None):
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("image", help="core scan or photo (PNG/JPG/TIFF, anything OpenCV reads)")
+    p.add_argument("image", help="core scan or photo (sRGB PNG/JPEG/TIFF/BMP/WebP or linear EXR; truncated or corrupt "
+                                  "files are refused)")
     p.add_argument("--out", required=True, help="output CSV")
     p.add_argument("--overlay", default=None, help="optional overlay PNG with the detected boundaries")
     p.add_argument("--bark", choices=("left", "right", "top", "bottom"), default=None,

@@ -443,6 +443,16 @@ def read_image_bytes(data, *, source, space="linear", alpha="drop", name="image"
     return _convert(*_decode_data(bytes(data), source, name), source, name, space, alpha)
 
 
+def _profile_description(icc):
+    """The description of an embedded ICC profile ("?" when it cannot be parsed)."""
+    try:
+        from PIL import ImageCms
+
+        return str(ImageCms.ImageCmsProfile(_stdio.BytesIO(icc)).profile.profile_description or "?")
+    except Exception:  # a damaged or unusual profile: say so in the warning rather than fail the read
+        return "?"
+
+
 def _check_conversion(space, alpha):
     if space not in ("linear", "srgb"):
         raise ValueError(f"space must be 'linear' or 'srgb', got {space!r}")
@@ -452,9 +462,11 @@ def _check_conversion(space, alpha):
 
 def _convert(pixels, info, icc, path, name, space, alpha):
     """The colour conversion of :func:`read_image` applied to decoded pixels."""
-    if icc and b"sRGB" not in icc:
-        warnings.warn(f"{name}: {path!r} embeds a colour profile that is not sRGB; it is ignored and the pixels "
-                      f"are read as sRGB", stacklevel=3)
+    if icc:
+        description = _profile_description(icc)
+        if "srgb" not in description.lower():
+            warnings.warn(f"{name}: {path!r} embeds the colour profile {description!r}, not sRGB; the profile is "
+                          f"ignored and the pixels are read as sRGB", stacklevel=3)
     channels = pixels.shape[2]
     colour = pixels[..., :3] if channels >= 3 else np.repeat(pixels[..., :1], 3, axis=2)
     if info["encoding"] == "srgb":
@@ -506,7 +518,7 @@ def read_mask(path, *, name="mask", threshold=0.5):
     return grey / scale > threshold
 
 
-def read_exr(path):
+def read_exr(path, *, name="path"):
     """Read a linear OpenEXR file (first part) as RGB ``float32``; other formats are refused.
 
     ``R``, ``G``, ``B`` channels (half floats widened to ``float32``), or a ``Y`` channel repeated over R, G, B;
@@ -514,6 +526,7 @@ def read_exr(path):
 
     Args:
         path: an existing ``.exr`` file.
+        name: the argument name used in error messages.
 
     Returns:
         ``numpy.ndarray`` of shape ``(H, W, 3)``, dtype ``float32``.
@@ -522,12 +535,12 @@ def read_exr(path):
         FileNotFoundError: ``path`` does not exist.
         ValueError: the file is not a readable EXR or lacks the ``R``, ``G``, ``B`` (or ``Y``) channels.
     """
-    path = _check_path("path", path)
+    path = _check_path(name, path)
     if os.path.isfile(path):
         with open(path, "rb") as handle:
             if _sniff_format(handle.read(16)) != "OpenEXR":
-                raise ValueError(f"path {path!r} is not a readable OpenEXR file (no EXR magic number)")
-    return read_image(path, space="linear")
+                raise ValueError(f"{name}: {path!r} is not a readable OpenEXR file (no EXR magic number)")
+    return read_image(path, space="linear", name=name)
 
 
 # --------------------------------------------------------------------------------------------------------------

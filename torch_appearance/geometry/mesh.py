@@ -11,10 +11,10 @@ __all__ = ["load_mesh"]
 
 
 def _obj_textures(path):
-    """Texture files named by the MTL libraries of an OBJ (names may contain spaces): (missing names, paths of the
-    existing ones)."""
+    """Texture files named by the MTL libraries of an OBJ (names may contain spaces): (missing names, {name as
+    written in the MTL: path} of the existing ones)."""
     folder = os.path.dirname(os.path.abspath(path))
-    missing, present = [], []
+    missing, present = [], {}
     with open(path, "r", errors="replace") as handle:
         libs = [line.split(None, 1)[1].strip() for line in handle if line.startswith("mtllib ") and len(line.split()) > 1]
     for lib in libs:
@@ -27,8 +27,10 @@ def _obj_textures(path):
                 m = re.match(r"\s*map_Kd\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", line)
                 if m:
                     texture = os.path.join(os.path.dirname(mtl), m.group(1))
-                    (present if os.path.exists(texture) else missing).append(texture if os.path.exists(texture)
-                                                                             else m.group(1))
+                    if os.path.exists(texture):
+                        present[m.group(1)] = texture
+                    else:
+                        missing.append(m.group(1))
     return missing, present
 
 
@@ -46,54 +48,87 @@ def _read_texture(texture, name="texture"):
     if not os.path.isfile(texture):
         raise ValueError(f"{name}: no such file {texture!r}")
     srgb = ta_io.read_image(texture, space="srgb", name=name)
-    return Image.fromarray(np.rint(np.clip(srgb, 0.0, 1.0) * 255.0).astype(np.uint8), "RGB")
+    return Image.fromarray(np.rint(np.clip(srgb, 0.0, 1.0) * 255.0).astype(np.uint8))
 
 
-def _checked_image(image, source):
-    """A texture trimesh opened itself (lazily, with PIL), read again through :func:`torch_appearance.io.read_image`
-    from the bytes it was opened from, so that a truncated or corrupt embedded texture is refused (``ValueError``);
-    returned as an 8-bit RGB PIL image. ``source`` names the texture in messages."""
-    from PIL import Image, ImageFile
+def _gltf_images(path):
+    """The images a glTF/GLB file embeds or names, as ``(label, bytes or file path)``: buffer views (the GLB's BIN
+    chunk or a buffer file), base64 data URIs and image files beside the glTF. ``[]`` when the file's JSON cannot be
+    parsed (trimesh then reports the file)."""
+    import base64
+    import json
+    import struct
+    import urllib.parse
 
+    folder = os.path.dirname(os.path.abspath(path))
+    with open(path, "rb") as handle:
+        data = handle.read()
+
+    def from_uri(uri):
+        if uri.startswith("data:"):
+            return base64.b64decode(uri.split(",", 1)[1])
+        return os.path.join(folder, urllib.parse.unquote(uri))
+
+    try:
+        binary = None
+        if data[:4] == b"glTF":
+            offset, doc = 12, None
+            while offset + 8 <= len(data):
+                length, kind = struct.unpack_from("<I4s", data, offset)
+                chunk = data[offset + 8:offset + 8 + length]
+                offset += 8 + length
+                if kind == b"JSON":
+                    doc = json.loads(chunk)
+                elif kind == b"BIN\x00" and binary is None:
+                    binary = chunk
+        else:
+            doc = json.loads(data)
+        images = []
+        for i, image in enumerate(doc.get("images", [])):
+            label = image.get("name") or image.get("uri", "")[:40] or f"image {i}"
+            if "bufferView" in image:
+                view = doc["bufferViews"][image["bufferView"]]
+                buffer = doc["buffers"][view["buffer"]]
+                if "uri" in buffer:
+                    blob = from_uri(buffer["uri"])
+                    if not isinstance(blob, bytes):
+                        with open(blob, "rb") as handle:
+                            blob = handle.read()
+                else:
+                    blob = binary
+                start = view.get("byteOffset", 0)
+                images.append((f"embedded texture {label}", blob[start:start + view["byteLength"]]))
+            elif "uri" in image:
+                images.append((f"texture {label}", from_uri(image["uri"])))
+        return images
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError, OSError, struct.error):
+        return []
+
+
+def _check_gltf_textures(path):
+    """Read every image of a glTF/GLB (:func:`_gltf_images`) through :func:`torch_appearance.io.read_image`, so that
+    a truncated or corrupt texture is refused with its name (trimesh drops one it cannot open without a word)."""
     from .. import io as ta_io
 
-    fp = getattr(image, "fp", None)
-    data = None
-    if fp is not None and hasattr(fp, "getvalue"):
-        data = fp.getvalue()
-    elif fp is not None and hasattr(fp, "read") and hasattr(fp, "seek"):
-        fp.seek(0)
-        data = fp.read()
-    if data is not None:
-        srgb = ta_io.read_image_bytes(data, source=source, space="srgb", name="path")
-        return Image.fromarray(np.rint(np.clip(srgb, 0.0, 1.0) * 255.0).astype(np.uint8), "RGB")
-    truncated = ImageFile.LOAD_TRUNCATED_IMAGES  # already decoded or made in memory: decode strictly once more
-    ImageFile.LOAD_TRUNCATED_IMAGES = False
-    try:
-        image.load()
-    except Exception as error:
-        raise ValueError(f"path: {source} is a truncated or corrupt image ({type(error).__name__}: {error})") from None
-    finally:
-        ImageFile.LOAD_TRUNCATED_IMAGES = truncated
-    return image
+    for label, source in _gltf_images(path):
+        try:
+            if isinstance(source, bytes):
+                ta_io.read_image_bytes(source, source=f"{path} ({label})", name="texture")
+            else:
+                ta_io.decode_image(source, name="texture")
+        except (ValueError, FileNotFoundError) as error:
+            raise ValueError(f"path: {path!r} holds a texture that cannot be read: {error}") from None
 
 
-def _check_loaded_textures(mesh, path):
-    """Replace the base-colour texture trimesh loaded with a checked copy (:func:`_checked_image`)."""
-    from trimesh.visual.material import PBRMaterial
-
-    from .surface import _is_placeholder_image
-
+def _use_checked_textures(mesh, textures):
+    """Replace an OBJ's base-colour image that trimesh opened itself (from the MTL's ``map_Kd``) with the same file
+    read by :func:`_read_texture` (``textures``: MTL name → path), so that its colours are converted as documented
+    there (16-bit and grey images included) rather than by PIL's ``convert``."""
     material = getattr(mesh.visual, "material", None)
-    if material is None:
-        return
-    attribute = "baseColorTexture" if isinstance(material, PBRMaterial) else "image"
-    image = getattr(material, attribute, None)
-    if image is None or _is_placeholder_image(image):
-        return
-    label = image.info.get("file_path") if hasattr(image, "info") else None
-    source = f"{path} (texture {label})" if label else f"{path} (embedded texture)"
-    setattr(material, attribute, _checked_image(image, source))
+    image = getattr(material, "image", None)
+    name = getattr(image, "info", {}).get("file_path") if image is not None else None
+    if name in textures:
+        material.image = _read_texture(textures[name])
 
 
 def load_mesh(path, *, height_mm=None, scale=None, texture=None):
@@ -138,19 +173,21 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         missing, present = _obj_textures(path)
         if missing:
             raise ValueError(f"path: {path!r} names texture/material files that are missing: {missing}")
-        for texture_path in present:  # trimesh drops a texture it cannot open without a word: check each first
+        for texture_path in present.values():  # trimesh drops a texture it cannot open without a word: check first
             try:
                 _read_texture(texture_path)
             except ValueError as error:
                 raise ValueError(f"path: {path!r} names a texture that cannot be read: {error}") from None
+    elif path.lower().endswith((".glb", ".gltf")):
+        _check_gltf_textures(path)
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as error:  # trimesh raises many kinds for unreadable input
         raise ValueError(f"path: could not read {path!r} as a mesh ({type(error).__name__}: {error})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"path: {path!r} holds no triangles")
-    if image is None:
-        _check_loaded_textures(mesh, path)
+    if image is None and path.lower().endswith(".obj"):
+        _use_checked_textures(mesh, present)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise ValueError(f"path: {path!r} has non-finite vertex coordinates")
