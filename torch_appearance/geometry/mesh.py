@@ -122,13 +122,14 @@ def _check_gltf_textures(path):
 
 def _use_checked_textures(mesh, textures):
     """Replace an OBJ's base-colour image that trimesh opened itself (from the MTL's ``map_Kd``) with the same file
-    read by :func:`_read_texture` (``textures``: MTL name → path), so that its colours are converted as documented
-    there (16-bit and grey images included) rather than by PIL's ``convert``."""
+    as read by :func:`_read_texture` (``textures``: MTL name → that PIL image), so that its colours are converted as
+    documented there (16-bit and grey images included) rather than by PIL's ``convert``. (Several textures packed
+    by trimesh into one atlas keep trimesh's packing; each was read and checked before.)"""
     material = getattr(mesh.visual, "material", None)
     image = getattr(material, "image", None)
     name = getattr(image, "info", {}).get("file_path") if image is not None else None
     if name in textures:
-        material.image = _read_texture(textures[name])
+        material.image = textures[name]
 
 
 def load_mesh(path, *, height_mm=None, scale=None, texture=None):
@@ -152,7 +153,8 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         mesh reports, and voxelises with, no colour.
 
     Raises:
-        ValueError: unreadable or missing file, no triangles, a texture file named by the MTL that is missing,
+        ValueError: unreadable or missing file, no triangles, a texture file named by the MTL (or a glTF/GLB texture)
+            that is missing, truncated or corrupt (read by :func:`torch_appearance.io.read_image`),
             bad height or scale, both height_mm and scale given, a ``texture`` file that is missing or not an
             image, a ``texture`` for a mesh without UVs.
         TypeError: ``path`` or ``texture`` not a file path.
@@ -173,9 +175,9 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         missing, present = _obj_textures(path)
         if missing:
             raise ValueError(f"path: {path!r} names texture/material files that are missing: {missing}")
-        for texture_path in present.values():  # trimesh drops a texture it cannot open without a word: check first
-            try:
-                _read_texture(texture_path)
+        for key, texture_path in present.items():  # trimesh drops a texture it cannot open without a word: read
+            try:                                       # each through the reader first
+                present[key] = _read_texture(texture_path)
             except ValueError as error:
                 raise ValueError(f"path: {path!r} names a texture that cannot be read: {error}") from None
     elif path.lower().endswith((".glb", ".gltf")):
