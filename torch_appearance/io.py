@@ -21,6 +21,7 @@ Conventions:
   written.
 """
 import contextlib
+import functools
 import io as _stdio
 import json
 import math
@@ -460,6 +461,18 @@ def _check_conversion(space, alpha):
         raise ValueError(f"alpha must be 'drop' or 'mask', got {alpha!r}")
 
 
+@functools.lru_cache(maxsize=4)
+def _integer_table(bits, space):
+    """``float32`` value of every ``bits``-bit level ``k``: ``k / (2**bits - 1)`` (``"srgb"``) or its sRGB decoding
+    (``"linear"``, :func:`~torch_appearance.color.srgb_to_linear`), computed in float64."""
+    levels = np.arange(2 ** bits, dtype=np.float64) / float(2 ** bits - 1)
+    if space == "linear":
+        levels = srgb_to_linear(torch.from_numpy(levels)).numpy()
+    table = levels.astype(np.float32)
+    table.flags.writeable = False
+    return table
+
+
 def _convert(pixels, info, icc, path, name, space, alpha):
     """The colour conversion of :func:`read_image` applied to decoded pixels."""
     if icc:
@@ -471,13 +484,11 @@ def _convert(pixels, info, icc, path, name, space, alpha):
     colour = pixels[..., :3] if channels >= 3 else np.repeat(pixels[..., :1], 3, axis=2)
     if info["encoding"] == "srgb":
         scale = float(2 ** info["bits"] - 1)
-        values = colour.astype(np.float64) / scale
-        if space == "linear":
-            values = srgb_to_linear(torch.from_numpy(values)).numpy()
+        values = _integer_table(info["bits"], space)[colour]  # exact: one float64 evaluation per integer level
     else:
-        values = colour.astype(np.float64)
+        values = colour
         if space == "srgb":
-            values = linear_to_srgb(torch.from_numpy(values)).numpy()
+            values = linear_to_srgb(torch.from_numpy(colour.astype(np.float64))).numpy()
         scale = 1.0
     rgb = np.ascontiguousarray(values, dtype=np.float32)
     if alpha == "drop":
