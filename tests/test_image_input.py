@@ -416,3 +416,31 @@ def test_envmap_refuses_truncated_exr(tmp_path, good):
     path = _cut(good[".exr"], tmp_path / "sky.exr", os.path.getsize(good[".exr"]) // 2)
     with pytest.raises(ValueError, match=r"envmap: .*sky\.exr.* not a readable OpenEXR file \(truncated or corrupt"):
         EnvironmentMap.from_exr(path)
+
+
+def test_render_object_refuses_truncated_envmap(run_script, tmp_path, good):
+    folder = tmp_path / "input"
+    folder.mkdir()
+    path = _cut(good[".exr"], folder / "sky.exr", 5000)
+    out = tmp_path / "render"
+    rc, err = run_script("render_object.py", "--envmap", path, "--size", "8", "--spp", "1", "--out", out)
+    assert rc == 2 and "--envmap: envmap: " in err and "sky.exr" in err and "truncated or corrupt" in err
+    _nothing_written(tmp_path, out)
+
+
+def test_optimize_print_refuses_truncated_jpeg_as_a_user_runs_it(tmp_path, good):
+    """The bug of issue 15 as a user meets it, in a fresh interpreter: main's cv2.imread filled in the missing rows
+    of a JPEG cut in half and a whole print optimisation ran on the damaged target (rc 0, a full run folder)."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "input"
+    folder.mkdir()
+    path = _cut(good[".jpg"], folder / "photo.jpg", os.path.getsize(good[".jpg"]) // 2)
+    out = tmp_path / "run"
+    result = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "optimize_print.py"), "--target", path,
+                             "--iterations", "1", "--out", str(out), "--quiet"],
+                            capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": ROOT})
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "target: " in result.stderr and "photo.jpg' is a truncated or corrupt JPEG file" in result.stderr
+    _nothing_written(tmp_path, out)
