@@ -247,6 +247,19 @@ def test_opencv_alone_would_accept_a_truncated_jpeg(tmp_path, good, monkeypatch)
     assert ImageFile.LOAD_TRUNCATED_IMAGES is True  # the global setting is restored
 
 
+def test_large_scans_are_not_refused_as_decompression_bombs(good, monkeypatch):
+    """Pillow refuses images over 2 × MAX_IMAGE_PIXELS (179 Mpx by default) as a guard against web uploads; a
+    user's own disc scan may be that large, so the reader lifts the guard for its check (OpenCV's 2**30-pixel limit
+    still applies) and restores it. Shown with the guard lowered to 1000 pixels."""
+    from PIL import Image
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    with pytest.raises(Image.DecompressionBombError):
+        Image.open(good[".png"])
+    assert ta_io.read_image(good[".png"]).shape == (96, 96, 3)
+    assert Image.MAX_IMAGE_PIXELS == 1000
+
+
 def test_corrupt_files_are_refused(tmp_path, good):
     for key in (".png", "16.png", ".exr"):
         with open(good[key], "rb") as handle:
@@ -444,3 +457,49 @@ def test_optimize_print_refuses_truncated_jpeg_as_a_user_runs_it(tmp_path, good)
     assert result.returncode == 2, result.stderr[-2000:]
     assert "target: " in result.stderr and "photo.jpg' is a truncated or corrupt JPEG file" in result.stderr
     _nothing_written(tmp_path, out)
+
+
+def _quad_ply(folder, texture_name):
+    """The unit square with per-vertex UVs as an ASCII PLY naming texture_name (``comment TextureFile``)."""
+    (folder / "quad.ply").write_text(
+        "ply\nformat ascii 1.0\n" f"comment TextureFile {texture_name}\n"
+        "element vertex 4\nproperty float x\nproperty float y\nproperty float z\nproperty float s\nproperty float t\n"
+        "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0 0 0\n1 0 0 1 0\n1 1 0 1 1\n0 1 0 0 1\n3 0 1 2\n3 0 2 3\n")
+    return str(folder / "quad.ply")
+
+
+def test_load_mesh_ply_texture(tmp_path, good):
+    """A PLY's TextureFile goes through the reader too: a grey 16-bit texture arrives as sRGB, a truncated one is
+    refused (trimesh would log a warning and drop it)."""
+    from torch_appearance.geometry import load_mesh
+
+    Image.fromarray(np.full((4, 4), 40000, np.uint16)).save(tmp_path / "t.png")
+    mesh, report = load_mesh(_quad_ply(tmp_path, "t.png"))
+    assert report["colour"] == "texture" and report["texture_size"] == (4, 4)
+    np.testing.assert_array_equal(np.asarray(mesh.visual.material.image.convert("RGB")),
+                                  np.full((4, 4, 3), round(40000 / 65535 * 255)))
+    _cut(good[".png"], tmp_path / "cut.png", 5000)
+    with pytest.raises(ValueError, match=r"quad\.ply' names a texture that cannot be read: texture: .*cut\.png' is a "
+                                         r"truncated or corrupt PNG"):
+        load_mesh(_quad_ply(tmp_path, "cut.png"))
+    with pytest.raises(ValueError, match=r"quad\.ply' names texture/material files that are missing: \['gone.png'\]"):
+        load_mesh(_quad_ply(tmp_path, "gone.png"))
+
+
+def test_lazily_opened_texture_is_decoded_strictly(good, monkeypatch):
+    """Other formats (DAE, 3DXML, ...): trimesh opens the texture lazily with PIL; load_mesh decodes it with truncated
+    loading off (even when switched on globally), so a truncated one is refused rather than filled in later."""
+    import trimesh
+
+    from torch_appearance.geometry.mesh import _load_strictly
+
+    with open(good[".png"], "rb") as handle:
+        data = handle.read()
+    monkeypatch.setattr(ImageFile, "LOAD_TRUNCATED_IMAGES", True)
+    mesh = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [1, 1, 0]], faces=[[0, 1, 2]], process=False)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1]], image=Image.open(io.BytesIO(data)))
+    _load_strictly(mesh, "model.dae")  # the whole file: fine
+    mesh.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1]], image=Image.open(io.BytesIO(data[:5000])))
+    with pytest.raises(ValueError, match=r"model\.dae' holds a texture that cannot be decoded completely"):
+        _load_strictly(mesh, "model.dae")

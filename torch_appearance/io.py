@@ -29,6 +29,7 @@ import os
 import pathlib
 import re
 import tempfile
+import threading
 import warnings
 
 import cv2
@@ -38,7 +39,7 @@ import torch
 
 from .color import linear_to_srgb, srgb_to_linear
 
-__all__ = ["read_image", "read_image_bytes", "read_mask", "decode_image", "IMAGE_FORMATS", "IMAGE_SUFFIXES",
+__all__ = ["read_image", "read_image_bytes", "read_mask", "decode_image", "strict_pillow", "IMAGE_FORMATS",
            "write_exr", "read_exr", "write_png", "read_png", "write_json", "write_csv", "save_figure",
            "atomic_write_bytes", "nan_to_none", "markdown_table"]
 
@@ -220,7 +221,7 @@ def read_png(path, linear=True):
 # image input: the one reader (PNG, JPEG, TIFF, BMP, WebP, OpenEXR)
 # --------------------------------------------------------------------------------------------------------------
 IMAGE_FORMATS = ("PNG", "JPEG", "TIFF", "BMP", "WEBP", "OpenEXR")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
+_PILLOW_SETTINGS = threading.Lock()
 
 
 def _sniff_format(head):
@@ -268,6 +269,25 @@ def _decode_exr(data, path, name):
     return np.stack(planes, axis=-1)
 
 
+@contextlib.contextmanager
+def strict_pillow():
+    """Within this block Pillow refuses truncated files (``ImageFile.LOAD_TRUNCATED_IMAGES = False``, whatever a
+    library set globally), has no decompression-bomb limit (a user's own scans may exceed its 179 Mpx guard;
+    OpenCV's 2**30-pixel limit still applies to :func:`read_image`) and its warnings are silenced (the errors say
+    more). Pillow's settings are globals: they are restored afterwards, and one such block runs at a time."""
+    from PIL import Image, ImageFile
+
+    with _PILLOW_SETTINGS:
+        truncated, limit = ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS
+        ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS = False, None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                yield
+        finally:
+            ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS = truncated, limit
+
+
 def _pillow_message(error):
     """Pillow's error text without the repr of the in-memory buffer it read from."""
     return re.sub(r"\s*<_io\.BytesIO object at 0x[0-9a-fA-F]+>", "", str(error))
@@ -281,25 +301,18 @@ def _decode_raster(data, path, name, fmt):
     raises). OpenCV then decodes the pixels, since Pillow reduces 16-bit RGB to 8 bits; its size must match the
     header's.
     """
-    from PIL import Image, ImageFile
+    from PIL import Image
 
-    truncated = ImageFile.LOAD_TRUNCATED_IMAGES
-    ImageFile.LOAD_TRUNCATED_IMAGES = False
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # Pillow warns about some damaged TIFF tags; the error below says more
+        with strict_pillow():
             with Image.open(_stdio.BytesIO(data)) as image:
                 size, icc = tuple(image.size), image.info.get("icc_profile")
                 image.verify()
             with Image.open(_stdio.BytesIO(data)) as image:
                 image.load()
-    except Image.DecompressionBombError as error:
-        raise ValueError(f"{name}: {path!r} is too large to decode safely ({error})") from None
     except Exception as error:  # Pillow raises OSError, SyntaxError, UnidentifiedImageError, ... for broken files
-        raise ValueError(f"{name}: {path!r} is a truncated or corrupt {fmt} file; it cannot be decoded completely "
-                         f"({type(error).__name__}: {_pillow_message(error)})") from None
-    finally:
-        ImageFile.LOAD_TRUNCATED_IMAGES = truncated
+        raise ValueError(f"{name}: {path!r} is a truncated or corrupt {fmt} file; it cannot be decoded "
+                         f"completely ({type(error).__name__}: {_pillow_message(error)})") from None
     pixels = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if pixels is None:
         raise ValueError(f"{name}: cannot decode {path!r}: OpenCV refuses this {fmt} file (truncated or corrupt?)")

@@ -34,6 +34,22 @@ def _obj_textures(path):
     return missing, present
 
 
+def _ply_textures(path):
+    """The texture a PLY names in its header (``comment TextureFile NAME``): (missing names, {NAME: path})."""
+    with open(path, "rb") as handle:
+        header = handle.read(65536).split(b"end_header", 1)[0].decode("ascii", errors="replace")
+    missing, present = [], {}
+    for line in header.splitlines():
+        m = re.match(r"\s*comment\s+TextureFile\s+(.+?)\s*$", line)
+        if m:
+            texture = os.path.join(os.path.dirname(os.path.abspath(path)), m.group(1))
+            if os.path.exists(texture):
+                present[m.group(1)] = texture
+            else:
+                missing.append(m.group(1))
+    return missing, present
+
+
 def _read_texture(texture, name="texture"):
     """A base-colour image file read by :func:`torch_appearance.io.read_image` (decoded completely, so truncated or
     corrupt files fail here; sRGB kept, grey repeated over R, G, B, palette expanded, alpha dropped) as an 8-bit
@@ -120,15 +136,38 @@ def _check_gltf_textures(path):
             raise ValueError(f"path: {path!r} holds a texture that cannot be read: {error}") from None
 
 
-def _use_checked_textures(mesh, textures):
-    """Replace an OBJ's base-colour image that trimesh opened itself (from the MTL's ``map_Kd``) with the same file
+def _load_strictly(mesh, path):
+    """Decode, with truncated loading off (:func:`torch_appearance.io.strict_pillow`), a base-colour image that
+    trimesh opened lazily from a format whose textures are not read beforehand (PLY, DAE, ...), so that a truncated
+    or corrupt one is refused here (``ValueError`` naming ``path``) rather than filled in later."""
+    from trimesh.visual.material import PBRMaterial
+
+    from .. import io as ta_io
+
+    material = getattr(mesh.visual, "material", None)
+    image = getattr(material, "baseColorTexture" if isinstance(material, PBRMaterial) else "image", None)
+    if image is None or not hasattr(image, "load"):
+        return
+    try:
+        with ta_io.strict_pillow():
+            image.load()
+    except Exception as error:  # Pillow raises OSError, SyntaxError, ... for broken data
+        raise ValueError(f"path: {path!r} holds a texture that cannot be decoded completely (truncated or corrupt: "
+                         f"{type(error).__name__}: {error})") from None
+
+
+def _use_checked_textures(mesh, textures, ply=False):
+    """Replace an OBJ's (or PLY's) base-colour image that trimesh opened itself (from the MTL's ``map_Kd``, the PLY's
+    ``TextureFile``) with the same file
     as read by :func:`_read_texture` (``textures``: MTL name → that PIL image), so that its colours are converted as
     documented there (16-bit and grey images included) rather than by PIL's ``convert``. (Several textures packed
     by trimesh into one atlas keep trimesh's packing; each was read and checked before.)"""
     material = getattr(mesh.visual, "material", None)
     image = getattr(material, "image", None)
     name = getattr(image, "info", {}).get("file_path") if image is not None else None
-    if name in textures:
+    if ply and name is None and len(textures) == 1:
+        name = next(iter(textures))  # a PLY names one texture; trimesh does not record its name
+    if image is not None and name in textures:
         material.image = textures[name]
 
 
@@ -171,8 +210,9 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
     if height_mm is not None and scale is not None:
         raise ValueError("height_mm, scale: expected at most one of them, got both")
     image = None if texture is None else _read_texture(texture)
-    if path.lower().endswith(".obj"):
-        missing, present = _obj_textures(path)
+    lower = path.lower()
+    if lower.endswith((".obj", ".ply")):
+        missing, present = (_obj_textures if lower.endswith(".obj") else _ply_textures)(path)
         if missing:
             raise ValueError(f"path: {path!r} names texture/material files that are missing: {missing}")
         for key, texture_path in present.items():  # trimesh drops a texture it cannot open without a word: read
@@ -180,7 +220,7 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
                 present[key] = _read_texture(texture_path)
             except ValueError as error:
                 raise ValueError(f"path: {path!r} names a texture that cannot be read: {error}") from None
-    elif path.lower().endswith((".glb", ".gltf")):
+    elif lower.endswith((".glb", ".gltf")):
         _check_gltf_textures(path)
     try:
         mesh = trimesh.load(path, force="mesh")
@@ -188,8 +228,10 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         raise ValueError(f"path: could not read {path!r} as a mesh ({type(error).__name__}: {error})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"path: {path!r} holds no triangles")
-    if image is None and path.lower().endswith(".obj"):
-        _use_checked_textures(mesh, present)
+    if image is None and lower.endswith((".obj", ".ply")):
+        _use_checked_textures(mesh, present, ply=lower.endswith(".ply"))
+    elif image is None and not lower.endswith((".glb", ".gltf")):
+        _load_strictly(mesh, path)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise ValueError(f"path: {path!r} has non-finite vertex coordinates")
