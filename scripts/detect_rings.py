@@ -27,7 +27,7 @@ except ModuleNotFoundError as error:  # running from a checkout that is not inst
 import cv2
 import numpy as np
 
-from torch_appearance.io import atomic_write_bytes, read_png, write_csv
+from torch_appearance.io import atomic_write_bytes, read_image, write_csv
 from torch_appearance.rings.dendro import (detect_core_boundaries, detect_section_boundaries,
                                            detect_transect_boundaries)
 
@@ -37,7 +37,8 @@ PROG = "detect_rings.py"
 def parse_args(argv=None):
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("image", help="core scan or photo (PNG/JPG/TIFF, anything OpenCV reads)")
+    p.add_argument("image", help="core scan or photo (sRGB PNG/JPEG/TIFF/BMP/WebP or linear EXR; truncated or corrupt "
+                                  "files are refused)")
     p.add_argument("--out", required=True, help="output CSV")
     p.add_argument("--overlay", default=None, help="optional overlay PNG with the detected boundaries")
     p.add_argument("--bark", choices=("left", "right", "top", "bottom"), default=None,
@@ -94,7 +95,7 @@ def main(argv=None):
     if args.pixel_size_mm is not None and not args.pixel_size_mm > 0:
         return _fail(f"--pixel-size-mm must be > 0; got {args.pixel_size_mm}")
     try:
-        rgb = read_png(args.image, linear=False)
+        rgb = read_image(args.image, space="srgb", name="image")  # decoded fully: truncated files are refused
     except (OSError, ValueError) as e:
         return _fail(f"cannot read image {args.image!r}: {e}")
     transect = None

@@ -25,10 +25,9 @@ except ModuleNotFoundError as error:
     if error.name != "torch_appearance":
         raise
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import cv2
 import numpy as np
 
-from torch_appearance.io import atomic_write_bytes, read_png
+from torch_appearance.io import atomic_write_bytes, read_image, read_mask
 from torch_appearance.rings.dendro import (boundary_f_measure, detect_core_boundaries, detect_section_boundaries,
                                            mask_centerline, match_boundaries)
 
@@ -46,7 +45,7 @@ def needed_files(data):
 
 def evaluate(data, tolerance_px=3.0):
     rows = []
-    rgb = read_png(os.path.join(data, CORE[0], CORE[1]), linear=False)
+    rgb = read_image(os.path.join(data, CORE[0], CORE[1]), space="srgb", name="core image")
     with open(os.path.join(data, CORE[0], CORE[2]), newline="") as f:
         lab = np.array([float(r["x_px"]) for r in csv.DictReader(f)])
     t = time.perf_counter()
@@ -57,11 +56,8 @@ def evaluate(data, tolerance_px=3.0):
                      labelled=m["labelled"], sensitivity=m["sensitivity"], precision=m["precision"], f1=m["f1"],
                      mean_error_px=m["mean_error_px"], seconds=dt))
     for img, mask in MICRO[1]:
-        bgr = cv2.imread(os.path.join(data, MICRO[0], img), cv2.IMREAD_COLOR)
-        msk = cv2.imread(os.path.join(data, MICRO[0], mask), cv2.IMREAD_GRAYSCALE)
-        if bgr is None or msk is None:
-            raise ValueError(f"cannot read {img} / {mask} in {os.path.join(data, MICRO[0])}")
-        rgb = bgr[..., ::-1].astype(np.float32) / 255
+        rgb = read_image(os.path.join(data, MICRO[0], img), space="srgb", name="image")
+        msk = read_mask(os.path.join(data, MICRO[0], mask), threshold=0.0)  # nonzero = boundary
         t = time.perf_counter()
         res = detect_section_boundaries(rgb)
         dt = time.perf_counter() - t

@@ -98,15 +98,12 @@ def face_paths(data, face):
 
 def evaluate_face(data, face, out, args, log):
     """Fit one face and score it; returns (row, panels) where panels holds the montage images (or None)."""
-    import cv2
     import torch
     from torch_appearance.nn.wood import WoodModel
     from torch_appearance.pipelines.wood_fit import fit_wood, model_boundaries
 
     photo, arl_path = face_paths(data, face)
-    arl = cv2.imread(arl_path, cv2.IMREAD_GRAYSCALE)
-    if arl is None:
-        raise ValueError(f"cannot read {arl_path!r}")
+    arl = np.rint(ta_io.read_image(arl_path, space="srgb", name="arl map")[..., 0] * 255).astype(np.uint8)
     label, _ = arl_skeleton(arl)
     rgb = ta_io.read_png(photo)
     folder = os.path.join(out, face)

@@ -75,6 +75,10 @@ def main(argv=None):
     for name in ("radius_mm", "voxel_size", "size", "spp"):
         if not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')}: expected > 0, got {getattr(args, name)}")
+    try:  # read (and check) the environment map before any work, so a damaged file costs nothing and writes nothing
+        envmap = EnvironmentMap.from_exr(args.envmap) if args.envmap else None
+    except (OSError, ValueError) as error:
+        p.error(f"--envmap: {error}")
 
     r, h = args.radius_mm, args.voxel_size
     n = int(math.ceil(2 * r / h)) + 4
@@ -84,8 +88,7 @@ def main(argv=None):
     else:
         sdf = sphere_sdf((n,) * 3, h, origin, (0, 0, 0), r)
     sigma_t, albedo = ink_medium(corner_points((n,) * 3, h, origin), r)
-    emitter = (EnvironmentMap.from_exr(args.envmap) if args.envmap else
-               DiscLight((0.4, -0.6, 1.0), args.light_deg, 40.0, ambient=0.35))
+    emitter = envmap if envmap is not None else DiscLight((0.4, -0.6, 1.0), args.light_deg, 40.0, ambient=0.35)
     cam = PerspectiveCamera(origin=(3.2 * r, -2.4 * r, 2.6 * r), target=(0, 0, 0), up=(0, 0, 1), fov_y_deg=30,
                             resolution=(args.size, args.size))
     scene = Scene(voxel_size=h, origin=origin, boundary=SDFBoundary(sdf, ior=args.ior or None), sensor=cam,

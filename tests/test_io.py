@@ -171,9 +171,12 @@ def test_exr_read_errors(tmp_path):
     (tmp_path / "junk.exr").write_bytes(b"not an exr")
     with pytest.raises(ValueError, match="not a readable OpenEXR"):
         ta_io.read_exr(tmp_path / "junk.exr")
-    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"Y": np.zeros((2, 2), np.float32)}).write(str(tmp_path / "y.exr"))
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"Z": np.zeros((2, 2), np.float32)}).write(str(tmp_path / "z.exr"))
     with pytest.raises(ValueError, match="lacks channel"):
-        ta_io.read_exr(tmp_path / "y.exr")
+        ta_io.read_exr(tmp_path / "z.exr")
+    (tmp_path / "p.exr").write_bytes(cv2.imencode(".png", np.zeros((2, 2, 3), np.uint8))[1].tobytes())
+    with pytest.raises(ValueError, match="not a readable OpenEXR"):
+        ta_io.read_exr(tmp_path / "p.exr")  # a PNG by content: read_exr reads EXR only
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -171,19 +171,18 @@ def read_slices(folder):
     indices = np.empty(shape, dtype=np.uint8)
     for z in range(shape[0]):
         path = os.path.join(folder, f"slice_{z:04d}.png")
-        with open(path, "rb") as handle:
-            raw = np.frombuffer(handle.read(), dtype=np.uint8)
-        image = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED) if raw.size else None
-        if image is None or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f"{path!r}: expected an 8-bit RGB PNG")
+        image, info = _io.decode_image(path, name="slice")  # RGB as stored; truncated/corrupt files refused
+        if info["format"] != "PNG" or image.dtype != np.uint8 or image.shape[2] != 3:
+            raise ValueError(f"{path!r}: expected an 8-bit RGB PNG, got {info['bits']}-bit {info['format']} with "
+                             f"{image.shape[2]} channel(s)")
         if image.shape[:2] != shape[1:]:
             raise ValueError(f"{path!r}: expected size (H, W) = {shape[1:]}, got {image.shape[:2]}")
-        pixel = _codes(image[..., ::-1])
+        pixel = _codes(image)
         pos = np.clip(np.searchsorted(sorted_codes, pixel), 0, len(sorted_codes) - 1)
         known = sorted_codes[pos] == pixel
         if not known.all():
             j, i = np.argwhere(~known)[0]
-            raise ValueError(f"{path!r}: pixel (row {j}, column {i}) has colour {image[j, i, ::-1].tolist()}, "
+            raise ValueError(f"{path!r}: pixel (row {j}, column {i}) has colour {image[j, i].tolist()}, "
                              f"which is not in the palette {colours.tolist()}")
         indices[z] = index_of[order[pos]]
     return indices, palette

@@ -55,13 +55,11 @@ def parse_fixed(spec):
 
 
 def _read_mask(path):
-    import cv2
+    """(H, W) bool: the mask image's grey value > 0.5 (:func:`torch_appearance.io.read_mask`; truncated or corrupt
+    files are refused)."""
+    from .. import io as ta_io
 
-    raw = np.fromfile(path, dtype=np.uint8)
-    image = cv2.imdecode(raw, cv2.IMREAD_GRAYSCALE) if raw.size else None
-    if image is None:
-        raise ValueError(f"fixed: mask image {path!r} is not a readable PNG")
-    return image.astype(np.float64) / 255.0 > 0.5
+    return ta_io.read_mask(path, name="fixed: mask image")
 
 
 def _term_mask(target, term, spec):

@@ -231,10 +231,7 @@ def _slab_fixed(specs, size, work_dir):
         slab_terms = []
         for t, term in enumerate(terms):
             if term.lower().endswith(".png"):
-                raw = np.fromfile(term, dtype=np.uint8)
-                mask = cv2.imdecode(raw, cv2.IMREAD_GRAYSCALE) if raw.size else None
-                if mask is None:
-                    raise ValueError(f"fixed: mask image {term!r} is not a readable PNG")
+                mask = ta_io.read_mask(term, name="fixed: mask image").astype(np.uint8) * 255
                 mask = cv2.resize(mask, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
                 term = os.path.join(work_dir, f"fixed_{n}_{t}.png")
                 _, png = cv2.imencode(".png", mask)

@@ -76,7 +76,9 @@ def load_target(spec, *, size=None, name="target"):
     """A target image as linear RGB (H, W, 3) float32.
 
     Args:
-        spec: a built-in name ("zebra", "colorchecker") or a path to an sRGB PNG/JPG or a linear EXR.
+        spec: a built-in name ("zebra", "colorchecker") or a path to an image that
+            :func:`torch_appearance.io.read_image` reads: 8/16-bit sRGB PNG/JPEG/TIFF (decoded to linear) or a linear
+            EXR; grey is repeated over R, G, B, alpha dropped. Truncated or corrupt files are refused.
         size: optional (H, W) in texels to resample to (area averaging in linear RGB).
         name: argument name for error messages.
     """
@@ -89,13 +91,7 @@ def load_target(spec, *, size=None, name="target"):
         if not os.path.isfile(spec):
             raise ValueError(f"{name}: expected a built-in target {sorted(BUILTIN_TARGETS)} or an image file, "
                              f"got {spec!r} (no such file)")
-        ext = os.path.splitext(spec)[1].lower()
-        if ext == ".exr":
-            image = ta_io.read_exr(spec)
-        elif ext in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"):
-            image = _read_srgb_image(spec, name)
-        else:
-            raise ValueError(f"{name}: expected a .png, .jpg, .tif or .exr file, got {spec!r}")
+        image = ta_io.read_image(spec, space="linear", name=name)  # decoded fully; sRGB or linear EXR
     image = np.asarray(image, np.float32)
     if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 1:
         raise ValueError(f"{name}: expected an RGB image (H, W, 3), got shape {image.shape}")
@@ -108,19 +104,3 @@ def load_target(spec, *, size=None, name="target"):
             raise ValueError(f"{name}: expected a target size >= 1 texel, got {size}")
         image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
     return np.clip(image, 0.0, 1.0).astype(np.float32)
-
-
-def _read_srgb_image(path, name):
-    import cv2
-    from ..color import srgb_to_linear
-    import torch
-
-    raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise ValueError(f"{name}: could not read an image from {path!r}")
-    if raw.ndim == 2:
-        raw = np.repeat(raw[:, :, None], 3, axis=2)
-    raw = raw[:, :, :3][:, :, ::-1]  # BGR(A) -> RGB
-    scale = 65535.0 if raw.dtype == np.uint16 else 255.0 if raw.dtype == np.uint8 else 1.0
-    srgb = raw.astype(np.float32) / scale
-    return srgb_to_linear(torch.from_numpy(np.ascontiguousarray(srgb))).numpy()

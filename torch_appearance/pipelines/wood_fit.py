@@ -78,26 +78,17 @@ class WoodFitConfig:
 def load_photo(path, max_size=None):
     """A photo as linear RGB (H, W, 3) float32 and its luminance (H, W) in [0, 1] (sRGB decoded).
 
+    Read with :func:`torch_appearance.io.read_image`: 8/16-bit sRGB images are decoded to linear, EXR is linear,
+    grey is repeated over R, G, B, alpha is dropped; truncated or corrupt files are refused.
+
     Raises:
-        ValueError: unreadable file, empty image, or not 1/3/4 channels.
+        ValueError: missing, unreadable, truncated or corrupt file, or smaller than 8×8 pixels.
     """
     import cv2
 
     if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
         raise ValueError(f"photo: expected an image file, got {path!r} (no such file)")
-    if str(path).lower().endswith(".exr"):
-        rgb = ta_io.read_exr(str(path))
-    else:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None or raw.size == 0:
-            raise ValueError(f"photo: could not read an image from {path!r}")
-        if raw.ndim == 2:
-            raw = np.repeat(raw[:, :, None], 3, axis=2)
-        if raw.shape[2] not in (3, 4):
-            raise ValueError(f"photo: expected 1, 3 or 4 channels, got {raw.shape[2]} in {path!r}")
-        scale = 65535.0 if raw.dtype == np.uint16 else 255.0
-        srgb = np.ascontiguousarray(raw[:, :, 2::-1]).astype(np.float32) / scale
-        rgb = srgb_to_linear(torch.from_numpy(srgb)).numpy()
+    rgb = ta_io.read_image(path, space="linear", name="photo")
     if min(rgb.shape[:2]) < 8:
         raise ValueError(f"photo: expected at least 8×8 pixels, got {rgb.shape[:2]}")
     if max_size is not None and max(rgb.shape[:2]) > max_size:
@@ -207,8 +198,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
 
     cfg.validate()
     torch.manual_seed(cfg.seed)
-    os.makedirs(cfg.out, exist_ok=True)
     rgb, gray = load_photo(cfg.photo, cfg.max_size)
+    os.makedirs(cfg.out, exist_ok=True)  # only once the photo has been read: a refused photo leaves no run folder
     h, w = gray.shape
     timings = {}
 

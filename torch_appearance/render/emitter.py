@@ -70,7 +70,7 @@ class EnvironmentMap:
     def from_exr(path, scale=1.0):
         """Read a lat-long linear-RGB OpenEXR file (corrupt or truncated files are refused by the reader)."""
         from ..io import read_exr
-        return EnvironmentMap(read_exr(path), scale)
+        return EnvironmentMap(read_exr(path, name="envmap"), scale)
 
     def to_cpp(self, dtype):
         from .._ext import _C
