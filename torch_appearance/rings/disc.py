@@ -1,0 +1,401 @@
+"""Disc mode: ring boundaries along several pith -> bark transects of a whole-disc photo, filtered once.
+
+A cross-section (disc) photo shows closed, roughly concentric rings around the pith. Filtering the whole photo
+again for every transect (as :func:`~torch_appearance.rings.dendro.detect_transect_boundaries` does) costs minutes
+on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is resampled and filtered, once:
+
+1. **Polar strip.** For a transect at angle ``theta`` from the pith, sample the image at radius ``r`` (columns,
+   1 px steps from the pith) and arc offset ``s`` (rows, ``-half_width..half_width``, 1 px steps):
+   ``pith + r (cos phi, sin phi)`` with ``phi = theta + s / max(r, half_width)``. Circular rings around the pith
+   become exactly vertical lines, so the strip looks like an increment core with the pith on the left and the
+   bark on the right; eccentric or wavy rings are only slightly tilted.
+2. **Wood / background.** Pixels whose colour is within ``background_tol`` (RGB distance, values in [0, 1]) of the
+   background colour (the median of the image border, or ``background``) are *not wood*: the background around the
+   disc and open cracks. The disc edge along the transect is where the wood fraction of the strip's central rows
+   last drops below one half; the strip is cut there. Non-wood pixels are replaced by the mean of the wood pixels
+   of their column (i.e. filled *along the ring*), so a crack along the transect does not hide the rings.
+3. **Filter.** The strip's HSV value is filtered with the curved Gabor filter (normal oriented pith -> bark), as in
+   core mode (:mod:`torch_appearance.rings.dendro`): ``p``/``q`` scale with the strip's dominant ring period.
+4. **Profile.** The local ring tilt in the strip (magnitude-weighted doubled-angle mean of the Gabor orientation
+   over the central rows, smoothed along the radius) gives a shear per column; the V profile and the complex
+   Gabor response are averaged over the central ``band`` of rows along that local tilt, weighted by the wood mask.
+5. **Boundaries.** The cycles of the unwrapped phase and the latewood-side foot of the steepest V rise in each
+   cycle give the boundaries (``_cycle_boundaries`` of core mode), converted back to image coordinates.
+   Boundaries closer than ``min_ring_px`` to the previous one are merged (the weaker is dropped). With
+   ``include_edge`` the disc edge (outer end of the last ring, where CooRecorder users and CS-TRD put the last
+   boundary) is appended as a boundary of kind ``"edge"`` when the transect reaches it.
+
+The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` instead of ``O(n_transects * H W (p + q))``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from .dendro import RingBoundaries, _cycle_boundaries, _gabor_params, _pixel_size, hsv_value, ring_widths_mm
+from .gabor import curved_gabor
+from .orientation import orientation_field
+
+__all__ = ["DiscBoundaries", "detect_disc_boundaries", "polar_strip", "synthetic_disc", "transect_angles"]
+
+
+@dataclass
+class DiscBoundaries:
+    """Ring boundaries along several transects of one disc.
+
+    Attributes:
+        pith: ``(2,)`` float64 ``(x, y)`` pith position in pixels.
+        transects: list of :class:`~torch_appearance.rings.dendro.RingBoundaries`, one per transect, points
+            ordered pith -> bark; ``info["kind"]`` is a list of ``"ring"`` / ``"edge"`` per point and
+            ``info["radius_px"]`` the distance of each point from the pith.
+        ends: ``(T, 2)`` end point ``(x, y)`` of each transect as analysed (cut at the disc edge or image border).
+        angles_deg: ``(T,)`` transect directions in degrees (from +x towards +y, i.e. clockwise on screen).
+        info: ``filtered_px`` (pixels passed to the Gabor filter, all transects), ``filter_calls``, background.
+    """
+
+    pith: np.ndarray
+    transects: list
+    ends: np.ndarray
+    angles_deg: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def _number(value, name, lo=None, hi=None, *, integer=False):
+    ok = not isinstance(value, bool) and isinstance(value, (int, np.integer) if integer else
+                                                     (int, float, np.integer, np.floating))
+    if ok and not integer:
+        ok = math.isfinite(float(value))
+    if ok and lo is not None:
+        ok = value >= lo
+    if ok and hi is not None:
+        ok = value <= hi
+    if not ok:
+        rng = f" in [{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
+        raise ValueError(f"{name} must be {'an integer' if integer else 'a finite number'}{rng}; got {value!r}")
+    return value
+
+
+def _check_pith(pith, shape):
+    try:
+        x, y = (float(t) for t in pith)
+    except (TypeError, ValueError):
+        raise ValueError(f"pith must be two numbers (x, y) in pixels; got {pith!r}") from None
+    H, W = shape
+    if not (math.isfinite(x) and math.isfinite(y) and 0 <= x <= W - 1 and 0 <= y <= H - 1):
+        raise ValueError(f"pith ({x:g}, {y:g}) lies outside the image (x in [0, {W - 1}], y in [0, {H - 1}])")
+    return np.array([x, y])
+
+
+def transect_angles(n: int, start_deg: float = 0.0) -> np.ndarray:
+    """``n`` equally spaced transect angles in degrees, starting at ``start_deg`` (from +x towards +y)."""
+    _number(n, "n", 1, integer=True)
+    return (float(start_deg) + 360.0 * np.arange(n) / n) % 360.0
+
+
+def _ray_length_to_border(pith, u, shape):
+    """Distance from ``pith`` along unit ``u`` to the last in-image sample (pixel centres span [0, W-1])."""
+    H, W = shape
+    t = np.inf
+    for p, d, hi in ((pith[0], u[0], W - 1), (pith[1], u[1], H - 1)):
+        if d > 1e-12:
+            t = min(t, (hi - p) / d)
+        elif d < -1e-12:
+            t = min(t, (0 - p) / d)
+    return float(t)
+
+
+def polar_strip(image, pith, angle_deg: float, length: float, half_width: int = 16):
+    """Resample ``image`` on the polar strip of a transect (module docstring, step 1).
+
+    Args:
+        image: ``(H, W)`` or ``(H, W, C)`` numpy array.
+        pith: ``(x, y)`` in pixels.
+        angle_deg: transect direction in degrees from +x towards +y (clockwise on screen, y down).
+        length: transect length in pixels (columns ``r = 0 .. floor(length)``).
+        half_width: rows ``s = -half_width .. half_width`` (pixels of arc).
+
+    Returns:
+        ``(strip, X, Y)``: ``strip`` ``(2 half_width + 1, L[, C])`` float64 (bilinear; samples outside the image
+        take the nearest border value) and the sample coordinates ``X, Y`` ``(2 half_width + 1, L)``.
+    """
+    a = np.asarray(image, dtype=np.float64)
+    r = np.arange(0, int(math.floor(length)) + 1, dtype=np.float64)
+    s = np.arange(-half_width, half_width + 1, dtype=np.float64)
+    phi = math.radians(angle_deg) + s[:, None] / np.maximum(r[None, :], float(half_width))
+    X = pith[0] + r[None, :] * np.cos(phi)
+    Y = pith[1] + r[None, :] * np.sin(phi)
+    sample = lambda c: ndimage.map_coordinates(c, [Y, X], order=1, mode="nearest")  # noqa: E731
+    out = sample(a) if a.ndim == 2 else np.stack([sample(a[..., c]) for c in range(a.shape[2])], -1)
+    return out, X, Y
+
+
+def _background_colour(rgb):
+    """Median colour of the image border ``(C,)``."""
+    border = np.concatenate([rgb[0], rgb[-1], rgb[:, 0], rgb[:, -1]])
+    return np.median(border, axis=0)
+
+
+def _strip_boundaries(v, wood, *, band, p, q, f_max, min_rel_rise, edge_level, tilt_sigma, max_tilt_deg, device,
+                      num_workers, calls):
+    """Boundaries (column positions) on a filled strip ``v`` ``(S, L)`` with wood weights ``wood`` ``(S, L)``."""
+    S, L = v.shape
+    # ring period for p / q from the strip with its slow brightness trend removed (heartwood / sapwood, stains:
+    # periods of hundreds of px would otherwise win and make the filter far too long)
+    hp = v - ndimage.gaussian_filter1d(v, max(32.0, L / 20.0), axis=1, mode="nearest")
+    p, q, period = _gabor_params(hp.astype(np.float32), p, q, f_max)
+    q = min(q, max(1, S // 2 - 1))
+    # rings run along the strip's columns (vertical) up to the tilt of eccentric rings: clamp the orientation
+    # field there, so that cracks, rays or stains along the transect cannot turn the filter
+    theta, _ = orientation_field(v.astype(np.float32))
+    dev = theta.astype(np.float64) - math.pi / 2  # theta in [0, pi): dev in [-pi/2, pi/2)
+    lim = math.radians(max_tilt_deg)
+    theta = (math.pi / 2 + np.clip(dev, -lim, lim)).astype(np.float32)
+    calls.append(v.shape)
+    res = curved_gabor(v.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max), normal_reference=(1.0, 0.0),
+                       device=device, num_workers=num_workers)
+    yc = (S - 1) / 2.0
+    half = max(0.5, band * S / 2.0)
+    rows = np.arange(S)[np.abs(np.arange(S) - yc) <= half]
+    # local ring tilt per column: doubled-angle mean over the central rows, smoothed along the radius
+    th = res.theta.astype(np.float64)[rows]
+    w = res.magnitude.astype(np.float64)[rows] * wood[rows]
+    c2 = ndimage.gaussian_filter1d((w * np.cos(2 * th)).sum(0), tilt_sigma * period, mode="nearest")
+    s2 = ndimage.gaussian_filter1d((w * np.sin(2 * th)).sum(0), tilt_sigma * period, mode="nearest")
+    mth = 0.5 * np.arctan2(s2, c2) % math.pi
+    sin_m = np.sin(mth)
+    shear = np.cos(mth) / np.maximum(np.abs(sin_m), 0.2) * np.where(sin_m < 0, -1.0, 1.0)
+    xs = np.arange(L, dtype=np.float64)
+    coords_x = xs[None, :] + (rows[:, None] - yc) * shear[None, :]
+    coords_y = np.broadcast_to(rows[:, None].astype(np.float64), coords_x.shape)
+    sample = lambda f: ndimage.map_coordinates(f, [coords_y, coords_x], order=1, mode="nearest")  # noqa: E731
+    wt = sample(wood) + 1e-6
+    z = res.magnitude * np.exp(1j * res.phase)
+    norm = wt.sum(0)
+    v_prof = (sample(v) * wt).sum(0) / norm
+    z_prof = ((sample(z.real) + 1j * sample(z.imag)) * wt).sum(0) / norm
+    pos = _cycle_boundaries(v_prof, z_prof, min_rel_rise=min_rel_rise, edge_level=edge_level)
+    return pos, dict(period_px=period, p=p, q=q, shear=shear, profile_v=v_prof, profile_z=z_prof)
+
+
+def _merge_close(pos, v_prof, min_gap):
+    """Drop boundaries closer than ``min_gap`` to the previous kept one (keep the one with the larger V rise)."""
+    if len(pos) < 2 or min_gap <= 0:
+        return pos
+    dv = np.gradient(ndimage.gaussian_filter1d(v_prof, 1.0))
+    strength = dv[np.clip(np.round(pos).astype(int), 0, len(dv) - 1)]
+    keep = [0]
+    for i in range(1, len(pos)):
+        if pos[i] - pos[keep[-1]] < min_gap:
+            if strength[i] > strength[keep[-1]]:
+                keep[-1] = i
+        else:
+            keep.append(i)
+    return pos[np.array(keep)]
+
+
+def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_width: int = 16, band: float = 0.5,
+                           include_edge: bool = True, background=None, background_tol: float = 0.1,
+                           min_ring_px: float = 0.0, max_radius: float | None = None, dpi=None,
+                           pixel_size_mm=None, p: int | None = None, q: int | None = None, f_max: float = 0.4,
+                           min_rel_rise: float = 0.1, edge_level: float = 0.8, tilt_sigma: float = 2.0,
+                           max_tilt_deg: float = 40.0,
+                           device="cpu", num_workers: int | None = None, progress=None) -> DiscBoundaries:
+    """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
+
+    Args:
+        image: ``(H, W, 3)`` RGB in ``[0, 1]`` (sRGB values) or ``(H, W)`` gray numpy array.
+        pith: ``(x, y)`` pith position in pixels (inside the image).
+        angles_deg: transect directions in degrees from +x towards +y (0 = right, 90 = down on screen); each runs
+            from the pith to the disc edge (or the image border / ``max_radius``).
+        ends: ``(T, 2)`` transect end points ``(x, y)`` in pixels (inside the image); each transect runs from the
+            pith to its end point (cut earlier at the disc edge). Angles and ends may be combined (angles first).
+            Neither: four transects at 0, 90, 180, 270 degrees.
+        half_width: strip half-width in pixels of arc (rows ``2 half_width + 1``).
+        band: fraction of the strip's rows (around the transect) averaged for the profile.
+        include_edge: append the disc edge as the last boundary (kind ``"edge"``) when the transect reaches it.
+        background: background colour ``(3,)`` in [0, 1] (default: median of the image border); pixels within
+            ``background_tol`` of it are not wood.
+        min_ring_px: boundaries closer than this (px) to the previous one are merged; 0 keeps all.
+        max_radius: optional cap on the transect length (px).
+        dpi, pixel_size_mm: pixel size for the ring widths in mm (at most one).
+        p, q, f_max, min_rel_rise, edge_level: as in :func:`~torch_appearance.rings.dendro.detect_core_boundaries`
+            (``p``, ``q`` default to the strip's dominant ring period).
+        tilt_sigma: smoothing of the local ring tilt along the radius, in ring periods.
+        max_tilt_deg: largest ring tilt in the strip (degrees from the radial normal); the orientation field is
+            clamped to it (cracks, rays and stains along the transect would otherwise turn the filter).
+        device, num_workers: passed to the curved Gabor filter.
+        progress: optional callable ``progress(k, T)`` called after each transect.
+
+    Returns:
+        :class:`DiscBoundaries`.
+
+    Raises:
+        ValueError / TypeError: bad image, pith outside the image, an end point outside the image or a transect
+            of (nearly) zero length, bad parameters.
+
+    Example:
+        >>> # res = detect_disc_boundaries(rgb, (1520, 1610), angles_deg=[0, 90, 180, 270], dpi=600)
+        >>> # res.transects[0].points  # (N, 2) x, y
+    """
+    ps = _pixel_size(dpi, pixel_size_mm)
+    _number(half_width, "half_width", 2, 200, integer=True)
+    _number(band, "band", 1e-6, 1.0)
+    _number(background_tol, "background_tol", 0.0, 2.0)
+    _number(min_ring_px, "min_ring_px", 0.0)
+    _number(tilt_sigma, "tilt_sigma", 1e-3)
+    _number(max_tilt_deg, "max_tilt_deg", 0.0, 89.0)
+    if max_radius is not None:
+        _number(max_radius, "max_radius", 2.0)
+    if not isinstance(include_edge, bool):
+        raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
+    v_full = hsv_value(image)  # validation
+    a = np.asarray(image)
+    rgb = a[..., :3].astype(np.float64) if a.ndim == 3 and a.shape[2] in (3, 4) else v_full[..., None].astype(
+        np.float64)
+    H, W = v_full.shape
+    c = _check_pith(pith, (H, W))
+    dirs = []  # (angle_deg, requested length)
+    if angles_deg is not None:
+        ang = np.atleast_1d(np.asarray(angles_deg, dtype=np.float64))
+        if ang.ndim != 1 or not np.isfinite(ang).all():
+            raise ValueError(f"angles_deg must be a sequence of finite numbers; got {angles_deg!r}")
+        dirs += [(float(t) % 360.0, None) for t in ang]
+    if ends is not None:
+        e = np.asarray(ends, dtype=np.float64)
+        if e.ndim == 1 and e.size == 2:
+            e = e[None]
+        if e.ndim != 2 or e.shape[1] != 2 or not np.isfinite(e).all():
+            raise ValueError(f"ends must have shape (T, 2) of finite (x, y) pixels; got shape {e.shape}")
+        for x, y in e:
+            if not (0 <= x <= W - 1 and 0 <= y <= H - 1):
+                raise ValueError(f"transect end ({x:g}, {y:g}) lies outside the image (x in [0, {W - 1}], "
+                                 f"y in [0, {H - 1}])")
+            length = math.hypot(x - c[0], y - c[1])
+            if length < 2.0:
+                raise ValueError(f"transect from the pith ({c[0]:g}, {c[1]:g}) to ({x:g}, {y:g}) has (nearly) zero "
+                                 f"length")
+            dirs.append((math.degrees(math.atan2(y - c[1], x - c[0])) % 360.0, length))
+    if not dirs:
+        dirs = [(t, None) for t in transect_angles(4)]
+    bg = _background_colour(rgb) if background is None else np.asarray(background, dtype=np.float64).reshape(-1)
+    if bg.shape != (rgb.shape[2],) or not np.isfinite(bg).all():
+        raise ValueError(f"background must be {rgb.shape[2]} finite numbers; got {background!r}")
+    calls, out, ends_out = [], [], []
+    for k, (deg, req) in enumerate(dirs):
+        th = math.radians(deg)
+        u = np.array([math.cos(th), math.sin(th)])
+        length = _ray_length_to_border(c, u, (H, W)) if req is None else req
+        if max_radius is not None:
+            length = min(length, float(max_radius))
+        if length < 2.0:
+            raise ValueError(f"transect at {deg:g} deg from the pith ({c[0]:g}, {c[1]:g}) has (nearly) zero length "
+                             f"inside the image")
+        strip, X, Y = polar_strip(rgb, c, deg, length, half_width)
+        inside = (X >= -0.5) & (X <= W - 0.5) & (Y >= -0.5) & (Y <= H - 0.5)
+        wood = (np.linalg.norm(strip - bg, axis=2) > background_tol) & inside
+        S, L = wood.shape
+        yc = (S - 1) // 2
+        central = wood[max(0, yc - S // 4):yc + S // 4 + 1].mean(0)
+        frac = ndimage.uniform_filter1d(central, 5, mode="nearest")
+        woody = np.nonzero(frac >= 0.5)[0]
+        edge = None
+        if len(woody) == 0:
+            out.append(RingBoundaries(points=np.zeros((0, 2)), widths_px=np.zeros(0), widths_mm=np.zeros(0),
+                                      pixel_size_mm=ps, info=dict(kind=[], radius_px=np.zeros(0), angle_deg=deg)))
+            ends_out.append(c.copy())
+            if progress is not None:
+                progress(k + 1, len(dirs))
+            continue
+        last = int(woody[-1])
+        if last < L - 3:  # the wood ends before the transect does: the disc edge
+            nxt = min(last + 1, L - 1)
+            a_, b_ = frac[last], frac[nxt]
+            edge = last + ((a_ - 0.5) / (a_ - b_) if a_ > b_ else 0.0)
+        Lc = min(L, last + 1)
+        v = hsv_value(strip[:, :Lc].astype(np.float32)).astype(np.float64) if strip.shape[2] >= 3 else \
+            strip[:, :Lc, 0]
+        wd = wood[:, :Lc].astype(np.float64)
+        # fill non-wood pixels along the ring (mean of the column's wood pixels; columns without wood: interpolate)
+        cnt = wd.sum(0)
+        colmean = np.where(cnt > 0, (v * wd).sum(0) / np.maximum(cnt, 1), np.nan)
+        good = np.isfinite(colmean)
+        colmean = np.interp(np.arange(Lc), np.nonzero(good)[0], colmean[good])
+        v = np.where(wd > 0, v, colmean[None, :])
+        if Lc < 16:
+            pos = np.zeros(0)
+            sinfo = {}
+        else:
+            pos, sinfo = _strip_boundaries(v, wd, band=band, p=p, q=q, f_max=f_max, min_rel_rise=min_rel_rise,
+                                           edge_level=edge_level, tilt_sigma=tilt_sigma,
+                                           max_tilt_deg=max_tilt_deg, device=device,
+                                           num_workers=num_workers, calls=calls)
+            pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
+        kinds = ["ring"] * len(pos)
+        if include_edge and edge is not None:
+            # the last ring boundary coincides with the edge when it lies within 2 px of it
+            pos = pos[pos < edge - 2.0]
+            kinds = ["ring"] * len(pos) + ["edge"]
+            pos = np.r_[pos, edge]
+        pts = c[None, :] + pos[:, None] * u[None, :]
+        wpx, wmm = ring_widths_mm(pts, ps)
+        sinfo.update(kind=kinds, radius_px=pos.copy(), angle_deg=deg, edge_px=edge, length_px=float(Lc - 1))
+        out.append(RingBoundaries(points=pts.reshape(-1, 2), widths_px=wpx, widths_mm=wmm, pixel_size_mm=ps,
+                                  info=sinfo))
+        ends_out.append(c + (Lc - 1) * u)
+        if progress is not None:
+            progress(k + 1, len(dirs))
+    info = dict(filtered_px=int(sum(s[0] * s[1] for s in calls)), filter_calls=len(calls), background=bg,
+                image_px=H * W)
+    return DiscBoundaries(pith=c, transects=out, ends=np.array(ends_out).reshape(-1, 2),
+                          angles_deg=np.array([d for d, _ in dirs]), info=info)
+
+
+def synthetic_disc(size=(320, 300), pith=(150.0, 160.0), widths=None, *, ecc=0.06, ecc_angle=0.7, noise=0.02,
+                   background=(1.0, 1.0, 1.0), seed=0, ss=3):
+    """A synthetic disc photo with known rings: ``(rgb, boundary_radius)``.
+
+    Ring ``k``'s outer boundary is the closed curve ``r = B_k (1 + ecc cos(phi - ecc_angle))`` around ``pith``
+    (``B_k`` the cumulative ``widths``); each ring is light earlywood fading slowly and the last 35 % darkening to
+    latewood, then a sharp step up at the boundary (as in real conifer rings). The last boundary is the disc edge:
+    the background colour outside it. Rendered with ``ss`` x ``ss`` supersampling plus Gaussian noise.
+
+    Args:
+        size: ``(H, W)`` in pixels.
+        pith: ``(x, y)`` in pixels.
+        widths: ring widths in pixels, pith -> bark (default: 12 rings from 14 px down to 7 px).
+        ecc: relative eccentricity of the rings; ``ecc_angle`` its direction (radians).
+
+    Returns:
+        ``rgb`` ``(H, W, 3)`` float32 in [0, 1]; ``boundary_radius(phi)``: a function returning the ``(K,)`` true
+        boundary radii (px from the pith, the last one the disc edge) along direction ``phi`` (radians, from +x
+        towards +y).
+    """
+    H, W = size
+    widths = np.linspace(14, 7, 12) if widths is None else np.asarray(widths, dtype=np.float64)
+    B = np.cumsum(widths)
+    rng = np.random.default_rng(seed)
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    yy = (np.arange(H)[:, None] + o[None, :]).reshape(-1)
+    xx = (np.arange(W)[:, None] + o[None, :]).reshape(-1)
+    X, Y = np.meshgrid(xx, yy)
+    dx, dy = X - pith[0], Y - pith[1]
+    rho = np.hypot(dx, dy) / (1 + ecc * np.cos(np.arctan2(dy, dx) - ecc_angle))
+    k = np.searchsorted(B, rho, side="right")
+    start = np.r_[0.0, B][np.minimum(k, len(B))]
+    wk = np.r_[widths, widths[-1]][np.minimum(k, len(widths))]
+    frac = np.clip((rho - start) / wk, 0, 1)
+    late = 0.35
+    v = np.where(frac < 1 - late, 0.85 - 0.15 * frac / (1 - late), 0.7 - 0.4 * (frac - (1 - late)) / late)
+    rgb = np.stack([v, 0.8 * v, 0.55 * v], -1)
+    rgb = np.where((k >= len(B))[..., None], np.asarray(background, dtype=np.float64), rgb)
+    rgb = rgb.reshape(H, ss, W, ss, 3).mean((1, 3))
+    rgb = np.clip(rgb + rng.normal(0, noise, rgb.shape), 0, 1).astype(np.float32)
+
+    def boundary_radius(phi):
+        return B * (1 + ecc * math.cos(phi - ecc_angle))
+
+    return rgb, boundary_radius
+
