@@ -1,17 +1,27 @@
 #!/usr/bin/env python
-"""Detect tree-ring boundaries on an increment core scan (core mode) or along a transect of a disc / board photo.
+"""Detect tree-ring boundaries on an increment core scan (core mode), along a transect of a board photo, or along
+several pith -> bark transects of a whole-disc photo (disc mode).
 
 Core mode (default): rings cross the core's long axis; the bark (youngest rings) is at the side given by --bark
 (default: right for wide images, bottom for tall ones). Transect mode: --transect X0,Y0,X1,Y1 in pixels, drawn from
-the pith towards the bark. The boundary is the sharp latewood -> earlywood transition
-(torch_appearance.rings.dendro). Writes a CSV with columns index,x_px,y_px,width_px,width_mm ordered pith -> bark
-(width to the previous boundary; empty for the first, width_mm empty without --dpi / --pixel-size-mm).
+the pith towards the bark (filters the whole image; for discs use disc mode). The boundary is the sharp latewood ->
+earlywood transition (torch_appearance.rings.dendro). Writes a CSV with columns index,x_px,y_px,width_px,width_mm
+ordered pith -> bark (width to the previous boundary; empty for the first, width_mm empty without --dpi /
+--pixel-size-mm).
+Disc mode (--pith X,Y): transects run from the pith outwards, given as --angles A1,A2,... (degrees from the +x axis
+towards +y, i.e. clockwise on screen: 0 = right, 90 = down, 180 = left, 270 = up; each runs to the disc edge or the
+image border) and/or repeated --transect X,Y (the bark-side end point in pixels); default: --angles 0,90,180,270.
+Only a narrow polar strip around each transect is resampled and filtered, once (torch_appearance.rings.disc).
+Writes one CSV with columns transect,angle_deg,index,kind,x_px,y_px,radius_px,width_px,width_mm (kind: ring, or
+edge for the disc edge with --edge) and one overlay with all transects.
 Section mode (--mode section): a stained microscopy cross-section; writes the boundary polyline (index,x_px,y_px,
 about 1 px apart; header only if none was found); --cell-px is the typical cell diameter in pixels.
 
 Examples:
     python scripts/detect_rings.py core.png --bark left --dpi 1200 --out rings.csv --overlay rings.png
-    python scripts/detect_rings.py disc.jpg --transect 512,500,980,130 --pixel-size-mm 0.05 --out disc.csv
+    python scripts/detect_rings.py board.jpg --transect 512,500,980,130 --pixel-size-mm 0.05 --out board.csv
+    python scripts/detect_rings.py disc.jpg --pith 1520,1610 --angles 0,90,180,270 --out disc.csv --overlay disc.png
+    python scripts/detect_rings.py disc.jpg --pith 1520,1610 --transect 2900,1650 --transect 1480,40 --out disc.csv
     python scripts/detect_rings.py section.png --mode section --out boundary.csv --overlay boundary.png
 """
 import argparse
@@ -30,6 +40,7 @@ import numpy as np
 from torch_appearance.io import atomic_write_bytes, read_image, write_csv
 from torch_appearance.rings.dendro import (detect_core_boundaries, detect_section_boundaries,
                                            detect_transect_boundaries)
+from torch_appearance.rings.disc import detect_disc_boundaries
 
 PROG = "detect_rings.py"
 
@@ -43,7 +54,17 @@ def parse_args(argv=None):
     p.add_argument("--overlay", default=None, help="optional overlay PNG with the detected boundaries")
     p.add_argument("--bark", choices=("left", "right", "top", "bottom"), default=None,
                    help="core mode: side with the bark (default: right for wide, bottom for tall images)")
-    p.add_argument("--transect", default=None, help="transect mode: X0,Y0,X1,Y1 in pixels, pith -> bark")
+    p.add_argument("--transect", action="append", default=None,
+                   help="transect mode: X0,Y0,X1,Y1 in pixels, pith -> bark; disc mode (with --pith): X,Y, the "
+                        "transect's bark-side end (repeat for several transects)")
+    p.add_argument("--pith", default=None, help="disc mode: pith position X,Y in pixels")
+    p.add_argument("--angles", default=None,
+                   help="disc mode: transect angles in degrees, comma-separated (from +x towards +y, clockwise on "
+                        "screen: 0 right, 90 down); default 0,90,180,270 when no --transect is given")
+    p.add_argument("--edge", action="store_true",
+                   help="disc mode: report the disc edge (outer end of the last ring) as the last boundary")
+    p.add_argument("--half-width", type=int, default=16,
+                   help="disc mode: half-width of the strip filtered around each transect, px (default: %(default)s)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--dpi", type=float, default=None, help="scan resolution (pixel size 25.4 / dpi mm)")
     size.add_argument("--pixel-size-mm", type=float, default=None, help="pixel size in mm")
@@ -85,6 +106,89 @@ def overlay_png(rgb, points, transect=None, polyline=False):
     return buf.tobytes()
 
 
+_COLOURS = [(0, 0, 255), (0, 200, 0), (255, 128, 0), (255, 0, 255), (0, 200, 255), (255, 255, 0), (128, 0, 255),
+            (0, 128, 255)]
+
+
+def disc_overlay_png(rgb, res):
+    """PNG bytes of the disc with each transect (its own colour), a tick across it at every boundary (a circle at
+    the edge) and its number at the outer end; the pith is a white cross."""
+    img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    h, w = img.shape[:2]
+    thick = max(1, int(round(max(h, w) / 1500)))
+    tick = 4 * thick + 2
+    c = res.pith
+    for k, (tr, end) in enumerate(zip(res.transects, res.ends)):
+        col = _COLOURS[k % len(_COLOURS)]
+        cv2.line(img, (int(round(c[0])), int(round(c[1]))), (int(round(end[0])), int(round(end[1]))), col, thick)
+        th = np.radians(res.angles_deg[k])
+        n = np.array([-np.sin(th), np.cos(th)])
+        for (x, y), kind in zip(tr.points, tr.info.get("kind", [])):
+            if kind == "edge":
+                cv2.circle(img, (int(round(x)), int(round(y))), tick, col, thick)
+            else:
+                a, b = np.array([x, y]) - tick * n, np.array([x, y]) + tick * n
+                cv2.line(img, tuple(int(round(t)) for t in a), tuple(int(round(t)) for t in b), col, thick)
+        pos = (int(np.clip(end[0], 0, w - 30)), int(np.clip(end[1], 15, h - 5)))
+        cv2.putText(img, str(k), pos, cv2.FONT_HERSHEY_SIMPLEX, 0.5 * thick, col, thick)
+    cx, cy = int(round(c[0])), int(round(c[1]))
+    cv2.drawMarker(img, (cx, cy), (255, 255, 255), cv2.MARKER_CROSS, 4 * tick, thick)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("could not encode the overlay PNG")
+    return buf.tobytes()
+
+
+def _numbers(text, name, count=None):
+    try:
+        vals = [float(t) for t in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated numbers; got {text!r}") from None
+    if count is not None and len(vals) != count:
+        raise ValueError(f"{name} must be {count} numbers; got {text!r}")
+    if not all(np.isfinite(vals)):
+        raise ValueError(f"{name} must be finite numbers; got {text!r}")
+    return vals
+
+
+def run_disc(args, rgb):
+    """Disc mode: returns the exit code (writes the CSV and the overlay)."""
+    try:
+        pith = _numbers(args.pith, "--pith (X,Y)", 2)
+        angles = _numbers(args.angles, "--angles") if args.angles is not None else None
+        ends = [_numbers(t, "--transect in disc mode (the end point X,Y)", 2) for t in (args.transect or [])]
+    except ValueError as e:
+        return _fail(str(e))
+    from tqdm import tqdm
+
+    with tqdm(total=(len(angles or []) + len(ends)) or 4, desc="transects", unit="transect",
+              disable=None) as bar:
+        try:
+            res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
+                                         half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,
+                                         progress=lambda k, n: bar.update(1))
+            png = disc_overlay_png(rgb, res) if args.overlay else None
+        except ValueError as e:
+            return _fail(str(e))
+    rows = []
+    for k, tr in enumerate(res.transects):
+        for i, ((x, y), kind, r, wp, wm) in enumerate(zip(tr.points, tr.info["kind"], tr.info["radius_px"],
+                                                          tr.widths_px, tr.widths_mm)):
+            rows.append(dict(transect=k, angle_deg=f"{res.angles_deg[k]:.2f}", index=i, kind=kind, x_px=f"{x:.2f}",
+                             y_px=f"{y:.2f}", radius_px=f"{r:.2f}",
+                             width_px="" if not np.isfinite(wp) else f"{wp:.2f}",
+                             width_mm="" if not np.isfinite(wm) else f"{wm:.4f}"))
+    write_csv(args.out, rows, ["transect", "angle_deg", "index", "kind", "x_px", "y_px", "radius_px", "width_px",
+                               "width_mm"])
+    if png is not None:
+        atomic_write_bytes(args.overlay, png)
+    counts = ", ".join(str(len(tr.points)) for tr in res.transects)
+    print(f"{len(rows)} boundaries on {len(res.transects)} transects ({counts}); filtered "
+          f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
+          f"image) -> {args.out}")
+    return 0
+
+
 def main(argv=None):
     args = parse_args(argv)
     for name, path in (("--out", args.out), ("--overlay", args.overlay)):
@@ -94,18 +198,27 @@ def main(argv=None):
         return _fail(f"--dpi must be > 0; got {args.dpi}")
     if args.pixel_size_mm is not None and not args.pixel_size_mm > 0:
         return _fail(f"--pixel-size-mm must be > 0; got {args.pixel_size_mm}")
+    disc = args.pith is not None
+    if not disc and (args.angles is not None or args.edge):
+        return _fail("--angles / --edge need disc mode (--pith X,Y)")
+    if disc and (args.mode == "section" or args.bark is not None):
+        return _fail("--pith (disc mode) does not combine with --mode section or --bark")
+    if not disc and args.transect is not None and len(args.transect) > 1:
+        return _fail("several --transect need disc mode: give the pith with --pith X,Y and each transect's end X,Y")
     try:
         rgb = read_image(args.image, space="srgb", name="image")  # decoded fully: truncated files are refused
     except (OSError, ValueError) as e:
         return _fail(f"cannot read image {args.image!r}: {e}")
+    if disc:
+        return run_disc(args, rgb)
     transect = None
     if args.transect is not None:
         try:
-            transect = tuple(float(t) for t in args.transect.split(","))
+            transect = tuple(float(t) for t in args.transect[0].split(","))
             if len(transect) != 4:
                 raise ValueError
         except ValueError:
-            return _fail(f"--transect must be X0,Y0,X1,Y1 (four numbers); got {args.transect!r}")
+            return _fail(f"--transect must be X0,Y0,X1,Y1 (four numbers); got {args.transect[0]!r}")
     if args.mode == "section" and (transect is not None or args.bark is not None):
         return _fail("--transect / --bark do not apply to --mode section")
     try:
