@@ -1,0 +1,174 @@
+#!/usr/bin/env python
+"""Evaluate disc mode (detect_rings.py --pith) on the UruDendro disc F02b against CS-TRD's ring polygons.
+
+Not part of the test suite: the image and the labels are read from DATA/disc_urudendro_F02b/ (default
+../shared/data next to the checkout) and never copied (image licence unclear, labels AGPL). The labels are CS-TRD's
+*automatic* detection (labelme JSON: 22 closed polygons of 360 vertices, one per ray of its 360-ray web; "center"
+is the pith as [row, col]) - a weak label, CS-TRD itself scores P 0.95 R 0.86 F 0.89 against humans on UruDendro.
+
+For each transect angle the labelled boundaries are the radii where the ray from the pith crosses each polygon
+(first crossing). Detections and labels are matched one-to-one by radius along the transect
+(torch_appearance.rings.dendro.match_boundaries) at each tolerance. Prints a table per transect and the pooled
+sensitivity / precision / F1, writes them as JSON and (with --overlay) a PNG of the disc with the labels (green
+ticks) and the detections (red ticks) along every transect.
+
+Example:
+    python scripts/eval_disc.py --angles 0,45,90,135,180,225,270,315 --out /tmp/disc_eval.json --overlay /tmp/d.png
+"""
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+try:
+    import torch_appearance  # noqa: F401
+except ModuleNotFoundError as error:
+    if error.name != "torch_appearance":
+        raise
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import cv2
+import numpy as np
+
+from torch_appearance.io import atomic_write_bytes, read_png
+from torch_appearance.rings.dendro import match_boundaries
+from torch_appearance.rings.disc import detect_disc_boundaries
+
+PROG = "eval_disc.py"
+DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
+DISC = ("disc_urudendro_F02b", "F02b.png", "F02b_cstrd_detection.json")
+
+
+def polygon_radii(polygons, pith, angle_deg):
+    """Sorted radii (px) where the ray from ``pith`` at ``angle_deg`` first crosses each closed polygon."""
+    th = math.radians(angle_deg)
+    u = np.array([math.cos(th), math.sin(th)])
+    n = np.array([-u[1], u[0]])
+    out = []
+    for poly in polygons:
+        q = np.vstack([poly, poly[:1]]) - pith
+        sd, t = q @ n, q @ u
+        i = np.nonzero(np.sign(sd[:-1]) * np.sign(sd[1:]) <= 0)[0]
+        i = i[sd[i] != sd[i + 1]]
+        tt = t[i] + sd[i] / (sd[i] - sd[i + 1]) * (t[i + 1] - t[i])
+        tt = tt[tt > 0]
+        if len(tt):
+            out.append(float(tt.min()))
+    return np.sort(np.array(out))
+
+
+def load_labels(path):
+    """``(pith (2,) x, y, [polygon (360, 2) x, y])`` of a CS-TRD labelme JSON."""
+    with open(path) as f:
+        j = json.load(f)
+    try:
+        row, col = j["center"]
+        polys = [np.asarray(s["points"], dtype=np.float64).reshape(-1, 2) for s in j["shapes"]]
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path!r} is not a CS-TRD labelme JSON with 'center' and polygon 'shapes': {e}") from None
+    return np.array([col, row], dtype=np.float64), polys
+
+
+def evaluate(data, angles, tolerances=(3.0, 5.0), **kw):
+    rgb = read_png(os.path.join(data, DISC[0], DISC[1]), linear=False)
+    pith, polys = load_labels(os.path.join(data, DISC[0], DISC[2]))
+    t0 = time.perf_counter()
+    res = detect_disc_boundaries(rgb, pith, angles_deg=angles, **kw)
+    seconds = time.perf_counter() - t0
+    rows, labels = [], []
+    for deg, tr in zip(res.angles_deg, res.transects):
+        lab = polygon_radii(polys, pith, deg)
+        labels.append(lab)
+        row = dict(angle_deg=float(deg), detected=len(tr.points), labelled=len(lab))
+        for tol in tolerances:
+            m = match_boundaries(tr.info["radius_px"], lab, tol)
+            row[f"tol{tol:g}"] = {k: m[k] for k in ("sensitivity", "precision", "f1", "matched", "mean_error_px")}
+        rows.append(row)
+    pooled = {}
+    for tol in tolerances:
+        m = sum(r[f"tol{tol:g}"]["matched"] for r in rows)
+        nd, nl = sum(r["detected"] for r in rows), sum(r["labelled"] for r in rows)
+        s, p = m / max(nl, 1), m / max(nd, 1)
+        pooled[f"tol{tol:g}"] = dict(sensitivity=s, precision=p, f1=2 * s * p / (s + p) if s + p else 0.0,
+                                     matched=m, detected=nd, labelled=nl)
+    return rgb, res, labels, rows, pooled, seconds
+
+
+def overlay(rgb, res, labels):
+    img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    c = res.pith
+    for deg, tr, lab, end in zip(res.angles_deg, res.transects, labels, res.ends):
+        th = math.radians(deg)
+        u, n = np.array([math.cos(th), math.sin(th)]), np.array([-math.sin(th), math.cos(th)])
+        cv2.line(img, tuple(np.round(c).astype(int)), tuple(np.round(end).astype(int)), (255, 255, 0), 1)
+        for r in lab:  # labels on one side of the transect, detections on the other
+            p = c + r * u
+            cv2.line(img, tuple(np.round(p).astype(int)), tuple(np.round(p + 7 * n).astype(int)), (0, 160, 0), 2)
+        for r in tr.info["radius_px"]:
+            p = c + r * u
+            cv2.line(img, tuple(np.round(p).astype(int)), tuple(np.round(p - 7 * n).astype(int)), (0, 0, 255), 2)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("could not encode the overlay")
+    return buf.tobytes()
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", default=DEFAULT_DATA, help="folder holding disc_urudendro_F02b/ (default: "
+                                                        "../shared/data next to the checkout)")
+    p.add_argument("--angles", default="0,45,90,135,180,225,270,315",
+                   help="transect angles in degrees, from +x towards +y (default: %(default)s)")
+    p.add_argument("--edge", action="store_true", help="report the disc edge as the last boundary")
+    p.add_argument("--half-width", type=int, default=16, help="strip half-width in px (default: %(default)s)")
+    p.add_argument("--out", default="disc_eval.json", help="output JSON (default: %(default)s)")
+    p.add_argument("--overlay", default=None, help="optional overlay PNG (labels green, detections red)")
+    args = p.parse_args(argv)
+    try:
+        angles = [float(a) for a in args.angles.split(",")]
+    except ValueError:
+        print(f"{PROG}: error: --angles must be comma-separated numbers; got {args.angles!r}", file=sys.stderr)
+        return 2
+    missing = [f for f in (os.path.join(args.data, DISC[0], DISC[1]), os.path.join(args.data, DISC[0], DISC[2]))
+               if not os.path.isfile(f)]
+    if missing:
+        print(f"{PROG}: error: data missing under {args.data!r}: {', '.join(missing)}", file=sys.stderr)
+        return 2
+    for name, path in (("--out", args.out), ("--overlay", args.overlay)):
+        if path is not None and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+            print(f"{PROG}: error: {name}: folder of {path!r} does not exist", file=sys.stderr)
+            return 2
+    from tqdm import tqdm
+
+    with tqdm(total=len(angles), desc="transects", unit="transect", disable=None) as bar:
+        try:
+            rgb, res, labels, rows, pooled, seconds = evaluate(
+                args.data, angles, include_edge=args.edge, half_width=args.half_width,
+                progress=lambda k, n: bar.update(1))
+        except (OSError, ValueError) as e:
+            print(f"{PROG}: error: {e}", file=sys.stderr)
+            return 2
+    print(f"{'angle':>6s} {'det':>4s} {'lab':>4s}   {'S@3':>5s} {'P@3':>5s} {'F1@3':>5s}   {'S@5':>5s} {'P@5':>5s} "
+          f"{'F1@5':>5s}")
+    for r in rows + [dict(angle_deg="pooled", detected=pooled["tol3"]["detected"],
+                          labelled=pooled["tol3"]["labelled"], **pooled)]:
+        a, b = r["tol3"], r["tol5"]
+        ang = f"{r['angle_deg']:6.1f}" if not isinstance(r["angle_deg"], str) else f"{r['angle_deg']:>6s}"
+        print(f"{ang} {r['detected']:4d} {r['labelled']:4d}   {a['sensitivity']:5.2f} {a['precision']:5.2f} "
+              f"{a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}")
+    print(f"detection time {seconds:.1f} s for {len(angles)} transects; filtered {res.info['filtered_px']} px "
+          f"({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the image)")
+    blob = dict(data=os.path.abspath(os.path.join(args.data, DISC[0])), label="CS-TRD automatic polygons (weak)",
+                angles_deg=angles, edge=args.edge, half_width=args.half_width, seconds=seconds, transects=rows,
+                pooled=pooled, filtered_px=res.info["filtered_px"], image_px=res.info["image_px"])
+    atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=float).encode())
+    if args.overlay:
+        atomic_write_bytes(args.overlay, overlay(rgb, res, labels))
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,133 @@
+"""CooRecorder ``.pos`` coordinate files (Cybis Elektronik & Data AB) as ring-boundary labels.
+
+A ``.pos`` file is plain text; header lines start with ``#`` (or are ``SCALE ...``), every other non-empty line holds
+one measured point ``x,y`` in millimetres on the image (origin at the top-left corner, x right, y down; pixel =
+mm * DPI / 25.4), optionally followed by `` #label``::
+
+    #DENDRO (Cybis Dendro program compatible format) Coordinate file written as C:\\data\\disc1_a.pos
+    #Imagefile disc1.jpg
+    #DPI 1200.0
+    #All coordinates in millimeters (mm)
+    SCALE 1
+    #C DATED 2019
+    #C PithCoordinates=10.160,12.700; DistanceToPith=0.0; YearsToPith=0;
+    10.160,12.700
+    11.430,12.700
+    13.970,12.700  14.100,13.200
+    D15.240,12.700#%gap
+
+The points are in measurement order (pith first, then one point per ring boundary towards the bark). A line with
+two points is a *jump* (a "double point": the path continues elsewhere, e.g. around a crack); both mark the same
+ring boundary, the first where the path arrives, which is kept as the boundary (the second is in ``jumps``).
+Lines starting with ``D`` (gaps, season-wood marks ``#W#``) are not ring boundaries and are skipped; a ``#ZERO``
+suffix (missing rings of zero width) is ignored (the position is counted once). The header line
+``#C PithCoordinates=x,y;`` gives the pith when the first point is not on it.
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["PosFile", "read_pos"]
+
+_POINT = re.compile(r"^\s*(-?\d+(?:\.\d*)?|-?\.\d+)\s*,\s*(-?\d+(?:\.\d*)?|-?\.\d+)\s*$")
+
+
+@dataclass
+class PosFile:
+    """A parsed CooRecorder ``.pos`` file.
+
+    Attributes:
+        dpi: the ``#DPI`` value (pixels per inch).
+        points_mm: ``(N, 2)`` float64 ``(x, y)`` in mm, in file order (the first point of each double point).
+        points_px: ``points_mm * dpi / 25.4``.
+        pith_px: ``(2,)`` pith in pixels from ``#C PithCoordinates``, or None.
+        jumps_px: ``(J, 2)`` the second points of double points, in pixels.
+        header: dict of ``#C key=value;`` entries and ``Imagefile``.
+    """
+
+    dpi: float
+    points_mm: np.ndarray
+    points_px: np.ndarray
+    pith_px: np.ndarray | None
+    jumps_px: np.ndarray
+    header: dict = field(default_factory=dict)
+
+    def boundaries_px(self, first_is_pith: bool = True) -> np.ndarray:
+        """``(K, 2)`` ring boundaries in pixels, pith -> bark: the points without the first one (the pith) when
+        ``first_is_pith``."""
+        return self.points_px[1:] if first_is_pith else self.points_px.copy()
+
+
+def _xy(text, path, lineno):
+    m = _POINT.match(text)
+    if not m:
+        raise ValueError(f"{path!r} line {lineno}: expected a point 'x,y' in mm; got {text.strip()!r}")
+    x, y = float(m.group(1)), float(m.group(2))
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"{path!r} line {lineno}: non-finite coordinate {text.strip()!r}")
+    return x, y
+
+
+def read_pos(path) -> PosFile:
+    """Parse a CooRecorder ``.pos`` file (module docstring).
+
+    Raises:
+        ValueError: the file cannot be read, has no (or a non-positive) ``#DPI`` line, a malformed point line, or no
+            point at all.
+    """
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            lines = f.read().splitlines()
+    except OSError as e:
+        raise ValueError(f"cannot read .pos file {str(path)!r}: {e}") from None
+    dpi, header, pts, jumps = None, {}, [], []
+    for lineno, raw in enumerate(lines, 1):
+        line = raw.strip()
+        if not line:
+            continue
+        if line.startswith("#"):
+            m = re.match(r"#DPI\s+(\S+)", line, re.IGNORECASE)
+            if m:
+                try:
+                    dpi = float(m.group(1))
+                except ValueError:
+                    raise ValueError(f"{str(path)!r} line {lineno}: #DPI must be a number; got {m.group(1)!r}") from None
+            elif line.lower().startswith("#imagefile"):
+                header["Imagefile"] = line[len("#imagefile"):].strip()
+            elif line.startswith("#C"):
+                for key, val in re.findall(r"(\w+)\s*=\s*([^;]*)", line[2:]):
+                    header[key] = val.strip()
+            continue
+        if line.upper().startswith("SCALE") or line.startswith("D"):
+            continue  # the scale line; gaps and season-wood marks are not ring boundaries
+        body = line.split("#", 1)[0].strip()
+        parts = body.split()
+        if not parts or len(parts) > 2:
+            raise ValueError(f"{str(path)!r} line {lineno}: expected 'x,y' or a double point 'x1,y1  x2,y2'; got "
+                             f"{line!r}")
+        pts.append(_xy(parts[0], str(path), lineno))
+        if len(parts) == 2:
+            jumps.append(_xy(parts[1], str(path), lineno))
+    if dpi is None:
+        raise ValueError(f".pos file {str(path)!r} has no '#DPI' line (needed to convert mm to pixels)")
+    if not (math.isfinite(dpi) and dpi > 0):
+        raise ValueError(f".pos file {str(path)!r}: #DPI must be > 0; got {dpi}")
+    if not pts:
+        raise ValueError(f".pos file {str(path)!r} holds no points")
+    scale = dpi / 25.4
+    pmm = np.array(pts, dtype=np.float64).reshape(-1, 2)
+    pith = None
+    if "PithCoordinates" in header:
+        try:
+            pith = np.array([float(t) for t in header["PithCoordinates"].split(",")], dtype=np.float64) * scale
+            if pith.shape != (2,):
+                raise ValueError
+        except ValueError:
+            raise ValueError(f".pos file {str(path)!r}: PithCoordinates must be 'x,y' in mm; got "
+                             f"{header['PithCoordinates']!r}") from None
+    return PosFile(dpi=dpi, points_mm=pmm, points_px=pmm * scale, pith_px=pith,
+                   jumps_px=np.array(jumps, dtype=np.float64).reshape(-1, 2) * scale, header=header)
