@@ -197,7 +197,7 @@ def _merge_close(pos, v_prof, min_gap):
 
 
 def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_width: int = 16, band: float = 0.5,
-                           include_edge: bool = True, background=None, background_tol: float = 0.1,
+                           include_edge: bool = False, background=None, background_tol: float = 0.1,
                            min_ring_px: float = 0.0, max_radius: float | None = None, dpi=None,
                            pixel_size_mm=None, p: int | None = None, q: int | None = None, f_max: float = 0.4,
                            min_rel_rise: float = 0.1, edge_level: float = 0.8, tilt_sigma: float = 2.0,

@@ -1,0 +1,248 @@
+"""Disc mode (torch_appearance.rings.disc, detect_rings.py --pith): boundaries along several transects of synthetic
+discs with known rings, filtering only polar strips (once per transect), the CSV / overlay, bad input; the
+CooRecorder .pos reader (hand-written fixture in tests/data/coorecorder, CC0) and eval_rings.py with .pos labels
+and transect columns."""
+import contextlib
+import csv
+import importlib.util
+import io
+import math
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+import torch_appearance.rings.disc as disc_mod
+from torch_appearance.rings.coorecorder import read_pos
+from torch_appearance.rings.dendro import match_boundaries
+from torch_appearance.rings.disc import detect_disc_boundaries, polar_strip, synthetic_disc
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+POS = os.path.join(ROOT, "tests", "data", "coorecorder", "handwritten.pos")
+PITH = (150.0, 160.0)
+ANGLES = [0.0, 60.0, 120.0, 180.0, 240.0, 300.0]
+
+
+@pytest.fixture(scope="module")
+def disc():
+    return synthetic_disc(seed=0)  # 320 x 300, 12 eccentric rings 14 -> 7 px, white background, noise 0.02
+
+
+def _run(script, *args):
+    spec = importlib.util.spec_from_file_location(script[:-3], os.path.join(ROOT, "scripts", script))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = mod.main([str(a) for a in args])
+        except SystemExit as e:
+            rc = e.code
+    return rc, out.getvalue(), err.getvalue()
+
+
+def test_polar_strip_straightens_circles():
+    # a pattern that depends only on the distance to the pith is constant along every strip column
+    H, W = 200, 220
+    y, x = np.mgrid[:H, :W]
+    img = np.cos(2 * np.pi * np.hypot(x - 100.0, y - 90.0) / 9.0)
+    strip, X, Y = polar_strip(img, (100.0, 90.0), 33.0, 80, half_width=10)
+    assert strip.shape == (21, 81)
+    r = np.arange(81.0)
+    assert np.allclose(np.hypot(X - 100.0, Y - 90.0), r[None, :], atol=1e-9)
+    interior = strip[:, 20:]  # bilinear interpolation error of a 9 px period stays small
+    assert np.abs(interior - np.cos(2 * np.pi * r[None, 20:] / 9.0)).max() < 0.07
+
+
+@pytest.mark.parametrize("include_edge", [False, True])
+def test_disc_boundaries_on_synthetic_disc(disc, include_edge):
+    rgb, radius = disc
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES, include_edge=include_edge, pixel_size_mm=0.1)
+    assert len(res.transects) == len(ANGLES)
+    for deg, tr in zip(ANGLES, res.transects):
+        truth = radius(math.radians(deg))  # the last one is the disc edge
+        lab = truth if include_edge else truth[:-1]
+        m = match_boundaries(tr.info["radius_px"], lab, 3.0)
+        assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, tr.info["radius_px"], lab)
+        assert m["mean_error_px"] < 1.0, (deg, m)
+        # points lie on the ray from the pith, ordered pith -> bark, widths in mm from the pixel size
+        u = np.array([math.cos(math.radians(deg)), math.sin(math.radians(deg))])
+        assert np.allclose(tr.points, np.asarray(PITH) + tr.info["radius_px"][:, None] * u, atol=1e-9)
+        assert np.all(np.diff(tr.info["radius_px"]) > 0)
+        assert np.allclose(tr.widths_mm[1:], 0.1 * np.diff(tr.info["radius_px"]))
+        assert (tr.info["kind"][-1] == "edge") == include_edge
+        assert tr.info["kind"][:-1] == ["ring"] * (len(tr.points) - 1)
+
+
+def test_crack_along_a_transect(disc):
+    # an open crack (background colour) 5 px wide along the 0-degree transect hides half of the strip's rows:
+    # it is filled along the rings from the wood beside it, so the boundaries are still found
+    rgb, radius = disc
+    cracked = rgb.copy()
+    cracked[158:163, 165:260] = 1.0
+    res = detect_disc_boundaries(cracked, PITH, angles_deg=[0.0])
+    m = match_boundaries(res.transects[0].info["radius_px"], radius(0.0)[:-1], 3.0)
+    assert m["sensitivity"] >= 0.9 and m["precision"] >= 0.9, (res.transects[0].info["radius_px"], radius(0.0))
+
+
+def test_filters_only_strips_once(disc, monkeypatch):
+    rgb, _ = disc
+    calls = []
+    real = disc_mod.curved_gabor
+
+    def counting(gray, *args, **kw):
+        calls.append(np.asarray(gray).shape)
+        return real(gray, *args, **kw)
+
+    monkeypatch.setattr(disc_mod, "curved_gabor", counting)
+    hw = 12
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw)
+    H, W = rgb.shape[:2]
+    assert len(calls) == 4  # one filter call per transect, none for the whole image
+    assert all(s[0] == 2 * hw + 1 for s in calls)  # each call is a strip of 2 hw + 1 rows
+    filtered = sum(a * b for a, b in calls)
+    assert filtered == res.info["filtered_px"]
+    # at most the strips of rays to the image border: far less than filtering the image once per transect
+    assert filtered <= 4 * (2 * hw + 1) * (math.hypot(H, W) / 2 + 1)
+    assert filtered < 0.25 * H * W
+
+
+def test_transects_by_end_points(disc):
+    rgb, radius = disc
+    ends = [(290.0, 160.0), (150.0, 20.0)]  # 0 and 270 degrees; both reach beyond the disc edge
+    res = detect_disc_boundaries(rgb, PITH, ends=ends)
+    assert np.allclose(res.angles_deg, [0.0, 270.0])
+    for deg, tr in zip([0.0, 270.0], res.transects):
+        m = match_boundaries(tr.info["radius_px"], radius(math.radians(deg))[:-1], 3.0)
+        assert m["f1"] == 1.0, (deg, tr.info["radius_px"])
+    # a short transect ends at its end point, inside the disc
+    res = detect_disc_boundaries(rgb, PITH, ends=[(150.0 + 60.0, 160.0)])
+    assert np.allclose(res.ends[0], (210.0, 160.0)) and res.transects[0].info["radius_px"].max() <= 60.0
+
+
+def test_bad_input(disc):
+    rgb, _ = disc
+    with pytest.raises(ValueError, match="pith .* outside the image"):
+        detect_disc_boundaries(rgb, (-3.0, 20.0))
+    with pytest.raises(ValueError, match="pith .* outside the image"):
+        detect_disc_boundaries(rgb, (10.0, 400.0))
+    with pytest.raises(ValueError, match="pith must be two numbers"):
+        detect_disc_boundaries(rgb, (1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match="zero length"):
+        detect_disc_boundaries(rgb, PITH, ends=[PITH])
+    with pytest.raises(ValueError, match="outside the image"):
+        detect_disc_boundaries(rgb, PITH, ends=[(5000.0, 10.0)])
+    with pytest.raises(ValueError, match="zero length"):  # pith on the border, ray pointing out of the image
+        detect_disc_boundaries(rgb, (0.0, 50.0), angles_deg=[180.0])
+    with pytest.raises(ValueError, match="half_width"):
+        detect_disc_boundaries(rgb, PITH, half_width=0)
+    with pytest.raises(ValueError, match="angles_deg"):
+        detect_disc_boundaries(rgb, PITH, angles_deg=[float("nan")])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def disc_png(disc, tmp_path_factory):
+    rgb, radius = disc
+    path = tmp_path_factory.mktemp("disc") / "disc.png"
+    cv2.imwrite(str(path), (rgb[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    return path, radius
+
+
+def test_cli_disc_mode(disc_png, tmp_path):
+    path, radius = disc_png
+    out, ovl = tmp_path / "disc.csv", tmp_path / "disc_overlay.png"
+    rc, stdout, err = _run("detect_rings.py", path, "--pith", "150,160", "--angles", "0,120,240",
+                           "--transect", "150,20", "--edge", "--dpi", 254, "--out", out, "--overlay", ovl)
+    assert rc == 0, err
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["transect", "angle_deg", "index", "kind", "x_px", "y_px", "radius_px", "width_px",
+                             "width_mm"]
+    assert sorted({int(r["transect"]) for r in rows}) == [0, 1, 2, 3]
+    for k, deg in enumerate([0.0, 120.0, 240.0, 270.0]):
+        mine = [r for r in rows if int(r["transect"]) == k]
+        assert [int(r["index"]) for r in mine] == list(range(len(mine)))
+        assert all(float(r["angle_deg"]) == deg for r in mine)
+        assert mine[-1]["kind"] == "edge" and mine[0]["width_mm"] == ""
+        m = match_boundaries(np.array([float(r["radius_px"]) for r in mine]), radius(math.radians(deg)), 3.0)
+        assert m["f1"] == 1.0, (deg, [r["radius_px"] for r in mine])
+        assert math.isclose(float(mine[1]["width_mm"]), float(mine[1]["width_px"]) * 0.1, rel_tol=1e-3)
+    img = cv2.imread(str(ovl))
+    assert img is not None and img.shape[:2] == (320, 300)
+    # eval_rings.py: the CSV against itself as labels (transect columns on both sides: matched per transect)
+    rc, stdout, err = _run("eval_rings.py", out, out, "--tolerance-px", 1)
+    assert rc == 0 and "F1 1.0000" in stdout, (stdout, err)
+    rc, stdout, err = _run("eval_rings.py", out, out, "--transect", 7)
+    assert rc != 0 and "no transect 7" in err
+
+
+def test_cli_disc_bad_inputs(disc_png, tmp_path):
+    path, _ = disc_png
+    out, ovl = tmp_path / "o.csv", tmp_path / "o.png"
+    cases = [(("--pith", "400,10"), "outside the image"),
+             (("--pith", "150,160", "--transect", "150,160"), "zero length"),
+             (("--pith", "150,160", "--transect", "1,2,3,4"), "end point X,Y"),
+             (("--pith", "150"), "--pith"),
+             (("--pith", "150,160", "--angles", "0,x"), "--angles"),
+             (("--transect", "1,1,50,1", "--transect", "1,1,1,50"), "--pith"),
+             (("--angles", "0,90"), "--pith"),
+             (("--pith", "150,160", "--bark", "left"), "--pith")]
+    for args, msg in cases:
+        rc, _, err = _run("detect_rings.py", path, *args, "--out", out, "--overlay", ovl)
+        assert rc not in (0, None) and msg in err, (args, err)
+        assert not out.exists() and not ovl.exists(), args
+    assert list(tmp_path.iterdir()) == []  # no partial or temporary files
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# CooRecorder .pos
+# ---------------------------------------------------------------------------------------------------------------
+def test_read_pos_fixture():
+    pos = read_pos(POS)
+    assert pos.dpi == 254.0 and pos.header["Imagefile"] == "disc7.jpg" and pos.header["YearsToPith"] == "0"
+    # 254 dpi: 10 px per mm; the D (gap) line is skipped, the double point keeps its first point
+    expected_mm = [(10.0, 20.0), (11.0, 20.0), (12.5, 20.0), (13.2, 20.0), (14.6, 20.4), (16.5, 20.4)]
+    assert np.allclose(pos.points_mm, expected_mm)
+    assert np.allclose(pos.points_px, np.array(expected_mm) * 10.0)
+    assert np.allclose(pos.jumps_px, [[133.0, 204.0]])
+    assert np.allclose(pos.pith_px, [100.0, 200.0])
+    assert np.allclose(pos.boundaries_px(), np.array(expected_mm[1:]) * 10.0)
+    assert len(pos.boundaries_px(first_is_pith=False)) == 6
+
+
+def test_read_pos_bad(tmp_path):
+    no_dpi = tmp_path / "a.pos"
+    no_dpi.write_text("#DENDRO\nSCALE 1\n1.0,2.0\n")
+    with pytest.raises(ValueError, match="#DPI"):
+        read_pos(no_dpi)
+    bad = tmp_path / "b.pos"
+    bad.write_text("#DPI 1200\n1.0;2.0\n")
+    with pytest.raises(ValueError, match="line 2"):
+        read_pos(bad)
+    empty = tmp_path / "c.pos"
+    empty.write_text("#DPI 1200\nSCALE 1\n")
+    with pytest.raises(ValueError, match="no points"):
+        read_pos(empty)
+    with pytest.raises(ValueError, match="cannot read"):
+        read_pos(tmp_path / "missing.pos")
+
+
+def test_eval_rings_with_pos_labels(tmp_path):
+    det = tmp_path / "det.csv"
+    # the fixture's boundaries (px): 110,200 125,200 132,200 146,204 165,204; one detection 4 px off, one missed,
+    # one extra, plus a second transect that --transect 0 leaves out
+    det.write_text("transect,index,x_px,y_px\n0,0,110.5,200\n0,1,129,200\n0,2,132,200.5\n0,3,165,204\n"
+                   "0,4,180,204\n1,0,110,200\n")
+    rc, out, err = _run("eval_rings.py", det, POS, "--transect", 0, "--tolerance-px", 3)
+    assert rc == 0, err
+    assert "matched 3, detected 5, labelled 5" in out and "F1 0.6000" in out, out
+    rc, out, err = _run("eval_rings.py", det, POS, "--transect", 0, "--tolerance-px", 5)
+    assert "matched 4, detected 5, labelled 5" in out, out
+    rc, out, err = _run("eval_rings.py", det, POS, "--transect", 0, "--pos-keep-first")
+    assert "labelled 6" in out, out
+    rc, out, err = _run("eval_rings.py", det, POS)  # several transects but no --transect
+    assert rc != 0 and "--transect" in err
