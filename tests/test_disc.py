@@ -51,6 +51,10 @@ def test_polar_strip_straightens_circles():
     assert strip.shape == (21, 81)
     r = np.arange(81.0)
     assert np.allclose(np.hypot(X - 100.0, Y - 90.0), r[None, :], atol=1e-9)
+    # row s lies s px of arc from the transect (s / r radians), at least half_width px of radius in
+    s = np.arange(-10, 11.0)[:, None]
+    ang = np.arctan2(Y[:, 1:] - 90.0, X[:, 1:] - 100.0)
+    assert np.allclose((ang - math.radians(33.0) + np.pi) % (2 * np.pi) - np.pi, s / np.maximum(r[None, 1:], 10.0))
     interior = strip[:, 20:]  # bilinear interpolation error of a 9 px period stays small
     assert np.abs(interior - np.cos(2 * np.pi * r[None, 20:] / 9.0)).max() < 0.07
 
@@ -76,11 +80,11 @@ def test_disc_boundaries_on_synthetic_disc(disc, include_edge):
 
 
 def test_crack_along_a_transect(disc):
-    # an open crack (background colour) 5 px wide along the 0-degree transect hides half of the strip's rows:
+    # an open crack (background colour) 19 px wide along the 0-degree transect hides the central rows of the strip:
     # it is filled along the rings from the wood beside it, so the boundaries are still found
     rgb, radius = disc
     cracked = rgb.copy()
-    cracked[158:163, 165:260] = 1.0
+    cracked[151:170, 165:260] = 1.0
     res = detect_disc_boundaries(cracked, PITH, angles_deg=[0.0])
     m = match_boundaries(res.transects[0].info["radius_px"], radius(0.0)[:-1], 3.0)
     assert m["sensitivity"] >= 0.9 and m["precision"] >= 0.9, (res.transects[0].info["radius_px"], radius(0.0))
