@@ -7,7 +7,8 @@ Not part of the test suite: the image and the labels are read from DATA/disc_uru
 is the pith as [row, col]) - a weak label, CS-TRD itself scores P 0.95 R 0.86 F 0.89 against humans on UruDendro.
 
 For each transect angle the labelled boundaries are the radii where the ray from the pith crosses each polygon
-(first crossing). Detections and labels are matched one-to-one by radius along the transect
+(first crossing); CS-TRD's innermost polygon (radius ~6 px) outlines the pith and is left out unless
+--keep-pith-polygon (a CooRecorder measurement also starts at the pith, which is not a boundary). Detections and labels are matched one-to-one by radius along the transect
 (torch_appearance.rings.dendro.match_boundaries) at each tolerance. Prints a table per transect and the pooled
 sensitivity / precision / F1, writes them as JSON and (with --overlay) a PNG of the disc with the labels (green
 ticks) and the detections (red ticks) along every transect.
@@ -70,9 +71,13 @@ def load_labels(path):
     return np.array([col, row], dtype=np.float64), polys
 
 
-def evaluate(data, angles, tolerances=(3.0, 5.0), **kw):
+def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, **kw):
+    """Run disc mode on F02b and match against the polygons. CS-TRD's innermost polygon (mean radius < 12 px)
+    outlines the pith, not a ring boundary, and is left out unless ``keep_pith_polygon``."""
     rgb = read_png(os.path.join(data, DISC[0], DISC[1]), linear=False)
     pith, polys = load_labels(os.path.join(data, DISC[0], DISC[2]))
+    if not keep_pith_polygon:
+        polys = [q for q in polys if np.linalg.norm(q - pith, axis=1).mean() >= 12.0]
     t0 = time.perf_counter()
     res = detect_disc_boundaries(rgb, pith, angles_deg=angles, **kw)
     seconds = time.perf_counter() - t0
@@ -123,6 +128,11 @@ def main(argv=None):
                    help="transect angles in degrees, from +x towards +y (default: %(default)s)")
     p.add_argument("--edge", action="store_true", help="report the disc edge as the last boundary")
     p.add_argument("--half-width", type=int, default=16, help="strip half-width in px (default: %(default)s)")
+    p.add_argument("--edge-level", type=float, default=0.8,
+                   help="boundary at this fraction of the steepest V rise on its latewood side; 1 = the steepest "
+                        "point (default: %(default)s)")
+    p.add_argument("--keep-pith-polygon", action="store_true",
+                   help="also count CS-TRD's innermost polygon (the outline of the pith) as a boundary")
     p.add_argument("--out", default="disc_eval.json", help="output JSON (default: %(default)s)")
     p.add_argument("--overlay", default=None, help="optional overlay PNG (labels green, detections red)")
     args = p.parse_args(argv)
@@ -145,7 +155,8 @@ def main(argv=None):
     with tqdm(total=len(angles), desc="transects", unit="transect", disable=None) as bar:
         try:
             rgb, res, labels, rows, pooled, seconds = evaluate(
-                args.data, angles, include_edge=args.edge, half_width=args.half_width,
+                args.data, angles, keep_pith_polygon=args.keep_pith_polygon, include_edge=args.edge,
+                half_width=args.half_width, edge_level=args.edge_level,
                 progress=lambda k, n: bar.update(1))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {e}", file=sys.stderr)
@@ -161,7 +172,8 @@ def main(argv=None):
     print(f"detection time {seconds:.1f} s for {len(angles)} transects; filtered {res.info['filtered_px']} px "
           f"({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the image)")
     blob = dict(data=os.path.abspath(os.path.join(args.data, DISC[0])), label="CS-TRD automatic polygons (weak)",
-                angles_deg=angles, edge=args.edge, half_width=args.half_width, seconds=seconds, transects=rows,
+                angles_deg=angles, edge=args.edge, half_width=args.half_width, edge_level=args.edge_level,
+                keep_pith_polygon=args.keep_pith_polygon, seconds=seconds, transects=rows,
                 pooled=pooled, filtered_px=res.info["filtered_px"], image_px=res.info["image_px"])
     atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=float).encode())
     if args.overlay:

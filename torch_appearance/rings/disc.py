@@ -21,7 +21,9 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    Gabor response are averaged over the central ``band`` of rows along that local tilt, weighted by the wood mask.
 5. **Boundaries.** The cycles of the unwrapped phase and the latewood-side foot of the steepest V rise in each
    cycle give the boundaries (``_cycle_boundaries`` of core mode), converted back to image coordinates.
-   Boundaries closer than ``min_ring_px`` to the previous one are merged (the weaker is dropped). With
+   Boundaries within a quarter of the strip's dominant ring period (at least 3 px) of the pith are dropped (the
+   pith is not a ring boundary). Boundaries closer than ``min_ring_px`` to the previous one are merged (the weaker
+   is dropped). With
    ``include_edge`` the disc edge (outer end of the last ring, where CooRecorder users and CS-TRD put the last
    boundary) is appended as a boundary of kind ``"edge"`` when the transect reaches it.
 
@@ -333,6 +335,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                                            max_tilt_deg=max_tilt_deg, device=device,
                                            num_workers=num_workers, calls=calls)
             pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
+            # the pith is not a ring boundary: nothing within a quarter ring period of it (the strip's rows also
+            # converge there, which makes the first samples unreliable)
+            pos = pos[pos >= max(3.0, 0.25 * sinfo["period_px"])]
         kinds = ["ring"] * len(pos)
         if include_edge and edge is not None:
             # the last ring boundary coincides with the edge when it lies within 2 px of it
