@@ -18,7 +18,9 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    core mode (:mod:`torch_appearance.rings.dendro`): ``p``/``q`` scale with the strip's dominant ring period.
 4. **Profile.** The local ring tilt in the strip (magnitude-weighted doubled-angle mean of the Gabor orientation
    over the central rows, smoothed along the radius) gives a shear per column; the V profile and the complex
-   Gabor response are averaged over the central ``band`` of rows along that local tilt, weighted by the wood mask.
+   Gabor response are averaged over the central ``band`` of rows (all by default) along that local tilt, weighted
+   by the wood mask times the squared Gabor amplitude (smoothed over one ring period along the radius), so rows
+   where the rings are clear count most (a crack wall or a stain along the transect counts little).
 5. **Boundaries.** The cycles of the unwrapped phase and the latewood-side foot of the steepest V rise in each
    cycle give the boundaries (``_cycle_boundaries`` of core mode), converted back to image coordinates.
    Boundaries within a quarter of the strip's dominant ring period (at least 3 px) of the pith are dropped (the
@@ -141,7 +143,7 @@ def _background_colour(rgb):
 
 
 def _strip_boundaries(v, wood, *, band, p, q, f_max, min_rel_rise, edge_level, tilt_sigma, max_tilt_deg, device,
-                      num_workers, calls):
+                      num_workers, calls, mag_weight=True):
     """Boundaries (column positions) on a filled strip ``v`` ``(S, L)`` with wood weights ``wood`` ``(S, L)``."""
     S, L = v.shape
     # ring period for p / q from the strip with its slow brightness trend removed (heartwood / sapwood, stains:
@@ -174,6 +176,10 @@ def _strip_boundaries(v, wood, *, band, p, q, f_max, min_rel_rise, edge_level, t
     coords_y = np.broadcast_to(rows[:, None].astype(np.float64), coords_x.shape)
     sample = lambda f: ndimage.map_coordinates(f, [coords_y, coords_x], order=1, mode="nearest")  # noqa: E731
     wt = sample(wood) + 1e-6
+    if mag_weight:
+        # rows where the rings are clear count more: weight by the Gabor amplitude, smoothed along the radius
+        mg = ndimage.gaussian_filter1d(res.magnitude.astype(np.float64), period, axis=1, mode="nearest")
+        wt = wt * sample(mg) ** 2
     z = res.magnitude * np.exp(1j * res.phase)
     norm = wt.sum(0)
     v_prof = (sample(v) * wt).sum(0) / norm
@@ -198,12 +204,12 @@ def _merge_close(pos, v_prof, min_gap):
     return pos[np.array(keep)]
 
 
-def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_width: int = 16, band: float = 0.5,
+def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_width: int = 16, band: float = 1.0,
                            include_edge: bool = False, background=None, background_tol: float = 0.1,
                            min_ring_px: float = 0.0, max_radius: float | None = None, dpi=None,
                            pixel_size_mm=None, p: int | None = None, q: int | None = None, f_max: float = 0.4,
                            min_rel_rise: float = 0.1, edge_level: float = 0.8, tilt_sigma: float = 2.0,
-                           max_tilt_deg: float = 40.0,
+                           max_tilt_deg: float = 40.0, mag_weight: bool = True,
                            device="cpu", num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -217,6 +223,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             Neither: four transects at 0, 90, 180, 270 degrees.
         half_width: strip half-width in pixels of arc (rows ``2 half_width + 1``).
         band: fraction of the strip's rows (around the transect) averaged for the profile.
+        mag_weight: weight the rows by the squared Gabor amplitude (else only by the wood mask).
         include_edge: append the disc edge as the last boundary (kind ``"edge"``) when the transect reaches it.
         background: background colour ``(3,)`` in [0, 1] (default: median of the image border); pixels within
             ``background_tol`` of it are not wood.
@@ -332,7 +339,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         else:
             pos, sinfo = _strip_boundaries(v, wd, band=band, p=p, q=q, f_max=f_max, min_rel_rise=min_rel_rise,
                                            edge_level=edge_level, tilt_sigma=tilt_sigma,
-                                           max_tilt_deg=max_tilt_deg, device=device,
+                                           max_tilt_deg=max_tilt_deg, device=device, mag_weight=mag_weight,
                                            num_workers=num_workers, calls=calls)
             pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
             # the pith is not a ring boundary: nothing within a quarter ring period of it (the strip's rows also
