@@ -71,7 +71,8 @@ def parse_args(argv=None):
     p.add_argument("--width-px", type=int, default=32, help="core mode: uniform core width (default: %(default)s)")
     p.add_argument("--mode", choices=("core", "section"), default="core",
                    help="core (also transect with --transect) or section (microscopy); default: %(default)s")
-    p.add_argument("--cell-px", type=float, default=8.0, help="section mode: cell diameter in px (default: %(default)s)")
+    p.add_argument("--cell-px", type=float, default=8.0,
+                   help="section mode: cell diameter in px (default: %(default)s)")
     return p.parse_args(argv)
 
 

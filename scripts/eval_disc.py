@@ -8,8 +8,9 @@ is the pith as [row, col]) - a weak label, CS-TRD itself scores P 0.95 R 0.86 F 
 
 For each transect angle the labelled boundaries are the radii where the ray from the pith crosses each polygon
 (first crossing); CS-TRD's innermost polygon (radius ~6 px) outlines the pith and is left out unless
---keep-pith-polygon (a CooRecorder measurement also starts at the pith, which is not a boundary). Detections and labels are matched one-to-one by radius along the transect
-(torch_appearance.rings.dendro.match_boundaries) at each tolerance. Prints a table per transect and the pooled
+--keep-pith-polygon (a CooRecorder measurement also starts at the pith, which is not a boundary). Detections and
+labels are matched one-to-one by radius along the transect (torch_appearance.rings.dendro.match_boundaries) at
+each tolerance. Prints a table per transect and the pooled
 sensitivity / precision / F1, writes them as JSON and (with --overlay) a PNG of the disc with the labels (green
 ticks) and the detections (red ticks) along every transect.
 

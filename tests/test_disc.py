@@ -90,6 +90,20 @@ def test_crack_along_a_transect(disc):
     assert m["sensitivity"] >= 0.9 and m["precision"] >= 0.9, (res.transects[0].info["radius_px"], radius(0.0))
 
 
+def test_disc_filling_the_frame(disc):
+    # a crop inside the disc: the border is wood, not background, so nothing may be masked as background
+    rgb, radius = disc
+    crop = np.ascontiguousarray(rgb[60:260, 50:250])
+    res = detect_disc_boundaries(crop, (100.0, 100.0), angles_deg=[0.0, 90.0, 180.0, 270.0], include_edge=True)
+    assert res.info["background"] is None
+    for deg, tr in zip([0.0, 90.0, 180.0, 270.0], res.transects):
+        truth = radius(math.radians(deg))
+        truth = truth[truth < 97.0]  # the crop ends 99 px from the pith in every direction
+        assert "edge" not in tr.info["kind"]
+        m = match_boundaries(tr.info["radius_px"], truth, 3.0)
+        assert m["sensitivity"] >= 0.85 and m["precision"] >= 0.85, (deg, tr.info["radius_px"], truth)
+
+
 def test_filters_only_strips_once(disc, monkeypatch):
     rgb, _ = disc
     calls = []

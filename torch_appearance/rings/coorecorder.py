@@ -95,7 +95,8 @@ def read_pos(path) -> PosFile:
                 try:
                     dpi = float(m.group(1))
                 except ValueError:
-                    raise ValueError(f"{str(path)!r} line {lineno}: #DPI must be a number; got {m.group(1)!r}") from None
+                    raise ValueError(f"{str(path)!r} line {lineno}: #DPI must be a number; "
+                                     f"got {m.group(1)!r}") from None
             elif line.lower().startswith("#imagefile"):
                 header["Imagefile"] = line[len("#imagefile"):].strip()
             elif line.startswith("#C"):
