@@ -11,11 +11,18 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    bark on the right; eccentric or wavy rings are only slightly tilted.
 2. **Wood / background.** Pixels whose colour is within ``background_tol`` (RGB distance, values in [0, 1]) of the
    background colour (the median of the image border, or ``background``) are *not wood*: the background around the
-   disc and open cracks. The disc edge along the transect is where the wood fraction of the strip's central rows
-   last drops below one half; the strip is cut there. Non-wood pixels are replaced by the mean of the wood pixels
-   of their column (i.e. filled *along the ring*), so a crack along the transect does not hide the rings.
+   disc and open cracks; a border that is not one uniform colour (the disc fills the frame) gives no background.
+   The disc edge along the transect is where the wood fraction of the strip's central rows last drops below one
+   half; the strip is cut there. Non-wood pixels are replaced by the mean of the wood pixels of their column (i.e.
+   filled *along the ring*), so a crack along the transect does not hide the rings.
 3. **Filter.** The strip's HSV value is filtered with the curved Gabor filter (normal oriented pith -> bark), as in
-   core mode (:mod:`torch_appearance.rings.dendro`): ``p``/``q`` scale with the strip's dominant ring period.
+   core mode (:mod:`torch_appearance.rings.dendro`), with the orientation field clamped to ``max_tilt_deg`` from
+   the radial normal. ``p = p_periods P`` (default 2) and ``q = P`` scale with one ring period ``P`` for the whole
+   disc: the peak of the frequency-weighted power spectra of all strips (slow brightness trends removed) summed - a
+   single strip's estimate is easily pulled to the scale of heartwood or stain patterns. The filter resolves ring
+   spacings up to ``p`` px, and rings vary more along a pith-to-bark radius (wide juvenile rings near the pith)
+   than along a core segment, hence 2 P rather than core mode's 1.5 P (F02b, 8 transects: F1 at 5 px 0.86 with
+   1.5 P, 0.89 with 2 P, 0.89 with 2.5 P).
 4. **Profile.** The local ring tilt in the strip (magnitude-weighted doubled-angle mean of the Gabor orientation
    over the central rows, smoothed along the radius) gives a shear per column; the V profile and the complex
    Gabor response are averaged over the central ``band`` of rows (all by default) along that local tilt, weighted
@@ -136,20 +143,61 @@ def polar_strip(image, pith, angle_deg: float, length: float, half_width: int = 
     return out, X, Y
 
 
-def _background_colour(rgb):
-    """Median colour of the image border ``(C,)``."""
+def _background_colour(rgb, tol):
+    """Median colour ``(C,)`` of the image border, or None when the border is not one uniform colour (half of its
+    pixels farther than ``tol / 2`` from the median: the disc fills the frame, no background to mask)."""
     border = np.concatenate([rgb[0], rgb[-1], rgb[:, 0], rgb[:, -1]])
-    return np.median(border, axis=0)
+    bg = np.median(border, axis=0)
+    return bg if np.median(np.linalg.norm(border - bg, axis=1)) <= tol / 2 else None
 
 
-def _strip_boundaries(v, wood, *, band, p, q, f_max, min_rel_rise, edge_level, tilt_sigma, max_tilt_deg, device,
-                      num_workers, calls, mag_weight=True):
-    """Boundaries (column positions) on a filled strip ``v`` ``(S, L)`` with wood weights ``wood`` ``(S, L)``."""
+def _detrend(v):
+    """The strip's V with its slow brightness trend along the radius removed (heartwood / sapwood, stains)."""
+    return v - ndimage.gaussian_filter1d(v, max(32.0, v.shape[1] / 20.0), axis=1, mode="nearest")
+
+
+def _pooled_period(strips, f_max, n_bins=64):
+    """Dominant ring period (px) of several detrended strips ``(S, L_k)``: the peak of the sum over strips of each
+    strip's normalised, frequency-weighted power spectrum along the radius (Hann window, rows averaged, 64
+    log-spaced frequency bins from ``1 / min(400, max L)`` to ``f_max``)."""
+    f_min = 1.0 / min(400.0, max(s.shape[1] for s in strips))
+    edges = np.logspace(math.log10(f_min), math.log10(f_max), n_bins + 1)
+    total = np.zeros(n_bins)
+    for s in strips:
+        L = s.shape[1]
+        if L < 16:
+            continue
+        x = (s - s.mean(1, keepdims=True)) * np.hanning(L)[None, :]
+        power = (np.abs(np.fft.rfft(x, axis=1)) ** 2).mean(0)
+        f = np.fft.rfftfreq(L)
+        idx = np.searchsorted(edges, f, side="right") - 1
+        ok = (idx >= 0) & (idx < n_bins)
+        sums = np.bincount(idx[ok], weights=(power * f)[ok], minlength=n_bins)
+        counts = np.bincount(idx[ok], minlength=n_bins)
+        spec = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+        # bins finer than this strip's frequency resolution get the value of the nearest filled bin
+        filled = np.nonzero(counts)[0]
+        if len(filled) == 0 or spec.sum() <= 0:
+            continue
+        spec = spec[filled[np.abs(np.arange(n_bins)[:, None] - filled[None, :]).argmin(1)]]
+        total += spec / spec.sum()
+    if not total.any():
+        return None
+    k = int(np.argmax(total))
+    return 1.0 / math.sqrt(edges[k] * edges[k + 1])
+
+
+def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_rise, edge_level, tilt_sigma,
+                      max_tilt_deg, device, num_workers, calls, mag_weight=True):
+    """Boundaries (column positions) on a filled strip ``v`` ``(S, L)`` with wood weights ``wood`` ``(S, L)``;
+    ``period`` is the ring period (px) that sets the default ``p = p_periods period`` and ``q = period``."""
     S, L = v.shape
-    # ring period for p / q from the strip with its slow brightness trend removed (heartwood / sapwood, stains:
-    # periods of hundreds of px would otherwise win and make the filter far too long)
-    hp = v - ndimage.gaussian_filter1d(v, max(32.0, L / 20.0), axis=1, mode="nearest")
-    p, q, period = _gabor_params(hp.astype(np.float32), p, q, f_max)
+    if period is None:  # the strip's own estimate, on the detrended strip
+        _, _, period = _gabor_params(_detrend(v).astype(np.float32), p, q, f_max)
+    if p is None:
+        p = int(np.clip(round(p_periods * period), 8, 150))
+    if q is None:
+        q = int(np.clip(round(period), 2, 40))
     q = min(q, max(1, S // 2 - 1))
     # rings run along the strip's columns (vertical) up to the tilt of eccentric rings: clamp the orientation
     # field there, so that cracks, rays or stains along the transect cannot turn the filter
@@ -158,8 +206,8 @@ def _strip_boundaries(v, wood, *, band, p, q, f_max, min_rel_rise, edge_level, t
     lim = math.radians(max_tilt_deg)
     theta = (math.pi / 2 + np.clip(dev, -lim, lim)).astype(np.float32)
     calls.append(v.shape)
-    res = curved_gabor(v.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max), normal_reference=(1.0, 0.0),
-                       device=device, num_workers=num_workers)
+    res = curved_gabor(v.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max),
+                       normal_reference=(1.0, 0.0), device=device, num_workers=num_workers)
     yc = (S - 1) / 2.0
     half = max(0.5, band * S / 2.0)
     rows = np.arange(S)[np.abs(np.arange(S) - yc) <= half]
@@ -209,7 +257,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            min_ring_px: float = 0.0, max_radius: float | None = None, dpi=None,
                            pixel_size_mm=None, p: int | None = None, q: int | None = None, f_max: float = 0.4,
                            min_rel_rise: float = 0.1, edge_level: float = 0.8, tilt_sigma: float = 2.0,
-                           max_tilt_deg: float = 40.0, mag_weight: bool = True,
+                           max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
+                           p_periods: float = 2.0,
                            device="cpu", num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -225,13 +274,16 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         band: fraction of the strip's rows (around the transect) averaged for the profile.
         mag_weight: weight the rows by the squared Gabor amplitude (else only by the wood mask).
         include_edge: append the disc edge as the last boundary (kind ``"edge"``) when the transect reaches it.
-        background: background colour ``(3,)`` in [0, 1] (default: median of the image border); pixels within
-            ``background_tol`` of it are not wood.
+        background: background colour ``(3,)`` in [0, 1] (default: median of the image border when the border
+            is uniform, else none); pixels within ``background_tol`` of it are not wood.
         min_ring_px: boundaries closer than this (px) to the previous one are merged; 0 keeps all.
         max_radius: optional cap on the transect length (px).
         dpi, pixel_size_mm: pixel size for the ring widths in mm (at most one).
         p, q, f_max, min_rel_rise, edge_level: as in :func:`~torch_appearance.rings.dendro.detect_core_boundaries`
-            (``p``, ``q`` default to the strip's dominant ring period).
+            (``p = p_periods P``, ``q = P`` by default, ``P`` the ring period).
+        p_periods: default ``p`` in ring periods.
+        period_px: ring period ``P`` (px) for ``p`` / ``q``; default: the dominant period pooled over all strips
+            (module docstring, step 3).
         tilt_sigma: smoothing of the local ring tilt along the radius, in ring periods.
         max_tilt_deg: largest ring tilt in the strip (degrees from the radial normal); the orientation field is
             clamped to it (cracks, rays and stains along the transect would otherwise turn the filter).
@@ -258,6 +310,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     _number(max_tilt_deg, "max_tilt_deg", 0.0, 89.0)
     if max_radius is not None:
         _number(max_radius, "max_radius", 2.0)
+    if period_px is not None:
+        _number(period_px, "period_px", 2.0)
+    _number(p_periods, "p_periods", 0.5, 10.0)
     if not isinstance(include_edge, bool):
         raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
     v_full = hsv_value(image)  # validation
@@ -289,11 +344,14 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             dirs.append((math.degrees(math.atan2(y - c[1], x - c[0])) % 360.0, length))
     if not dirs:
         dirs = [(t, None) for t in transect_angles(4)]
-    bg = _background_colour(rgb) if background is None else np.asarray(background, dtype=np.float64).reshape(-1)
-    if bg.shape != (rgb.shape[2],) or not np.isfinite(bg).all():
-        raise ValueError(f"background must be {rgb.shape[2]} finite numbers; got {background!r}")
-    calls, out, ends_out = [], [], []
-    for k, (deg, req) in enumerate(dirs):
+    if background is None:
+        bg = _background_colour(rgb, background_tol)
+    else:
+        bg = np.asarray(background, dtype=np.float64).reshape(-1)
+        if bg.shape != (rgb.shape[2],) or not np.isfinite(bg).all():
+            raise ValueError(f"background must be {rgb.shape[2]} finite numbers; got {background!r}")
+    prepared = []  # pass 1: strips, wood masks, disc edges (no filtering)
+    for deg, req in dirs:
         th = math.radians(deg)
         u = np.array([math.cos(th), math.sin(th)])
         length = _ray_length_to_border(c, u, (H, W)) if req is None else req
@@ -304,7 +362,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                              f"inside the image")
         strip, X, Y = polar_strip(rgb, c, deg, length, half_width)
         inside = (X >= -0.5) & (X <= W - 0.5) & (Y >= -0.5) & (Y <= H - 0.5)
-        wood = (np.linalg.norm(strip - bg, axis=2) > background_tol) & inside
+        wood = inside if bg is None else (np.linalg.norm(strip - bg, axis=2) > background_tol) & inside
         S, L = wood.shape
         yc = (S - 1) // 2
         central = wood[max(0, yc - S // 4):yc + S // 4 + 1].mean(0)
@@ -312,11 +370,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         woody = np.nonzero(frac >= 0.5)[0]
         edge = None
         if len(woody) == 0:
-            out.append(RingBoundaries(points=np.zeros((0, 2)), widths_px=np.zeros(0), widths_mm=np.zeros(0),
-                                      pixel_size_mm=ps, info=dict(kind=[], radius_px=np.zeros(0), angle_deg=deg)))
-            ends_out.append(c.copy())
-            if progress is not None:
-                progress(k + 1, len(dirs))
+            prepared.append((deg, u, None, None, None, 0))
             continue
         last = int(woody[-1])
         if last < L - 3:  # the wood ends before the transect does: the disc edge
@@ -333,11 +387,26 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         good = np.isfinite(colmean)
         colmean = np.interp(np.arange(Lc), np.nonzero(good)[0], colmean[good])
         v = np.where(wd > 0, v, colmean[None, :])
+        prepared.append((deg, u, v, wd, edge, Lc))
+    # one ring period for all transects, pooled over the strips (a single strip's estimate is easily pulled to
+    # the scale of heartwood / stain patterns); period_px overrides it
+    period = period_px if period_px is not None else _pooled_period(
+        [_detrend(v) for _, _, v, _, _, Lc in prepared if v is not None and Lc >= 16], f_max)
+    calls, out, ends_out = [], [], []
+    for k, (deg, u, v, wd, edge, Lc) in enumerate(prepared):  # pass 2: filter each strip once, find boundaries
+        if v is None:
+            out.append(RingBoundaries(points=np.zeros((0, 2)), widths_px=np.zeros(0), widths_mm=np.zeros(0),
+                                      pixel_size_mm=ps, info=dict(kind=[], radius_px=np.zeros(0), angle_deg=deg)))
+            ends_out.append(c.copy())
+            if progress is not None:
+                progress(k + 1, len(dirs))
+            continue
         if Lc < 16:
             pos = np.zeros(0)
             sinfo = {}
         else:
-            pos, sinfo = _strip_boundaries(v, wd, band=band, p=p, q=q, f_max=f_max, min_rel_rise=min_rel_rise,
+            pos, sinfo = _strip_boundaries(v, wd, period=period, p_periods=p_periods, band=band, p=p, q=q, f_max=f_max,
+                                           min_rel_rise=min_rel_rise,
                                            edge_level=edge_level, tilt_sigma=tilt_sigma,
                                            max_tilt_deg=max_tilt_deg, device=device, mag_weight=mag_weight,
                                            num_workers=num_workers, calls=calls)
