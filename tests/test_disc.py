@@ -59,6 +59,19 @@ def test_polar_strip_straightens_circles():
     assert np.abs(interior - np.cos(2 * np.pi * r[None, 20:] / 9.0)).max() < 0.07
 
 
+def test_pooled_ring_period():
+    # strips of 12 px rings on a strong slow brightness trend (heartwood / sapwood): the pooled, detrended spectrum
+    # peaks at the ring period (64 log bins: +-5 %)
+    rng = np.random.default_rng(0)
+    strips = []
+    for L in (180, 240, 300):
+        r = np.arange(L, dtype=np.float64)
+        row = 0.2 * np.cos(2 * np.pi * r / 12.0) + 1.5 * np.cos(2 * np.pi * r / 350.0)
+        strips.append(row[None, :] + rng.normal(0, 0.05, (25, L)))
+    period = disc_mod._pooled_period([disc_mod._detrend(s) for s in strips], 0.4)
+    assert abs(period / 12.0 - 1) < 0.05, period
+
+
 @pytest.mark.parametrize("include_edge", [False, True])
 def test_disc_boundaries_on_synthetic_disc(disc, include_edge):
     rgb, radius = disc
