@@ -72,19 +72,21 @@ def load_labels(path):
     return np.array([col, row], dtype=np.float64), polys
 
 
-def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, **kw):
+def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, pith_offset=(0.0, 0.0), **kw):
     """Run disc mode on F02b and match against the polygons. CS-TRD's innermost polygon (mean radius < 12 px)
-    outlines the pith, not a ring boundary, and is left out unless ``keep_pith_polygon``."""
+    outlines the pith, not a ring boundary, and is left out unless ``keep_pith_polygon``. ``pith_offset`` (px) is
+    added to the pith given to the detector (a user's click error); the labels stay on the true pith's rays."""
     rgb = read_png(os.path.join(data, DISC[0], DISC[1]), linear=False)
     pith, polys = load_labels(os.path.join(data, DISC[0], DISC[2]))
     if not keep_pith_polygon:
         polys = [q for q in polys if np.linalg.norm(q - pith, axis=1).mean() >= 12.0]
     t0 = time.perf_counter()
-    res = detect_disc_boundaries(rgb, pith, angles_deg=angles, **kw)
+    given = pith + np.asarray(pith_offset, dtype=np.float64)
+    res = detect_disc_boundaries(rgb, given, angles_deg=angles, **kw)
     seconds = time.perf_counter() - t0
     rows, labels = [], []
     for deg, tr in zip(res.angles_deg, res.transects):
-        lab = polygon_radii(polys, pith, deg)
+        lab = polygon_radii(polys, given, deg)  # the label polygons crossed by the transect actually analysed
         labels.append(lab)
         row = dict(angle_deg=float(deg), detected=len(tr.points), labelled=len(lab))
         for tol in tolerances:
@@ -132,6 +134,8 @@ def main(argv=None):
     p.add_argument("--edge-level", type=float, default=0.8,
                    help="boundary at this fraction of the steepest V rise on its latewood side; 1 = the steepest "
                         "point (default: %(default)s)")
+    p.add_argument("--pith-offset", default="0,0",
+                   help="DX,DY px added to the pith given to the detector (click error study; default: %(default)s)")
     p.add_argument("--keep-pith-polygon", action="store_true",
                    help="also count CS-TRD's innermost polygon (the outline of the pith) as a boundary")
     p.add_argument("--out", default="disc_eval.json", help="output JSON (default: %(default)s)")
@@ -141,6 +145,13 @@ def main(argv=None):
         angles = [float(a) for a in args.angles.split(",")]
     except ValueError:
         print(f"{PROG}: error: --angles must be comma-separated numbers; got {args.angles!r}", file=sys.stderr)
+        return 2
+    try:
+        offset = [float(a) for a in args.pith_offset.split(",")]
+        if len(offset) != 2:
+            raise ValueError
+    except ValueError:
+        print(f"{PROG}: error: --pith-offset must be DX,DY; got {args.pith_offset!r}", file=sys.stderr)
         return 2
     missing = [f for f in (os.path.join(args.data, DISC[0], DISC[1]), os.path.join(args.data, DISC[0], DISC[2]))
                if not os.path.isfile(f)]
@@ -156,7 +167,7 @@ def main(argv=None):
     with tqdm(total=len(angles), desc="transects", unit="transect", disable=None) as bar:
         try:
             rgb, res, labels, rows, pooled, seconds = evaluate(
-                args.data, angles, keep_pith_polygon=args.keep_pith_polygon, include_edge=args.edge,
+                args.data, angles, keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset, include_edge=args.edge,
                 half_width=args.half_width, edge_level=args.edge_level,
                 progress=lambda k, n: bar.update(1))
         except (OSError, ValueError) as e:
@@ -174,7 +185,7 @@ def main(argv=None):
           f"({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the image)")
     blob = dict(data=os.path.abspath(os.path.join(args.data, DISC[0])), label="CS-TRD automatic polygons (weak)",
                 angles_deg=angles, edge=args.edge, half_width=args.half_width, edge_level=args.edge_level,
-                keep_pith_polygon=args.keep_pith_polygon, seconds=seconds, transects=rows,
+                keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset, seconds=seconds, transects=rows,
                 pooled=pooled, filtered_px=res.info["filtered_px"], image_px=res.info["image_px"])
     atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=float).encode())
     if args.overlay:
