@@ -33,7 +33,7 @@ except ModuleNotFoundError as error:
 import cv2
 import numpy as np
 
-from torch_appearance.io import atomic_write_bytes, read_png
+from torch_appearance.io import atomic_write_bytes, read_image
 from torch_appearance.rings.dendro import match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries
 
@@ -76,7 +76,7 @@ def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, pith_
     """Run disc mode on F02b and match against the polygons. CS-TRD's innermost polygon (mean radius < 12 px)
     outlines the pith, not a ring boundary, and is left out unless ``keep_pith_polygon``. ``pith_offset`` (px) is
     added to the pith given to the detector (a user's click error); the labels stay on the true pith's rays."""
-    rgb = read_png(os.path.join(data, DISC[0], DISC[1]), linear=False)
+    rgb = read_image(os.path.join(data, DISC[0], DISC[1]), space="srgb", name="image")
     pith, polys = load_labels(os.path.join(data, DISC[0], DISC[2]))
     if not keep_pith_polygon:
         polys = [q for q in polys if np.linalg.norm(q - pith, axis=1).mean() >= 12.0]

@@ -229,6 +229,16 @@ def test_cli_disc_bad_inputs(disc_png, tmp_path):
     assert list(tmp_path.iterdir()) == []  # no partial or temporary files
 
 
+def test_cli_disc_truncated_image(disc_png, tmp_path):
+    path, _ = disc_png
+    cut = tmp_path / "cut.png"
+    cut.write_bytes(path.read_bytes()[:5000])  # a PNG cut off after its first 5 kB
+    out, ovl = tmp_path / "o.csv", tmp_path / "o.png"
+    rc, _, err = _run("detect_rings.py", cut, "--pith", "150,160", "--out", out, "--overlay", ovl)
+    assert rc not in (0, None) and "cannot read image" in err and "cut.png" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.png"]
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # CooRecorder .pos
 # ---------------------------------------------------------------------------------------------------------------
