@@ -170,6 +170,14 @@ def test_bad_input(disc):
         detect_disc_boundaries(rgb, PITH, half_width=0)
     with pytest.raises(ValueError, match="angles_deg"):
         detect_disc_boundaries(rgb, PITH, angles_deg=[float("nan")])
+    bad = rgb.copy()
+    bad[160, 200] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        detect_disc_boundaries(bad, PITH, angles_deg=[0.0])
+    with pytest.raises(ValueError, match="shape"):
+        detect_disc_boundaries(rgb[..., :2], PITH)
+    with pytest.raises(TypeError, match="real numbers"):
+        detect_disc_boundaries(rgb.astype(np.complex64), PITH)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -132,15 +132,21 @@ def polar_strip(image, pith, angle_deg: float, length: float, half_width: int = 
         ``(strip, X, Y)``: ``strip`` ``(2 half_width + 1, L[, C])`` float64 (bilinear; samples outside the image
         take the nearest border value) and the sample coordinates ``X, Y`` ``(2 half_width + 1, L)``.
     """
-    a = np.asarray(image, dtype=np.float64)
+    a = np.asarray(image)
+    chans = [a] if a.ndim == 2 else [a[..., c] for c in range(a.shape[2])]
+    strip, X, Y = _polar_sample(chans, pith, angle_deg, length, half_width)
+    return (strip[..., 0] if a.ndim == 2 else strip), X, Y
+
+
+def _polar_sample(channels, pith, angle_deg, length, half_width):
+    """:func:`polar_strip` of a list of ``(H, W)`` channel arrays: ``((S, L, C) float64, X, Y)``."""
     r = np.arange(0, int(math.floor(length)) + 1, dtype=np.float64)
     s = np.arange(-half_width, half_width + 1, dtype=np.float64)
     phi = math.radians(angle_deg) + s[:, None] / np.maximum(r[None, :], float(half_width))
     X = pith[0] + r[None, :] * np.cos(phi)
     Y = pith[1] + r[None, :] * np.sin(phi)
-    sample = lambda c: ndimage.map_coordinates(c, [Y, X], order=1, mode="nearest")  # noqa: E731
-    out = sample(a) if a.ndim == 2 else np.stack([sample(a[..., c]) for c in range(a.shape[2])], -1)
-    return out, X, Y
+    out = [ndimage.map_coordinates(c, [Y, X], order=1, mode="nearest", output=np.float64) for c in channels]
+    return np.stack(out, -1), X, Y
 
 
 def _background_colour(rgb, tol):
@@ -315,11 +321,18 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     _number(p_periods, "p_periods", 0.5, 10.0)
     if not isinstance(include_edge, bool):
         raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
-    v_full = hsv_value(image)  # validation
     a = np.asarray(image)
-    rgb = a[..., :3].astype(np.float64) if a.ndim == 3 and a.shape[2] in (3, 4) else v_full[..., None].astype(
-        np.float64)
-    H, W = v_full.shape
+    if a.dtype.kind not in "fiub":
+        raise TypeError(f"image must hold real numbers; got dtype {a.dtype}")
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] in (1, 3, 4))) or min(a.shape[:2]) < 4:
+        raise ValueError(f"image must have shape (H, W) or (H, W, 3) with H, W >= 4; got {a.shape}")
+    rgb = a[..., :3] if a.ndim == 3 and a.shape[2] >= 3 else (a if a.ndim == 3 else a[..., None])
+    if rgb.dtype.kind != "f":
+        rgb = rgb.astype(np.float32)
+    # one contiguous copy per channel, shared by all strips (no float64 copy of the whole photo; the values are
+    # checked for NaN / inf on the strips that are actually sampled)
+    chans = [np.ascontiguousarray(rgb[..., c]) for c in range(rgb.shape[2])]
+    H, W = a.shape[:2]
     c = _check_pith(pith, (H, W))
     dirs = []  # (angle_deg, requested length)
     if angles_deg is not None:
@@ -360,7 +373,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         if length < 2.0:
             raise ValueError(f"transect at {deg:g} deg from the pith ({c[0]:g}, {c[1]:g}) has (nearly) zero length "
                              f"inside the image")
-        strip, X, Y = polar_strip(rgb, c, deg, length, half_width)
+        strip, X, Y = _polar_sample(chans, c, deg, length, half_width)
+        if not np.isfinite(strip).all():
+            raise ValueError(f"image contains NaN or infinite values along the transect at {deg:g} deg")
         inside = (X >= -0.5) & (X <= W - 0.5) & (Y >= -0.5) & (Y <= H - 0.5)
         wood = inside if bg is None else (np.linalg.norm(strip - bg, axis=2) > background_tol) & inside
         S, L = wood.shape
