@@ -13,3 +13,7 @@ from .dendro import (RingBoundaries, detect_core_boundaries, detect_transect_bou
 
 __all__ += ["RingBoundaries", "detect_core_boundaries", "detect_transect_boundaries", "match_boundaries",
             "ring_widths_mm"]
+from .disc import DiscBoundaries, detect_disc_boundaries
+from .coorecorder import PosFile, read_pos
+
+__all__ += ["DiscBoundaries", "detect_disc_boundaries", "PosFile", "read_pos"]
