@@ -174,3 +174,57 @@ def test_uv_target_fills_the_background_from_the_islands(shift):
     assert info["degenerate_area_fraction"] == pytest.approx(32.0 / 48.0)
     assert info["covered_fraction"] == pytest.approx(0.64, abs=0.005)  # 40 × 40 texel centres
     assert image[..., 0].min() > 0.9 and image[..., 1:].max() < 0.05
+
+
+def test_cropped_slab_remaps_like_the_full_slab():
+    """uv_target_image(crop=True) keeps the islands' bounding box only (a plate whose top face uses
+    u, v ∈ [0.1, 0.9]: 40 × 40 of 50 × 50 texels), its pixels equal the full image's there, and remap_slab of the
+    crop with its window gives the object exactly the weights that the full slab gives (full slab random outside
+    the crop: unused); a window that does not fit is refused."""
+    from torch_appearance.pipelines.remap25d import remap_slab
+
+    h = 0.1
+    mesh = trimesh.creation.box((4.0, 4.0, 1.0))
+    mesh.unmerge_vertices()
+    v = np.asarray(mesh.vertices)
+    uv = np.full((len(v), 2), 0.5)
+    top = np.unique(np.asarray(mesh.faces)[np.isclose(mesh.face_normals[:, 2], 1.0)])
+    uv[top] = 0.1 + 0.8 * (v[top, :2] + 2.0) / 4.0
+    from PIL import Image
+    texture = (np.random.default_rng(0).random((100, 100, 3)) * 255).astype(np.uint8)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(texture))
+    full, info_full = uv_target_image(mesh, h)
+    crop, info = uv_target_image(mesh, h, crop=True)
+    r0, c0, hs, ws = info["window"]
+    assert full.shape == (50, 50, 3) and (hs, ws) == (50, 50) and info_full["window"] == [0, 0, 50, 50]
+    assert crop.shape == (40, 40, 3) and (r0, c0) == (5, 5) and info["covered_fraction"] == 1.0
+    assert np.array_equal(crop, full[r0:r0 + 40, c0:c0 + 40])
+    target = object_target(mesh, h, 0.3)
+    inks = InkSet.from_names()
+    core = np.zeros(len(inks), np.float32)
+    core[inks.index("white")] = 1
+    slab = np.random.default_rng(2).random((len(inks), 3, 50, 50)).astype(np.float32)
+    expected, _ = remap_slab(target, slab, core)
+    got, _ = remap_slab(target, np.ascontiguousarray(slab[:, :, r0:r0 + 40, c0:c0 + 40]), core, window=info["window"])
+    assert torch.equal(got, expected)
+    with pytest.raises(ValueError, match="window: a 40×40 slab at row 20"):
+        remap_slab(target, slab[:, :, :40, :40], core, window=(20, 0, 50, 50))
+
+
+def test_material_mask_becomes_a_slab_mask(tmp_path):
+    """``material:NAME`` in the slab run: the slab texels inside the UV triangles of that material's faces."""
+    import cv2
+
+    mesh = box_with_top_uv((2.0, 2.0, 1.0))
+    is_top = np.isclose(mesh.face_normals[:, 2], 1.0)
+    mesh.metadata["material_names"] = ["sides", "top"]
+    mesh.metadata["face_materials"] = is_top.astype(np.int32)
+    (spec,) = _slab_fixed(["transparent=0.5:material:top&depth:0-0.2"], (10, 10), str(tmp_path), mesh=mesh)
+    png, depth = spec.split(":", 1)[1].split("&")
+    assert depth == "depth:0-0.2"
+    assert (cv2.imread(png, cv2.IMREAD_GRAYSCALE) == 255).all()  # the top face spans the whole UV square
+    mesh.metadata["face_materials"] = (~is_top).astype(np.int32)
+    (spec,) = _slab_fixed(["transparent=0.5:material:top"], (10, 10), str(tmp_path), mesh=mesh)
+    assert (cv2.imread(spec.split(":", 1)[1], cv2.IMREAD_GRAYSCALE) == 0).all()
+    with pytest.raises(ValueError, match="no material 'lid'"):
+        _slab_fixed(["transparent=0.5:material:lid"], (10, 10), str(tmp_path), mesh=mesh)

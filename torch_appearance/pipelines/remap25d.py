@@ -132,14 +132,18 @@ def _base_colour_texture(mesh, texture=None):
     return np.asarray(srgb_to_linear(torch.from_numpy(srgb)), dtype=np.float32)
 
 
-def uv_target_image(mesh, voxel_size, *, texture=None, fill=True, max_texels=MAX_SLAB_TEXELS):
+def uv_target_image(mesh, voxel_size, *, texture=None, fill=True, max_texels=MAX_SLAB_TEXELS, crop=False):
     """The slab target in UV space: the base-colour texture (linear RGB) resampled to :func:`slab_size` (area
     averaging when shrinking, bilinear when enlarging); with ``fill`` the pixels outside every UV island take the
     colour of the nearest covered pixel.
 
+    With ``crop`` only the bounding box of the covered pixels is kept (a texture atlas whose islands use part of
+    the UV square costs no slab texels elsewhere); ``info["window"]`` = (row0, col0, H_s, W_s) places the crop in
+    the full (H_s, W_s) grid (:func:`remap_slab` takes it).
+
     Returns:
-        ((H_s, W_s, 3) float32 linear RGB, row 0 = v 1; info dict of :func:`slab_size` + covered_fraction,
-        texture_hw).
+        ((H_s, W_s, 3) float32 linear RGB, row 0 = v 1, or its crop; info dict of :func:`slab_size` +
+        covered_fraction (of the returned image), texture_hw, window).
     """
     import cv2
 
@@ -154,7 +158,12 @@ def uv_target_image(mesh, voxel_size, *, texture=None, fill=True, max_texels=MAX
         from scipy import ndimage
         _, (ri, ci) = ndimage.distance_transform_edt(~covered, return_indices=True)
         image = image[ri, ci]
-    info.update(covered_fraction=float(covered.mean()), texture_hw=[int(th), int(tw)])
+    window = (0, 0, hs, ws)
+    if crop and covered.any():
+        rows, cols = np.flatnonzero(covered.any(1)), np.flatnonzero(covered.any(0))
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        image, covered, window = image[r0:r1, c0:c1], covered[r0:r1, c0:c1], (r0, c0, hs, ws)
+    info.update(covered_fraction=float(covered.mean()), texture_hw=[int(th), int(tw)], window=list(window))
     return np.ascontiguousarray(image, dtype=np.float32), info
 
 
@@ -164,9 +173,11 @@ def _wrap(t):
     return np.where((t < 0) | (t > 1), t - np.floor(t), t)
 
 
-def remap_slab(target, slab_weights, core, *, chunk=1 << 20):
+def remap_slab(target, slab_weights, core, *, window=None, chunk=1 << 20):
     """Wrap slab weights (N, D_s, H_s, W_s) around an object: every shell voxel takes the slab column of its
     nearest surface point's UV at the layer of its depth (see the module docstring); other voxels ``core`` (N,).
+    ``window`` = (row0, col0, H_full, W_full): the slab is that crop of a slab spanning the whole UV square (see
+    :func:`uv_target_image`); None: the slab spans it.
 
     Returns:
         ((N, D, H, W) float32 weights, info dict: counts and seconds).
@@ -177,7 +188,10 @@ def remap_slab(target, slab_weights, core, *, chunk=1 << 20):
     slab = np.asarray(slab_weights, dtype=np.float32)
     if slab.ndim != 4:
         raise ValueError(f"slab_weights: expected (N, D, H, W), got shape {slab.shape}")
-    n, ds, hs, ws = slab.shape
+    n, ds, hc, wc = slab.shape
+    r0, c0, hs, ws = (0, 0, hc, wc) if window is None else (int(x) for x in window)
+    if not (0 <= r0 and 0 <= c0 and r0 + hc <= hs and c0 + wc <= ws):
+        raise ValueError(f"window: a {hc}×{wc} slab at row {r0}, column {c0} does not fit in {hs}×{ws}")
     core = np.asarray(core, dtype=np.float32)
     if core.shape != (n,):
         raise ValueError(f"core: expected {n} ink weights, got shape {core.shape}")
@@ -205,8 +219,8 @@ def remap_slab(target, slab_weights, core, *, chunk=1 << 20):
         bary = barycentric(closest, tri[:, 0], tri[:, 1], tri[:, 2])
         p_uv = (uv[F[fid]] * bary[:, :, None]).sum(1)
         u, v = _wrap(p_uv[:, 0]), _wrap(p_uv[:, 1])
-        row = np.clip(np.floor((1.0 - v) * hs).astype(np.int64), 0, hs - 1)
-        col = np.clip(np.floor(u * ws).astype(np.int64), 0, ws - 1)
+        row = np.clip(np.floor((1.0 - v) * hs).astype(np.int64) - r0, 0, hc - 1)
+        col = np.clip(np.floor(u * ws).astype(np.int64) - c0, 0, wc - 1)
         below = np.floor(depth_all[idx].astype(np.float64) / h).astype(np.int64)
         layer = ds - 1 - below
         clipped += int((layer < 0).sum())
@@ -217,14 +231,16 @@ def remap_slab(target, slab_weights, core, *, chunk=1 << 20):
 
 
 # ------------------------------------------------------------------------------------------------ the baseline
-def _slab_fixed(specs, size, work_dir):
+def _slab_fixed(specs, size, work_dir, window=None, mesh=None):
     """The object run's ``INK=FRACTION:MASK`` constraints for the UV-space slab: ``all`` and ``depth:A-B`` (depth
     below the surface = below the slab's top face) stay; a texture-space PNG mask is resampled (nearest) to the
-    slab's (H_s, W_s) and written to ``work_dir``."""
+    full UV slab and cropped to ``window`` (see :func:`uv_target_image`), and ``material:NAME`` becomes the slab
+    texels inside the UV triangles of that material's faces (``mesh``); both are written to ``work_dir`` as PNGs."""
     import cv2
 
     from .fixed_fractions import parse_fixed
 
+    r0, c0, hs, ws = window if window is not None else (0, 0, *size)
     out = []
     for n, spec in enumerate(specs):
         ink, fraction, terms = parse_fixed(spec)
@@ -232,10 +248,24 @@ def _slab_fixed(specs, size, work_dir):
         for t, term in enumerate(terms):
             if term.lower().endswith(".png"):
                 mask = ta_io.read_mask(term, name="fixed: mask image").astype(np.uint8) * 255
-                mask = cv2.resize(mask, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
-                term = os.path.join(work_dir, f"fixed_{n}_{t}.png")
-                _, png = cv2.imencode(".png", mask)
-                ta_io.atomic_write_bytes(term, png.tobytes())
+                mask = cv2.resize(mask, (ws, hs), interpolation=cv2.INTER_NEAREST)
+            elif term.startswith("material:"):
+                from ..geometry.bake import uv_face_image
+
+                name = term[len("material:"):].strip()
+                names = list(mesh.metadata.get("material_names", [])) if mesh is not None else []
+                if name not in names:
+                    raise ValueError(f"fixed: {spec!r}: the mesh has no material {name!r}; its materials are {names}")
+                faces = uv_face_image(mesh, (hs, ws))
+                of_material = np.asarray(mesh.metadata["face_materials"]) == names.index(name)
+                mask = np.where(faces >= 0, of_material[np.maximum(faces, 0)], False).astype(np.uint8) * 255
+            else:
+                slab_terms.append(term)
+                continue
+            mask = np.ascontiguousarray(mask[r0:r0 + size[0], c0:c0 + size[1]])
+            term = os.path.join(work_dir, f"fixed_{n}_{t}.png")
+            _, png = cv2.imencode(".png", mask)
+            ta_io.atomic_write_bytes(term, png.tobytes())
             slab_terms.append(term)
         out.append(f"{ink}={fraction!r}:{'&'.join(slab_terms)}")
     return tuple(out)
@@ -273,23 +303,24 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
     h = float(target.obj.voxel_size)
     core = np.zeros(len(inks), dtype=np.float32)
     core[inks.index(cfg.core_ink)] = 1.0
-    info = {}
+    info, window = {}, None
     if slab_weights is None:
         t0 = time.perf_counter()
         work_dir = os.fspath(work_dir)
         os.makedirs(work_dir, exist_ok=True)
-        image, size_info = uv_target_image(mesh, h, texture=cfg.texture, max_texels=max_texels)
+        image, size_info = uv_target_image(mesh, h, texture=cfg.texture, max_texels=max_texels, crop=True)
+        window = size_info["window"]
         info.update(size_info)
         exr = os.path.join(work_dir, "uv_target.exr")
         ta_io.write_exr(exr, image)
         if size_info["scale"] < 1.0:
             log(f"remap_baseline: the UV slab is capped at {max_texels} texels: one slab texel spans "
                 f"{1 / size_info['scale']:.2f} voxels of surface")
-        log(f"remap_baseline: UV-space slab {image.shape[0]}×{image.shape[1]} texels ({size_info['mm_per_u']:.1f} × "
-            f"{size_info['mm_per_v']:.1f} mm per UV unit, {100 * size_info['covered_fraction']:.0f}% covered), "
-            f"{cfg.shell_mm} mm thick")
+        log(f"remap_baseline: UV-space slab {image.shape[0]}×{image.shape[1]} texels (the UV islands' bounding box "
+            f"in a {window[2]}×{window[3]} UV square; {size_info['mm_per_u']:.1f} × {size_info['mm_per_v']:.1f} mm "
+            f"per UV unit, {100 * size_info['covered_fraction']:.0f}% covered), {cfg.shell_mm} mm thick")
         # an environment map lights objects only; fixed fractions carry over (texture-space masks resampled)
-        fixed = _slab_fixed(getattr(cfg, "fixed", ()), image.shape[:2], work_dir)
+        fixed = _slab_fixed(getattr(cfg, "fixed", ()), image.shape[:2], work_dir, window, mesh)
         slab_cfg = dataclasses.replace(cfg, mesh=None, texture=None, envmap=None, fixed=fixed, target=exr,
                                        bottom_target=None, thickness_mm=cfg.shell_mm, dpi=25.4 / h, width_mm=None,
                                        height_mm=None, remap_baseline=False, naive_baseline=False, views=0,
@@ -306,7 +337,7 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None,
     if slab_weights.ndim != 4 or slab_weights.shape[0] != len(inks):
         raise ValueError(f"slab_weights: expected ({len(inks)}, D, H, W) for the inks {list(inks.names)}, got shape "
                          f"{slab_weights.shape}")
-    weights, remap_info = remap_slab(target, slab_weights, core)
+    weights, remap_info = remap_slab(target, slab_weights, core, window=window)
     info.update(remap_info, slab_depth=int(slab_weights.shape[1]), slab_hw=list(slab_weights.shape[2:]),
                 texels=int(len(target.obj.texel_voxels)))
     log(f"remap_baseline: {remap_info['shell_voxels']} shell voxels remapped from a {slab_weights.shape[1]}-layer "
