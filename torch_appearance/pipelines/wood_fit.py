@@ -201,7 +201,7 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         the summary dict.
     """
     from ..metrics import ssim_2d
-    from ..rings.board import estimate_board, initial_wood_model
+    from ..rings.board import choose_pith_side, estimate_board, initial_wood_model
     from ..rings.gabor import curved_gabor
     from ..rings.tracing import trace_rings
 
@@ -223,6 +223,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
                          f"board (is pixel_size_mm right, and are rings visible?)")
     t0 = time.perf_counter()
     estimate = estimate_board(rings, (h, w), cfg.pixel_size_mm)
+    # growth direction: the projected centre where one lateness profile explains both sides (mirror-free)
+    estimate, pith_info = choose_pith_side(estimate, gab.phase, gray, magnitude=gab.magnitude, rings=rings)
     model, info = initial_wood_model(estimate, gab.phase, magnitude=gab.magnitude, rings=rings,
                                      distortion=cfg.distortion, distortion_shape=tuple(cfg.distortion_shape),
                                      dtype=torch.float32, return_info=True)
@@ -336,6 +338,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         # ring boundaries (integer G) crossing the board; below MIN_RINGS_FOR_SCALE the scale is a rough guess
         "visible_rings": visible_rings,
         "ring_scale_reliable": bool(visible_rings >= MIN_RINGS_FOR_SCALE),
+        # growth-direction check (choose_pith_side): R² of one lateness profile, and whether the centre moved
+        "pith_side": {k: pith_info[k] for k in ("score_initial", "score_chosen", "moved")},
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
     if not summary["fit_ok"]:

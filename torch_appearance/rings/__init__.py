@@ -4,10 +4,12 @@ from .synthetic import synthetic_board
 from .orientation import orientation_field, orientation_from_phase
 from .gabor import GaborResult, curved_gabor
 from .tracing import trace_rings
-from .board import BoardEstimate, estimate_board, initial_wood_model, resolve_phase_sign
+from .board import (BoardEstimate, choose_pith_side, estimate_board, initial_wood_model, lateness_profile_score,
+                    resolve_phase_sign)
 
 __all__ = ["synthetic_board", "orientation_field", "orientation_from_phase", "GaborResult", "curved_gabor",
-           "trace_rings", "BoardEstimate", "estimate_board", "initial_wood_model", "resolve_phase_sign"]
+           "trace_rings", "BoardEstimate", "estimate_board", "initial_wood_model", "resolve_phase_sign",
+           "choose_pith_side", "lateness_profile_score"]
 from .dendro import (RingBoundaries, detect_core_boundaries, detect_transect_boundaries, match_boundaries,
                      ring_widths_mm)
 
