@@ -36,7 +36,7 @@ from scipy.sparse import linalg as sparse_linalg
 from .tracing import polyline_length, wrap_angle
 
 __all__ = ["BoardEstimate", "estimate_board", "resolve_phase_sign", "initial_wood_model", "find_centre_gap",
-           "lateness_profile_score", "choose_pith_side"]
+           "lateness_profile_score", "choose_pith_side", "unwrap_phase"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -314,15 +314,16 @@ def _assign_rings(rbar, side_major, s_r, phi):
     return np.rint(rbar / s_r - ph).astype(np.int64)
 
 
-def _spacing_gaps(rbar):
-    """Gaps between sorted mean radii that are single ring widths (legs of the same ring, with nearly equal radii,
-    are merged; a missed ring shows up as a double gap and is dropped)."""
+def _spacing_gaps(rbar, min_gap=0.0):
+    """Gaps between sorted mean radii that are single ring widths (legs or fragments of the same ring, with nearly
+    equal radii, are merged: gaps below 0.35 × the median gap or below ``min_gap`` mm; a missed ring shows up as a
+    double gap and is dropped)."""
     r = np.sort(rbar)
     d = np.diff(r)
     if len(d) == 0:
         return np.zeros(0)
     scale = np.median(d[d > 0]) if (d > 0).any() else 0.0
-    d = d[d > 0.35 * scale]
+    d = d[d > max(0.35 * scale, min_gap)]
     if len(d) == 0:
         return d
     med = np.median(d)
@@ -562,7 +563,8 @@ def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3, c_band
     # spacing per side of the centre line: the traced level may sit half a ring apart on the two sides
     side_major = np.where(ring_means(np.where(wp >= x[1], 1.0, -1.0)) >= 0, 1, -1)
     # (the gaps of both sides are pooled: a side with only two rings must not weigh as much as one with ten)
-    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)]) for sgn in (1, -1)])
+    # (fragments of one ring traced separately sit closer than a third of the transversal ring spacing s_r0)
+    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)], 0.35 * s_r0) for sgn in (1, -1)])
     found = found[np.isfinite(found) & (found > 0)]
     if len(found) == 0:
         return None
@@ -694,6 +696,46 @@ def lateness_profile_score(resolved_phase, gray, weight=None, bins=24):
     return float(1.0 - (wr * (gr - prof[b]) ** 2).sum() / max(total, 1e-300))
 
 
+def unwrap_phase(wrapped, weight=None):
+    """Weighted least-squares phase unwrapping (Ghiglia & Romero 1994): the smooth field whose neighbour
+    differences match the wrapped differences of ``wrapped``.
+
+    Solves min Σ w_ij (u_i − u_j − wrap(φ_i − φ_j))² over 4-neighbour pairs (w_ij = min of the two pixel weights)
+    (plus a tiny ridge term); the free constant is the weighted circular mean of the input minus the solution, so
+    wrap(result) ≈ wrapped. Where the wrapped field is smooth this is
+    exact unwrapping; at residues (true phase singularities) the error is spread smoothly instead of left as
+    2π cuts.
+
+    Args:
+        wrapped: ``(H, W)`` phase (rad). weight: optional ``(H, W)`` non-negative confidence (default uniform).
+
+    Returns:
+        ``(H, W)`` float64 unwrapped phase (rad).
+    """
+    from .tracing import _as_field
+
+    phi = _as_field("wrapped", wrapped).astype(np.float64)
+    h, w = phi.shape
+    wt = np.ones_like(phi) if weight is None else np.maximum(_as_field("weight", weight, phi.shape), 0.0)
+    wt = wt / max(float(wt.mean()), 1e-300) + 1e-3
+    idx = np.arange(h * w).reshape(h, w)
+    rows_i, rows_j, vals, ws = [], [], [], []
+    for a, b, da in ((idx[:, :-1], idx[:, 1:], phi[:, 1:] - phi[:, :-1]),
+                     (idx[:-1, :], idx[1:, :], phi[1:, :] - phi[:-1, :])):
+        rows_i.append(a.ravel())
+        rows_j.append(b.ravel())
+        vals.append(wrap_angle(da).ravel())
+        ws.append(np.minimum(wt.ravel()[a.ravel()], wt.ravel()[b.ravel()]))
+    i, j, d, we = (np.concatenate(x) for x in (rows_i, rows_j, vals, ws))
+    m = len(i)
+    dmat = sparse.csr_matrix((np.concatenate([-np.ones(m), np.ones(m)]),
+                              (np.concatenate([np.arange(m)] * 2), np.concatenate([i, j]))), shape=(m, h * w))
+    eps = 1e-8
+    lhs = (dmat.T @ sparse.diags(we) @ dmat + eps * sparse.identity(h * w)).tocsc()
+    u = sparse_linalg.spsolve(lhs, dmat.T @ (we * d)).reshape(h, w)
+    return u + np.angle((wt * np.exp(1j * (phi - u))).sum())
+
+
 def _with_centre(estimate, c):
     """The estimate with its projected centre line moved to offset ``c`` (mm), other geometry kept."""
     h, w = estimate.image_shape
@@ -820,7 +862,7 @@ def _laplacian(hd, wd, periodic_rows):
 
 def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=None, distortion="radial",
                        distortion_shape=(32, 64), n_rings=64, smoothness=1e-3, dense_refine=True,
-                       dtype=None, return_info=False):
+                       dtype=None, return_info=False, color_bins=16):
     """Initial WoodModel (board transform, ring scale, radial distortion) from a board estimate (paper §3.5).
 
     The distortion starts from the paper's recipe, the difference between the observed traced rings and their
@@ -835,7 +877,7 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         phase: ``(H, W)`` Gabor phase of the photograph (rad), as traced.
         magnitude: optional ``(H, W)`` Gabor magnitude (weights of the dense fit).
         rings: ring polylines; default ``estimate.rings`` (with ``estimate.ring_index``).
-        distortion, distortion_shape, n_rings: passed to ``WoodModel``.
+        distortion, distortion_shape, n_rings, color_bins: passed to ``WoodModel``.
         smoothness: weight of the Laplacian prior relative to the mean data weight per texel.
         dense_refine: add the wrapped dense phase residual (recommended).
         dtype: torch dtype of the model (default float32).
@@ -873,7 +915,7 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     z_range = (float(z.min() - 0.05 * zspan - 1e-3), float(z.max() + 0.05 * zspan + 1e-3))
     r_max = float(r.max() + 2 * s_r)
     model = WoodModel(ring_scale_mm=s_r, n_rings=n_rings, distortion=distortion, distortion_shape=distortion_shape,
-                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype)
+                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype, color_bins=color_bins)
     model.set_parameters(rotation=torch.as_tensor(estimate.rotation, dtype=torch.float64),
                          translation=torch.as_tensor(estimate.translation, dtype=torch.float64))
 
@@ -926,8 +968,16 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     if dense_refine:
         m_pix = a_pix @ tex
         resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
+        # unwrapped: a wrapped residual jumps by 2π where it crosses ±π, and a texture fitted to it puts a whole
+        # ring's displacement step there (the blocky 2π slips along texel cells that the cyclic loss cannot undo)
+        resid = unwrap_phase(resid.reshape(h, w), weight.reshape(h, w)).ravel()
         target = m_pix + s_r * resid / _TWO_PI
         tex = solve(a_pix, target, weight + 1e-12)
+        # then the small remainder the smooth texture could not follow, where it stays below π/2 (no 2π cut)
+        m_pix = a_pix @ tex
+        resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
+        near = np.abs(resid) < math.pi / 2
+        tex = solve(a_pix, m_pix + s_r * np.where(near, resid, 0.0) / _TWO_PI, weight * near + 1e-12)
     model.set_parameters(m_r=torch.as_tensor(tex.reshape(hd, wd), dtype=torch.float64))
     if not return_info:
         return model
