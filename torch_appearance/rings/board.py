@@ -563,8 +563,8 @@ def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3, c_band
     # spacing per side of the centre line: the traced level may sit half a ring apart on the two sides
     side_major = np.where(ring_means(np.where(wp >= x[1], 1.0, -1.0)) >= 0, 1, -1)
     # (the gaps of both sides are pooled: a side with only two rings must not weigh as much as one with ten)
-    # (fragments of one ring traced separately sit closer than a third of the transversal ring spacing s_r0)
-    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)], 0.35 * s_r0) for sgn in (1, -1)])
+    # (fragments of one ring traced separately sit closer than a fifth of the transversal ring spacing s_r0)
+    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)], 0.2 * s_r0) for sgn in (1, -1)])
     found = found[np.isfinite(found) & (found > 0)]
     if len(found) == 0:
         return None
@@ -971,9 +971,8 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         # unwrapped: a wrapped residual jumps by 2π where it crosses ±π, and a texture fitted to it puts a whole
         # ring's displacement step there (the blocky 2π slips along texel cells that the cyclic loss cannot undo)
         resid = unwrap_phase(resid.reshape(h, w), weight.reshape(h, w)).ravel()
-        target = m_pix + s_r * resid / _TWO_PI
-        tex = solve(a_pix, target, weight + 1e-12)
-        # then the small remainder the smooth texture could not follow, where it stays below π/2 (no 2π cut)
+        tex = solve(a_pix, m_pix + s_r * resid / _TWO_PI, weight + 1e-12)
+        # then the small remainder the smooth texture could not follow, only where it is below π/2 (no 2π cut)
         m_pix = a_pix @ tex
         resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
         near = np.abs(resid) < math.pi / 2
