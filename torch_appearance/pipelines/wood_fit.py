@@ -1,9 +1,12 @@
 """Wood appearance matching (thesis ch. 2): fit a procedural solid-wood texture to one photograph of a board.
 
 photo → curved Gabor filter (orientation, magnitude, phase J_φ) → ring tracing at J_φ = π/2 → board location
-(projected tree centre, ring scale, transform; phase sign resolved) → initial ``WoodModel`` (radial distortion
-from the traced rings) → stage 1: cyclic phase loss E = wrap(J_φ − I_φ)² with Adam (lr 0.03, 500 epochs) over the
-board transform, ring scale and distortion → stage 2: colour map with the geometry frozen → run folder.
+(projected tree centre, ring scale, transform) → growth direction: the centre line placed where one lateness
+profile explains both sides (``choose_pith_side``), phase sign resolved → initial ``WoodModel`` (radial distortion
+from the traced rings and the unwrapped phase residual) → stage 1: cyclic phase loss E = wrap(J_φ − I_φ)² with Adam
+(lr 0.03, 500 epochs) over the board transform, ring scale and distortion, the distortion coarse to fine (3
+levels, so no texel cell slips by a ring) → stage 2: colour map (32 lateness bins) with the geometry frozen → run
+folder.
 ``scripts/fit_wood.py`` is the command-line front end.
 """
 import dataclasses

@@ -22,7 +22,13 @@ local phase error starts well below π/2 (§3.6).
 
 Phase sign: the Gabor phase is ``±(2π G + const)`` with a sign that depends on the (mod π) normal chosen per
 pixel; beyond the projected centre the sign flips. :func:`resolve_phase_sign` makes it agree with the model's
-``phase = 2π·frac(G)`` (increasing outwards); stage-1 fitting compares ``wrap(resolved − model phase)``.
+``phase = 2π·frac(G)`` (increasing outwards); stage-1 fitting compares ``wrap(resolved − model phase)``. Where
+the projected centre line sits decides which side gets flipped, and the ring-based estimate can put it in the
+wrong gap (few traced rings on one side): the fit then follows the rings there with latewood on the pith side
+(mirrored growth). :func:`choose_pith_side` scores the sign hypotheses of candidate centre lines by how well one
+lateness profile explains the photo (:func:`lateness_profile_score`; a ring's profile is asymmetric) and re-fits
+the board around the best line. The dense initial distortion is fitted to the unwrapped phase residual
+(:func:`unwrap_phase`), so it holds no 2π steps.
 """
 from __future__ import annotations
 
