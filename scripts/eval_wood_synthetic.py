@@ -13,7 +13,14 @@ written as ``OUT/seed_<NN>/board.png`` (8-bit sRGB) and the wood fit (fit_wood) 
   (circular mean of the wrapped difference; the Gabor phase is aligned with the rings' fundamental, not with G);
 * mean ring-boundary distance (px) in both directions: fitted boundaries (G = k + boundary_lateness of the fitted
   model) → nearest true boundary point (Newton-refined iso-lines G ∈ ℤ), and true → fitted;
+* growth direction: the fraction of the board where the fitted growth field increases the same way as the true
+  one (∇G_fit · ∇G_true > 0, central differences): lateness must grow away from the pith on both sides of the
+  projected tree centre (a fit that follows the rings but mirrors them beyond the centre scores ≈ the mirrored
+  share less than 1);
 * the fit's own phase RMS vs the photo's Gabor phase, wall time, and the true geometry (distance_mm, tilt_deg).
+
+``--pith-inside`` draws the boards with ``synthetic_board(..., pith_inside=True)``: cut 1.5-4 mm from the pith at
+12-20° tilt, so the pith and the closed oval rings around it lie in the photo.
 
 Seeds where no board geometry can be fitted (fit_wood raises ValueError) get the status "refused: <message>".
 
@@ -24,6 +31,7 @@ Examples:
     python scripts/eval_wood_synthetic.py                                    # seeds 0-9, default fit settings
     python scripts/eval_wood_synthetic.py --seeds 0,1 --epochs 20 --color-epochs 5 --out /tmp/wood_syn
     python scripts/eval_wood_synthetic.py --seeds 0-4,7 --size 192 --pixel-size-mm 0.12
+    python scripts/eval_wood_synthetic.py --seeds 0-7 --pith-inside --out /tmp/wood_pith
 """
 import argparse
 import math
@@ -62,6 +70,7 @@ FIELDS = [  # (key, header, format)
     ("ring_width_fit_mm", "width fit", "{:.3f}"),
     ("ring_width_rel_error", "width err", "{:+.1%}"),
     ("phase_rms_vs_true", "phase RMS vs true", "{:.3f}"),
+    ("direction_correct", "growth dir ok", "{:.1%}"),
     ("boundary_fit_to_true_px", "bnd fit→true px", "{:.2f}"),
     ("boundary_true_to_fit_px", "bnd true→fit px", "{:.2f}"),
     ("wall_s", "wall s", "{:.1f}"),
@@ -98,6 +107,13 @@ def phase_rms_vs_true(fit_phase, G_true):
     return float(np.sqrt((np.angle(np.exp(1j * (d - offset))) ** 2).mean())), float(offset)
 
 
+def direction_correct(G_fit, G_true):
+    """Fraction of pixels where ∇G_fit · ∇G_true > 0 (central differences; G increases away from the pith)."""
+    fy, fx = np.gradient(np.asarray(G_fit, np.float64))
+    ty, tx = np.gradient(np.asarray(G_true, np.float64))
+    return float(((fx * tx + fy * ty) > 0).mean())
+
+
 def evaluate_seed(seed, args, log):
     import torch
     from scipy.spatial import cKDTree
@@ -106,7 +122,7 @@ def evaluate_seed(seed, args, log):
     from torch_appearance.rings.synthetic import synthetic_board
 
     n, ps = args.size, args.pixel_size_mm
-    board = synthetic_board(n, n, ps, seed=seed)
+    board = synthetic_board(n, n, ps, seed=seed, pith_inside=args.pith_inside)
     prm = board["params"]
     folder = os.path.join(args.out, f"seed_{seed:02d}")
     os.makedirs(folder, exist_ok=True)
@@ -143,6 +159,7 @@ def evaluate_seed(seed, args, log):
                ring_scale_fit_mm=s_fit, ring_scale_rel_error=s_fit / prm["ring_scale"] - 1,
                ring_width_fit_mm=w_fit, ring_width_rel_error=w_fit / width_true - 1,
                phase_rms_vs_true=rms, phase_offset_rad=offset,
+               direction_correct=direction_correct(out["G"].numpy(), board["G"]),
                boundary_fit_to_true_px=fit_to_true, boundary_true_to_fit_px=true_to_fit,
                boundary_lateness=summary["boundary_lateness"], fit_phase_rms_initial=summary["initial_phase_rms"],
                fit_phase_rms_final=summary["final_phase_rms"], ssim_fit_vs_photo=summary["ssim_fit_vs_photo"],
@@ -170,6 +187,9 @@ def summarise(rows):
             float(np.mean([abs(r["ring_scale_rel_error"]) <= BAND for r in fitted if r.get("scale_reliable")]))
             if any(r.get("scale_reliable") for r in fitted) else None),
         "median_phase_rms_vs_true": float(np.median(rms)) if len(fitted) else None,
+        "fraction_phase_rms_below_0.5": float((rms < 0.5).sum() / n) if n else None,
+        "fraction_direction_correct_ge_95pct": (
+            float(sum(r["direction_correct"] >= 0.95 for r in fitted) / n) if n else None),
     }
 
 
@@ -181,7 +201,8 @@ def summary_line(s):
             f"s_r within 5 % {s['fraction_ring_scale_within_5pct']:.0%}; median |ring width error| "
             f"{s['median_abs_ring_width_rel_error']:.1%}, within 5 % {s['fraction_ring_width_within_5pct']:.0%}; "
             f"phase RMS vs true < 0.3 rad {s['fraction_phase_rms_below_0.3']:.0%} "
-            f"(median {s['median_phase_rms_vs_true']:.3f} rad); fractions over all seeds (refused count as misses); "
+            f"(median {s['median_phase_rms_vs_true']:.3f} rad), < 0.5 rad {s['fraction_phase_rms_below_0.5']:.0%}; "
+            f"growth direction right on >= 95 % of the board {s['fraction_direction_correct_ge_95pct']:.0%}; fractions over all seeds (refused count as misses); "
             f"{s['flagged_reliable']} flagged scale-reliable, of which within 5 %: "
             f"{s['fraction_ring_scale_within_5pct_when_flagged_reliable']}")
 
@@ -224,6 +245,8 @@ def main(argv=None):
                                                                          "(default: %(default)s)")
     p.add_argument("--color-epochs", type=int, default=_DEFAULTS.color_epochs, help="stage-2 (colour map) epochs "
                                                                                      "(default: %(default)s)")
+    p.add_argument("--pith-inside", action="store_true",
+                   help="boards cut 1.5-4 mm from the pith (pith and closed oval rings in the photo)")
     p.add_argument("--out", default="results/wood_synthetic", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:
@@ -250,13 +273,14 @@ def main(argv=None):
     summ = summarise(rows)
     table = ta_io.markdown_table(rows, FIELDS)
     line = summary_line(summ)
-    settings = (f"{args.size}×{args.size} px at {args.pixel_size_mm:g} mm, epochs {args.epochs} + colour "
+    settings = (f"{'pith-inside ' if args.pith_inside else ''}boards "
+                f"{args.size}×{args.size} px at {args.pixel_size_mm:g} mm, epochs {args.epochs} + colour "
                 f"{args.color_epochs}, seeds {args.seeds}")
     print(table)
     print(line)
     print(settings)
     ta_io.write_json(os.path.join(args.out, "synthetic.json"),
-                     ta_io.nan_to_none({"size": args.size, "pixel_size_mm": args.pixel_size_mm, "epochs": args.epochs,
+                     ta_io.nan_to_none({"size": args.size, "pith_inside": args.pith_inside, "pixel_size_mm": args.pixel_size_mm, "epochs": args.epochs,
                               "color_epochs": args.color_epochs, "seeds": seeds, "summary": summ, "rows": rows}))
     ta_io.atomic_write_bytes(os.path.join(args.out, "synthetic.md"),
                              f"# Wood fit on synthetic boards\n\n{settings}\n\n{table}\n\n{line}\n".encode())

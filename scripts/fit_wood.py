@@ -39,6 +39,10 @@ def parse_args(argv=None):
     p.add_argument("--p", type=int, default=d.p, help="curved Gabor: contours across the rings, 2p+1 (default: %(default)s)")
     p.add_argument("--q", type=int, default=d.q, help="curved Gabor: points along each contour, 2q+1 (default: %(default)s)")
     p.add_argument("--distortion", choices=("radial", "azimuthal"), default=d.distortion, help="(default: %(default)s)")
+    p.add_argument("--coarse-to-fine", type=int, default=d.coarse_to_fine,
+                   help="stage-1 distortion levels, coarse first (1: full texture from the start; default: %(default)s)")
+    p.add_argument("--color-bins", type=int, default=d.color_bins,
+                   help="lateness samples of the colour map (default: %(default)s)")
     p.add_argument("--max-size", type=int, default=None, help="downscale photos larger than this many pixels")
     p.add_argument("--device", default=d.device, help="torch device for the fit: cpu or cuda (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -56,7 +60,8 @@ def main(argv=None):
         return 2
     cfg = WoodFitConfig(photo=args.photo, out=args.out, pixel_size_mm=pixel, epochs=args.epochs, lr=args.lr,
                         color_epochs=args.color_epochs, p=args.p, q=args.q, distortion=args.distortion,
-                        device=args.device, max_size=args.max_size, seed=args.seed, preview=not args.no_preview)
+                        device=args.device, max_size=args.max_size, seed=args.seed, preview=not args.no_preview,
+                        coarse_to_fine=args.coarse_to_fine, color_bins=args.color_bins)
     try:
         fit_wood(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

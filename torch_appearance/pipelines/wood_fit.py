@@ -1,9 +1,12 @@
 """Wood appearance matching (thesis ch. 2): fit a procedural solid-wood texture to one photograph of a board.
 
 photo → curved Gabor filter (orientation, magnitude, phase J_φ) → ring tracing at J_φ = π/2 → board location
-(projected tree centre, ring scale, transform; phase sign resolved) → initial ``WoodModel`` (radial distortion
-from the traced rings) → stage 1: cyclic phase loss E = wrap(J_φ − I_φ)² with Adam (lr 0.03, 500 epochs) over the
-board transform, ring scale and distortion → stage 2: colour map with the geometry frozen → run folder.
+(projected tree centre, ring scale, transform) → growth direction: the centre line placed where one lateness
+profile explains both sides (``choose_pith_side``), phase sign resolved → initial ``WoodModel`` (radial distortion
+from the traced rings and the unwrapped phase residual) → stage 1: cyclic phase loss E = wrap(J_φ − I_φ)² with Adam
+(lr 0.03, 500 epochs) over the board transform, ring scale and distortion, the distortion coarse to fine (3
+levels, so no texel cell slips by a ring) → stage 2: colour map (32 lateness bins) with the geometry frozen → run
+folder.
 ``scripts/fit_wood.py`` is the command-line front end.
 """
 import dataclasses
@@ -46,6 +49,8 @@ class WoodFitConfig:
     distortion: str = "radial"
     distortion_shape: tuple = (32, 64)
     smoothness: float = 1.0  # weight of the distortion prior (squared texel-to-texel change, in ring widths)
+    color_bins: int = 32  # lateness samples of the colour map (a thin latewood line needs a few of its own)
+    coarse_to_fine: int = 3  # stage-1 distortion levels (1: the full texture from the start, as before)
     device: str = "cpu"
     max_size: Optional[int] = None
     seed: int = 0
@@ -59,10 +64,14 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name}: expected an int >= 0, got {v!r}")
-        for name in ("p", "q"):
+        for name in ("p", "q", "coarse_to_fine"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        for name in ("color_bins",):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 2:
+                raise ValueError(f"{name}: expected an int >= 2, got {v!r}")
         for name in ("lr", "color_lr"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v > 0):
@@ -192,7 +201,7 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         the summary dict.
     """
     from ..metrics import ssim_2d
-    from ..rings.board import estimate_board, initial_wood_model
+    from ..rings.board import choose_pith_side, estimate_board, initial_wood_model
     from ..rings.gabor import curved_gabor
     from ..rings.tracing import trace_rings
 
@@ -213,10 +222,21 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         raise ValueError(f"photo: found {len(rings)} growth ring(s) in {cfg.photo!r}; need at least 2 to locate the "
                          f"board (is pixel_size_mm right, and are rings visible?)")
     t0 = time.perf_counter()
-    estimate = estimate_board(rings, (h, w), cfg.pixel_size_mm)
+    try:
+        estimate = estimate_board(rings, (h, w), cfg.pixel_size_mm)
+    except ValueError as exc:
+        _overlay(cfg.out, rgb, rings, None)
+        raise ValueError(
+            f"photo: the {len(rings)} ring lines traced in {cfg.photo!r} fit no tree axis behind a planar board "
+            f"({exc}). The fit needs a tangential or radial face, whose rings are nested arches or parallel bands "
+            f"around one projected axis; end grain (rings closed around the pith), a knot or several stems in view "
+            f"break that. Crop the photo to a knot-free region of one face (ring_overlay.png in {cfg.out!r} shows "
+            f"the traced rings)") from None
+    # growth direction: the projected centre where one lateness profile explains both sides (mirror-free)
+    estimate, pith_info = choose_pith_side(estimate, gab.phase, gray, magnitude=gab.magnitude, rings=rings)
     model, info = initial_wood_model(estimate, gab.phase, magnitude=gab.magnitude, rings=rings,
                                      distortion=cfg.distortion, distortion_shape=tuple(cfg.distortion_shape),
-                                     dtype=torch.float32, return_info=True)
+                                     dtype=torch.float32, return_info=True, color_bins=cfg.color_bins)
     timings["board_estimate_s"] = time.perf_counter() - t0
     photo_phase = info["resolved_phase"].astype(np.float32)
 
@@ -237,7 +257,13 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
 
     # ---- stage 1: geometry from the cyclic phase loss
     geometry = [p for n, p in model.named_parameters() if n != "color_map"]
-    optimizer = torch.optim.Adam(_phase_normalised_groups(model, h, w, cfg), lr=cfg.lr)
+    groups = _phase_normalised_groups(model, h, w, cfg)
+    pyramid = _DistortionPyramid(model, cfg.coarse_to_fine) if model.m_r is not None else None
+    if pyramid is not None:  # the texture is m_r(init) + Σ upsampled levels, coarse levels switched on first
+        m_lr = next(g["lr"] for g in groups if g["name"] == "m_r")
+        groups = [g for g in groups if g["name"] != "m_r"] + [
+            {"params": [lev], "lr": m_lr, "name": f"m_r_level{i}"} for i, lev in enumerate(pyramid.levels)]
+    optimizer = torch.optim.Adam(groups, lr=cfg.lr)
     rows = []
     start = time.perf_counter()
     try:
@@ -246,10 +272,14 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     except ImportError:  # pragma: no cover
         bar = None
     for epoch in range(cfg.epochs + 1):
-        out = model.render_board(h, w, cfg.pixel_size_mm)
+        if pyramid is not None:
+            m_r = pyramid.texture()
+            out = torch.func.functional_call(model, {"m_r": m_r}, (h, w, cfg.pixel_size_mm))
+        else:
+            m_r, out = None, model.render_board(h, w, cfg.pixel_size_mm)
         loss = phase_loss(out["phase"], target_phase, weight)
         if cfg.smoothness > 0 and model.m_r is not None:
-            loss = loss + cfg.smoothness * distortion_prior(model)
+            loss = loss + cfg.smoothness * distortion_prior(model, m_r)
         rms = float(torch.sqrt((wrap(target_phase - out["phase"].detach()) ** 2).mean()))
         rows.append({"stage": 1, "epoch": epoch, "wall_s": time.perf_counter() - start,
                      "phase_loss": loss.item(), "phase_rms": rms})
@@ -257,10 +287,15 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
             break
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if pyramid is not None:
+            pyramid.freeze_inactive(epoch, cfg.epochs)
         optimizer.step()
         if bar is not None:
             bar.update(1)
             bar.set_postfix(phase_loss=f"{loss.item():.4f}")
+    if pyramid is not None:
+        with torch.no_grad():
+            model.m_r.copy_(pyramid.texture())
     timings["stage1_s"] = time.perf_counter() - start
 
     # ---- stage 2: colour map with the geometry frozen (linear RGB MSE)
@@ -327,6 +362,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         # ring boundaries (integer G) crossing the board; below MIN_RINGS_FOR_SCALE the scale is a rough guess
         "visible_rings": visible_rings,
         "ring_scale_reliable": bool(visible_rings >= MIN_RINGS_FOR_SCALE),
+        # growth-direction check (choose_pith_side): R² of one lateness profile, and whether the centre moved
+        "pith_side": {k: pith_info[k] for k in ("score_initial", "score_chosen", "moved")},
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
     if not summary["fit_ok"]:
@@ -394,11 +431,45 @@ def model_boundaries(G, offset):
     return lines
 
 
-def distortion_prior(model):
+class _DistortionPyramid:
+    """Coarse-to-fine parametrisation of the distortion texture for stage 1: m_r = m_r(initial) + Σ_l U(P_l), with
+    levels P_l of (Hd, Wd)/2^(n−1−l) texels (at least 2) bilinearly upsampled (align_corners, as the texture is
+    sampled) to the full grid. Level l is trained from epoch l·E/n on: the coarse levels first move whole ring
+    groups, so the cyclic loss cannot pull single texel cells into the neighbouring ring (a 2π slip, seen as blocky
+    rectangles along the texel grid) before the large-scale distortion is in place."""
+
+    def __init__(self, model, n_levels):
+        hd, wd = model.distortion_shape
+        self.base = model.m_r.detach().clone()
+        self.shape = (hd, wd)
+        shapes = []
+        for lev in range(max(int(n_levels), 1)):
+            f = 2 ** (max(int(n_levels), 1) - 1 - lev)
+            shapes.append((max(2, hd // f), max(2, wd // f)))
+        self.levels = [torch.zeros((1, 1) + s, dtype=self.base.dtype, device=self.base.device, requires_grad=True)
+                       for s in shapes]
+
+    def texture(self):
+        import torch.nn.functional as F
+        m = self.base
+        for lev in self.levels:
+            m = m + (lev if tuple(lev.shape[-2:]) == self.shape else
+                     F.interpolate(lev, size=self.shape, mode="bilinear", align_corners=True))
+        return m
+
+    def freeze_inactive(self, epoch, epochs):
+        n = len(self.levels)
+        for i, lev in enumerate(self.levels):
+            if epoch < i * epochs / n and lev.grad is not None:
+                lev.grad.zero_()
+
+
+def distortion_prior(model, m_r=None):
     """Smoothness prior of the radial distortion texture: mean squared change between neighbouring texels, in
     ring widths² (dimensionless). It keeps m_r from imitating a different ring scale or axis distance (a
-    distortion growing with r is indistinguishable from a ring-scale change) and from fitting noise."""
-    m = model.m_r / model.ring_scale
+    distortion growing with r is indistinguishable from a ring-scale change) and from fitting noise.
+    ``m_r`` (``(1, 1, Hd, Wd)`` mm) replaces the model's own texture when given."""
+    m = (model.m_r if m_r is None else m_r) / model.ring_scale
     return (m[..., 1:, :] - m[..., :-1, :]).pow(2).mean() + (m[..., :, 1:] - m[..., :, :-1]).pow(2).mean()
 
 

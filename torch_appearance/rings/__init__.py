@@ -4,11 +4,13 @@ from .synthetic import synthetic_board
 from .orientation import orientation_field, orientation_from_phase
 from .gabor import CurvedGaborFilter, GaborResult, curved_gabor, curved_gabor_response
 from .tracing import trace_rings
-from .board import BoardEstimate, estimate_board, initial_wood_model, resolve_phase_sign
+from .board import (BoardEstimate, choose_pith_side, estimate_board, initial_wood_model, lateness_profile_score,
+                    resolve_phase_sign)
 
 __all__ = ["synthetic_board", "orientation_field", "orientation_from_phase", "GaborResult", "curved_gabor",
            "CurvedGaborFilter", "curved_gabor_response",
-           "trace_rings", "BoardEstimate", "estimate_board", "initial_wood_model", "resolve_phase_sign"]
+           "trace_rings", "BoardEstimate", "estimate_board", "initial_wood_model", "resolve_phase_sign",
+           "choose_pith_side", "lateness_profile_score"]
 from .dendro import (RingBoundaries, detect_core_boundaries, detect_transect_boundaries, match_boundaries,
                      ring_widths_mm)
 

@@ -22,7 +22,13 @@ local phase error starts well below π/2 (§3.6).
 
 Phase sign: the Gabor phase is ``±(2π G + const)`` with a sign that depends on the (mod π) normal chosen per
 pixel; beyond the projected centre the sign flips. :func:`resolve_phase_sign` makes it agree with the model's
-``phase = 2π·frac(G)`` (increasing outwards); stage-1 fitting compares ``wrap(resolved − model phase)``.
+``phase = 2π·frac(G)`` (increasing outwards); stage-1 fitting compares ``wrap(resolved − model phase)``. Where
+the projected centre line sits decides which side gets flipped, and the ring-based estimate can put it in the
+wrong gap (few traced rings on one side): the fit then follows the rings there with latewood on the pith side
+(mirrored growth). :func:`choose_pith_side` scores the sign hypotheses of candidate centre lines by how well one
+lateness profile explains the photo (:func:`lateness_profile_score`; a ring's profile is asymmetric) and re-fits
+the board around the best line. The dense initial distortion is fitted to the unwrapped phase residual
+(:func:`unwrap_phase`), so it holds no 2π steps.
 """
 from __future__ import annotations
 
@@ -35,7 +41,8 @@ from scipy.sparse import linalg as sparse_linalg
 
 from .tracing import polyline_length, wrap_angle
 
-__all__ = ["BoardEstimate", "estimate_board", "resolve_phase_sign", "initial_wood_model", "find_centre_gap"]
+__all__ = ["BoardEstimate", "estimate_board", "resolve_phase_sign", "initial_wood_model", "find_centre_gap",
+           "lateness_profile_score", "choose_pith_side", "unwrap_phase"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -313,15 +320,16 @@ def _assign_rings(rbar, side_major, s_r, phi):
     return np.rint(rbar / s_r - ph).astype(np.int64)
 
 
-def _spacing_gaps(rbar):
-    """Gaps between sorted mean radii that are single ring widths (legs of the same ring, with nearly equal radii,
-    are merged; a missed ring shows up as a double gap and is dropped)."""
+def _spacing_gaps(rbar, min_gap=0.0):
+    """Gaps between sorted mean radii that are single ring widths (legs or fragments of the same ring, with nearly
+    equal radii, are merged: gaps below 0.35 × the median gap or below ``min_gap`` mm; a missed ring shows up as a
+    double gap and is dropped)."""
     r = np.sort(rbar)
     d = np.diff(r)
     if len(d) == 0:
         return np.zeros(0)
     scale = np.median(d[d > 0]) if (d > 0).any() else 0.0
-    d = d[d > 0.35 * scale]
+    d = d[d > max(0.35 * scale, min_gap)]
     if len(d) == 0:
         return d
     med = np.median(d)
@@ -348,7 +356,8 @@ def _fit_phase_offsets(rbar, weights, side_major, s_r):
 
 
 def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0, n_transversals=15,
-                   max_tilt_deg=20.0, max_points=3000) -> BoardEstimate:
+                   max_tilt_deg=20.0, max_points=3000, centre_hint_px=None,
+                   centre_tolerance_mm=None) -> BoardEstimate:
     """Estimate the board location in the log from traced rings (paper §3.4).
 
     Args:
@@ -359,6 +368,10 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
         n_transversals: number of lines across the axis used to order rings and locate the centre.
         max_tilt_deg: largest out-of-plane tilt searched.
         max_points: ring points used by the fits (rings are resampled uniformly to stay below it).
+        centre_hint_px: optional ``(x, y)`` pixel point that the projected tree centre line must pass within
+            ``centre_tolerance_mm`` of (e.g. from :func:`choose_pith_side`); the search and the fit of the
+            centre offset c are restricted to that band.
+        centre_tolerance_mm: half width of that band (mm); default one ring spacing.
 
     Returns:
         :class:`BoardEstimate`.
@@ -416,6 +429,16 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
     gaps_all = np.concatenate(all_gaps) if all_gaps else np.diff(np.sort(wp))
     s_r0 = float(np.median(gaps_all[gaps_all > 0])) if (gaps_all > 0).any() else float(np.ptp(wp) / n_rings)
     c0 = float(np.median([c for _, c in centres])) if centres else None
+    hint = None
+    if centre_hint_px is not None:
+        hint = np.asarray(centre_hint_px, dtype=np.float64).reshape(-1)
+        if hint.shape != (2,) or not np.isfinite(hint).all():
+            raise ValueError(f"centre_hint_px: expected a finite (x, y) pair, got {centre_hint_px!r}")
+        hint = hint * ps
+        tol = s_r0 if centre_tolerance_mm is None else _check_pixel_size(centre_tolerance_mm)
+
+    def hint_c(psi_):   # offset c of the hinted point for axis angle ψ
+        return float(-(hint[0] - centre[0]) * math.sin(psi_) + (hint[1] - centre[1]) * math.cos(psi_))
 
     # ring order and mean neighbour distances along the middle transversal
     ring_order, neighbour = [], []
@@ -441,10 +464,13 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
     starts = []
     for psi_k in psi_grid:
         ap_k, wp_k = _board_coords(p_mm[sub], psi_k, centre)
-        c_grid = [np.linspace(wp_k.min() - 1.5 * span, wp_k.max() + 1.5 * span, 25)]
-        if c0 is not None:
-            c_grid.append(c0 + s_r0 * np.linspace(-2, 2, 9))
-        c_grid = np.concatenate(c_grid)
+        if hint is not None:
+            c_grid = hint_c(psi_k) + tol * np.linspace(-1, 1, 9)
+        else:
+            c_grid = [np.linspace(wp_k.min() - 1.5 * span, wp_k.max() + 1.5 * span, 25)]
+            if c0 is not None:
+                c_grid.append(c0 + s_r0 * np.linspace(-2, 2, 9))
+            c_grid = np.concatenate(c_grid)
         C, D, Gm = (x.ravel() for x in np.meshgrid(c_grid, d_grid, g_grid, indexing="ij"))
         scores = np.empty(len(C))
         for s0 in range(0, len(C), 4096):
@@ -468,12 +494,15 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
     counts_sub = np.bincount(ring_of[sub], minlength=n_rings).astype(np.float64)
     best = None
     for _, psi_s, c_s, d_s, g_s in starts:
-        res = _refine(p_mm[sub], ring_of[sub], counts_sub, centre, psi_s, c_s, d_s, g_s, s_r0, rounds=2)
+        c_band = None if hint is None else (hint_c(psi_s) - tol, hint_c(psi_s) + tol)
+        res = _refine(p_mm[sub], ring_of[sub], counts_sub, centre, psi_s, c_s, d_s, g_s, s_r0, rounds=2,
+                      c_band=c_band)
         if res is not None and (best is None or res["cost"] < best["cost"]):
             best = res
     if best is not None:
+        c_band = None if hint is None else (hint_c(best["psi"]) - tol, hint_c(best["psi"]) + tol)
         full = _refine(p_mm, ring_of, counts, centre, best["psi"], best["c"], best["d0"], best["gamma"], s_r0,
-                       rounds=2)
+                       rounds=2, c_band=c_band)
         best = full if full is not None else best
     if best is None:
         raise ValueError("rings: could not fit a board geometry to the rings (are they growth rings of a "
@@ -520,8 +549,9 @@ def _tilt_grid(max_tilt_deg):
     return np.concatenate([-pos[::-1], [0.0], pos])
 
 
-def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
-    """Least-squares fit of (ψ, c, d0, γ, s_r, φ0±) with ring indices re-assigned between rounds."""
+def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3, c_band=None):
+    """Least-squares fit of (ψ, c, d0, γ, s_r, φ0±) with ring indices re-assigned between rounds (c kept inside
+    ``c_band`` = (low, high) mm when given)."""
     n_rings = len(counts)
     present = counts > 0
     keep = present.copy()
@@ -539,7 +569,8 @@ def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
     # spacing per side of the centre line: the traced level may sit half a ring apart on the two sides
     side_major = np.where(ring_means(np.where(wp >= x[1], 1.0, -1.0)) >= 0, 1, -1)
     # (the gaps of both sides are pooled: a side with only two rings must not weigh as much as one with ten)
-    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)]) for sgn in (1, -1)])
+    # (fragments of one ring traced separately sit closer than a fifth of the transversal ring spacing s_r0)
+    found = np.concatenate([_spacing_gaps(rbar[present & (side_major == sgn)], 0.2 * s_r0) for sgn in (1, -1)])
     found = found[np.isfinite(found) & (found > 0)]
     if len(found) == 0:
         return None
@@ -566,6 +597,8 @@ def _refine(p_mm, ring_of, counts, centre, psi, c, d0, g, s_r0, rounds=3):
         y0 = np.concatenate([x, [s_r], phi])
         lower = np.array([-np.inf, -np.inf, -np.inf, -1.0, 0.2 * s_r0, -1.0, -1.0])
         upper = np.array([np.inf, np.inf, np.inf, 1.0, 5.0 * s_r0, 2.0, 2.0])
+        if c_band is not None:
+            lower[1], upper[1] = c_band
         y0 = np.clip(y0, lower + 1e-9, upper - 1e-9)
         try:
             sol = optimize.least_squares(residuals, y0, loss="soft_l1", f_scale=0.1, x_scale="jac", max_nfev=100,
@@ -635,6 +668,157 @@ def resolve_phase_sign(phase, estimate: BoardEstimate, *, sigma_px=None, method=
     return (sign * phase) % _TWO_PI, sign
 
 
+def lateness_profile_score(resolved_phase, gray, weight=None, bins=24):
+    """How well ONE lateness profile explains the photo: the weighted R² of the luminance predicted by its mean
+    per phase bin (the colour stage of the fit with one colour map shared by all rings).
+
+    The growth direction is what tells the two sign hypotheses of the Gabor phase apart: a ring's profile is
+    asymmetric (gradual early → late wood, then the sharp ring boundary), so where the resolved phase runs against
+    the growth (latewood on the pith side of its ring) the profile is mirrored and one shared profile explains the
+    photo less well. A global sign flip leaves the score unchanged; it only compares sign fields.
+
+    Args:
+        resolved_phase: ``(H, W)`` sign-resolved phase (rad, any range; taken mod 2π).
+        gray: ``(H, W)`` luminance of the photo.
+        weight: optional ``(H, W)`` non-negative weights (e.g. the Gabor magnitude); default uniform.
+        bins: number of phase bins (>= 2).
+
+    Returns:
+        float R² in (−∞, 1]: 1 − Σw(I − P(bin))² / Σw(I − Ī)².
+    """
+    from .tracing import _as_field
+
+    ph = _as_field("resolved_phase", resolved_phase)
+    g = _as_field("gray", gray, ph.shape)
+    w = np.ones_like(g) if weight is None else np.maximum(_as_field("weight", weight, ph.shape), 0.0)
+    if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 2:
+        raise ValueError(f"bins: expected an integer >= 2, got {bins!r}")
+    b = np.minimum((np.mod(ph, _TWO_PI) / _TWO_PI * bins).astype(np.int64), bins - 1).ravel()
+    wr, gr = w.ravel(), g.ravel()
+    n = np.bincount(b, wr, bins)
+    prof = np.bincount(b, wr * gr, bins) / np.maximum(n, 1e-300)
+    mean = (wr * gr).sum() / max(wr.sum(), 1e-300)
+    total = (wr * (gr - mean) ** 2).sum()
+    return float(1.0 - (wr * (gr - prof[b]) ** 2).sum() / max(total, 1e-300))
+
+
+def unwrap_phase(wrapped, weight=None):
+    """Weighted least-squares phase unwrapping (Ghiglia & Romero 1994): the smooth field whose neighbour
+    differences match the wrapped differences of ``wrapped``.
+
+    Solves min Σ w_ij (u_i − u_j − wrap(φ_i − φ_j))² over 4-neighbour pairs (w_ij = min of the two pixel weights)
+    (plus a tiny ridge term); the free constant is the weighted circular mean of the input minus the solution, so
+    wrap(result) ≈ wrapped. Where the wrapped field is smooth this is
+    exact unwrapping; at residues (true phase singularities) the error is spread smoothly instead of left as
+    2π cuts.
+
+    Args:
+        wrapped: ``(H, W)`` phase (rad). weight: optional ``(H, W)`` non-negative confidence (default uniform).
+
+    Returns:
+        ``(H, W)`` float64 unwrapped phase (rad).
+    """
+    from .tracing import _as_field
+
+    phi = _as_field("wrapped", wrapped).astype(np.float64)
+    h, w = phi.shape
+    wt = np.ones_like(phi) if weight is None else np.maximum(_as_field("weight", weight, phi.shape), 0.0)
+    wt = wt / max(float(wt.mean()), 1e-300) + 1e-3
+    idx = np.arange(h * w).reshape(h, w)
+    rows_i, rows_j, vals, ws = [], [], [], []
+    for a, b, da in ((idx[:, :-1], idx[:, 1:], phi[:, 1:] - phi[:, :-1]),
+                     (idx[:-1, :], idx[1:, :], phi[1:, :] - phi[:-1, :])):
+        rows_i.append(a.ravel())
+        rows_j.append(b.ravel())
+        vals.append(wrap_angle(da).ravel())
+        ws.append(np.minimum(wt.ravel()[a.ravel()], wt.ravel()[b.ravel()]))
+    i, j, d, we = (np.concatenate(x) for x in (rows_i, rows_j, vals, ws))
+    m = len(i)
+    dmat = sparse.csr_matrix((np.concatenate([-np.ones(m), np.ones(m)]),
+                              (np.concatenate([np.arange(m)] * 2), np.concatenate([i, j]))), shape=(m, h * w))
+    eps = 1e-8
+    lhs = (dmat.T @ sparse.diags(we) @ dmat + eps * sparse.identity(h * w)).tocsc()
+    u = sparse_linalg.spsolve(lhs, dmat.T @ (we * d)).reshape(h, w)
+    return u + np.angle((wt * np.exp(1j * (phi - u))).sum())
+
+
+def _with_centre(estimate, c):
+    """The estimate with its projected centre line moved to offset ``c`` (mm), other geometry kept."""
+    h, w = estimate.image_shape
+    ps = estimate.pixel_size_mm
+    rotation, translation = _transform(estimate.axis_angle, c, estimate.axis_distance_mm, estimate.tilt, (h, w), ps)
+    b = np.array([-math.sin(estimate.axis_angle), math.cos(estimate.axis_angle)])
+    centre_pt = (_image_centre_mm((h, w), ps) + c * b) / ps
+    return dataclasses.replace(estimate, centre_offset_mm=float(c), rotation=rotation, translation=translation,
+                               centre_point_px=(float(centre_pt[0]), float(centre_pt[1])))
+
+
+def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, rings=None, n_candidates=49,
+                     min_gain=0.01):
+    """Place the projected tree centre (the line where the phase sign flips) where the growth direction is
+    consistent on both sides of it, re-fitting the board geometry there if the ring-based estimate put it
+    elsewhere.
+
+    The ring-based estimate (widest monotone gap, §3.4) can put the centre line in the wrong gap when few rings
+    are traced; the phase is then resolved the wrong way between the true and the estimated line, and a fit
+    follows the rings there with latewood on the wrong side (mirrored growth). Here the sign hypotheses are
+    scored by the fit itself: for every candidate line (``n_candidates`` offsets c across the board and beyond
+    its edges, the estimate's axis direction, distance and tilt kept) the phase is resolved
+    (:func:`resolve_phase_sign`) and scored by :func:`lateness_profile_score`. If the best candidate beats the
+    estimate by more than ``min_gain`` and lies more than half a ring away, :func:`estimate_board` is run again
+    with the centre restricted to one ring spacing around it, and the better-scoring of the two is returned.
+
+    Args:
+        estimate: :class:`BoardEstimate` from :func:`estimate_board`.
+        phase: ``(H, W)`` Gabor phase (rad). gray: ``(H, W)`` luminance of the photo.
+        magnitude: optional ``(H, W)`` Gabor magnitude (score weights).
+        rings: the ring polylines of ``estimate`` (default ``estimate.rings``), for the re-fit.
+        n_candidates: number of candidate offsets (>= 3). min_gain: R² gain needed to move the line.
+
+    Returns:
+        ``(estimate, info)``: the chosen :class:`BoardEstimate` and a dict with ``score_initial``,
+        ``score_chosen`` (R²), ``moved`` (bool), ``candidates_mm`` and ``candidate_scores``.
+    """
+    from .tracing import _as_field
+
+    if not isinstance(estimate, BoardEstimate):
+        raise TypeError(f"estimate: expected a BoardEstimate, got {type(estimate).__name__}")
+    phase = _as_field("phase", phase, tuple(estimate.image_shape))
+    gray = _as_field("gray", gray, phase.shape)
+    mag = None if magnitude is None else _as_field("magnitude", magnitude, phase.shape)
+    if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 3:
+        raise ValueError(f"n_candidates: expected an integer >= 3, got {n_candidates!r}")
+
+    def score(est):
+        return lateness_profile_score(resolve_phase_sign(phase, est)[0], gray, mag)
+
+    h, w = estimate.image_shape
+    ps, s_r = estimate.pixel_size_mm, estimate.ring_scale_mm
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], dtype=np.float64) * ps
+    _, wc = _board_coords(corners, estimate.axis_angle, _image_centre_mm((h, w), ps))
+    cands = np.linspace(wc.min() - s_r, wc.max() + s_r, int(n_candidates))
+    scores = np.array([score(_with_centre(estimate, c)) for c in cands])
+    s0 = score(estimate)
+    info = {"score_initial": s0, "score_chosen": s0, "moved": False, "candidates_mm": cands.tolist(),
+            "candidate_scores": scores.tolist()}
+    i = int(np.argmax(scores))
+    if scores[i] < s0 + min_gain or abs(cands[i] - estimate.centre_offset_mm) <= 0.5 * s_r:
+        return estimate, info
+    hint = _with_centre(estimate, cands[i]).centre_point_px
+    tol = max(s_r, float(cands[1] - cands[0]))
+    rings = estimate.rings if rings is None else rings
+    try:
+        refit = estimate_board(rings, (h, w), ps, centre_hint_px=hint, centre_tolerance_mm=tol)
+    except ValueError:
+        refit = None
+    options = [(s0, estimate)]
+    if refit is not None:
+        options.append((score(refit), refit))
+    best_s, best = max(options, key=lambda t: t[0])
+    info.update(score_chosen=best_s, moved=best is not estimate)
+    return best, info
+
+
 def _texture_weights(model, q):
     """Sparse (N, Hd·Wd) bilinear weights of the model's m_r texture at tree points q (N, 3), matching its
     grid_sample(align_corners=True, padding_mode='border') lookup."""
@@ -684,7 +868,7 @@ def _laplacian(hd, wd, periodic_rows):
 
 def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=None, distortion="radial",
                        distortion_shape=(32, 64), n_rings=64, smoothness=1e-3, dense_refine=True,
-                       dtype=None, return_info=False):
+                       dtype=None, return_info=False, color_bins=16):
     """Initial WoodModel (board transform, ring scale, radial distortion) from a board estimate (paper §3.5).
 
     The distortion starts from the paper's recipe, the difference between the observed traced rings and their
@@ -699,7 +883,7 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         phase: ``(H, W)`` Gabor phase of the photograph (rad), as traced.
         magnitude: optional ``(H, W)`` Gabor magnitude (weights of the dense fit).
         rings: ring polylines; default ``estimate.rings`` (with ``estimate.ring_index``).
-        distortion, distortion_shape, n_rings: passed to ``WoodModel``.
+        distortion, distortion_shape, n_rings, color_bins: passed to ``WoodModel``.
         smoothness: weight of the Laplacian prior relative to the mean data weight per texel.
         dense_refine: add the wrapped dense phase residual (recommended).
         dtype: torch dtype of the model (default float32).
@@ -737,7 +921,7 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     z_range = (float(z.min() - 0.05 * zspan - 1e-3), float(z.max() + 0.05 * zspan + 1e-3))
     r_max = float(r.max() + 2 * s_r)
     model = WoodModel(ring_scale_mm=s_r, n_rings=n_rings, distortion=distortion, distortion_shape=distortion_shape,
-                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype)
+                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype, color_bins=color_bins)
     model.set_parameters(rotation=torch.as_tensor(estimate.rotation, dtype=torch.float64),
                          translation=torch.as_tensor(estimate.translation, dtype=torch.float64))
 
@@ -790,8 +974,15 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     if dense_refine:
         m_pix = a_pix @ tex
         resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
-        target = m_pix + s_r * resid / _TWO_PI
-        tex = solve(a_pix, target, weight + 1e-12)
+        # unwrapped: a wrapped residual jumps by 2π where it crosses ±π, and a texture fitted to it puts a whole
+        # ring's displacement step there (the blocky 2π slips along texel cells that the cyclic loss cannot undo)
+        resid = unwrap_phase(resid.reshape(h, w), weight.reshape(h, w)).ravel()
+        tex = solve(a_pix, m_pix + s_r * resid / _TWO_PI, weight + 1e-12)
+        # then the small remainder the smooth texture could not follow, only where it is below π/2 (no 2π cut)
+        m_pix = a_pix @ tex
+        resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
+        near = np.abs(resid) < math.pi / 2
+        tex = solve(a_pix, m_pix + s_r * np.where(near, resid, 0.0) / _TWO_PI, weight * near + 1e-12)
     model.set_parameters(m_r=torch.as_tensor(tex.reshape(hd, wd), dtype=torch.float64))
     if not return_info:
         return model

@@ -87,7 +87,7 @@ def _boundaries(model, G, pixel_size_mm, newton_steps=3):
 
 def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02, *, ring_scale_mm=None,
                     distance_mm=None, tilt_deg=None, in_plane_deg=None, distortion_mm=None, n_rings=64,
-                    distortion_shape=(32, 64), color_bins=32, color_variation=0.08) -> dict:
+                    distortion_shape=(32, 64), color_bins=32, color_variation=0.08, pith_inside=False) -> dict:
     """Render a random flat-sawn board with known growth field.
 
     The stem axis lies roughly in the board plane: board columns (u) run across the rings, rows (v) along the
@@ -110,6 +110,12 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
         distortion_shape: ``(Hd, Wd)`` of the radial distortion texture.
         color_bins: lateness samples of the colour map.
         color_variation: relative per-ring colour jitter (>= 0).
+        pith_inside: draw a board cut close to the pith, whose pith itself lies in the photo: default distance
+            uniform in [1.5, 4] mm and tilt ±[12, 20]°, so the axis pierces the board plane inside the image and
+            the innermost rings are closed ovals along the projected axis (the "cathedral" figure with its
+            centre); the distortion is tapered to 0 at the pith (factor 1 − exp(−(r/s_r)²)) so that G >= 0.
+            The random draws are the same as without it (same seed, same ring scale, colours and distortion
+            shape).
 
     Returns:
         dict with
@@ -136,14 +142,17 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
     if (isinstance(color_variation, bool) or not isinstance(color_variation, numbers.Real)
             or not math.isfinite(color_variation) or color_variation < 0):
         raise ValueError(f"color_variation: expected a finite real number >= 0, got {color_variation!r}")
+    if not isinstance(pith_inside, bool):
+        raise TypeError(f"pith_inside: expected a bool, got {type(pith_inside).__name__}")
     rng = np.random.default_rng(int(seed))
 
     if ring_scale_mm is None:
         lo, hi = max(1.0, 8 * pixel_size_mm), min(4.0, 40 * pixel_size_mm)
         ring_scale_mm = float(rng.uniform(lo, hi)) if lo < hi else float(rng.uniform(1.0, 4.0))
     s_r = _positive_float("ring_scale_mm", ring_scale_mm)
-    distance = _positive_float("distance_mm", _range("distance_mm", distance_mm, rng, 5.0, 30.0))
-    tilt = _range("tilt_deg", tilt_deg, rng, 4.0, 12.0) * (1 if tilt_deg is not None else rng.choice([-1, 1]))
+    d_lo, d_hi, t_lo, t_hi = (1.5, 4.0, 12.0, 20.0) if pith_inside else (5.0, 30.0, 4.0, 12.0)
+    distance = _positive_float("distance_mm", _range("distance_mm", distance_mm, rng, d_lo, d_hi))
+    tilt = _range("tilt_deg", tilt_deg, rng, t_lo, t_hi) * (1 if tilt_deg is not None else rng.choice([-1, 1]))
     in_plane = _range("in_plane_deg", in_plane_deg, rng, -10.0, 10.0)
     amp = 0.15 * s_r if distortion_mm is None else _range("distortion_mm", distortion_mm, rng, 0.0, 0.0)
     if amp < 0:
@@ -184,6 +193,8 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
     if scale * max(-d_dr.min(), 0.0) > 0.5:
         scale = 0.5 / -d_dr.min()
     m_r = field * scale
+    if pith_inside:  # no displacement at the pith itself (G = 0 there, never negative)
+        m_r = m_r * (1.0 - np.exp(-(rr / s_r) ** 2))
 
     # Per-ring colours: early → late wood with a jittered transition position and colours.
     lat = np.linspace(0.0, 1.0, color_bins)
