@@ -61,6 +61,8 @@ def parse_args(argv=None):
     p.add_argument("--mapping", choices=("table", "elek"), default=d.mapping,
                    help="surface colour → albedo (default: %(default)s)")
     p.add_argument("--spp", type=int, default=d.spp, help="samples per pixel and pass (default: %(default)s)")
+    p.add_argument("--shade-spp", type=int, default=d.shade_spp,
+                   help="lamp-shade samples per pixel and pass (default: %(default)s)")
     p.add_argument("--passes", type=int, default=d.passes, help="passes per image (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--threads", type=int, default=d.threads, help="torch threads (0: torch's default)")
@@ -81,7 +83,7 @@ def main(argv=None):
                                veneer_max_extent_mm=args.veneer_max_mm, veneer_resolution_mm=args.pixel_mm,
                                shade=shade, shade_resolution=tuple(args.shade_resolution),
                                sigma_early=args.sigma_early, sigma_late=args.sigma_late, mapping=args.mapping,
-                               spp=args.spp, passes=args.passes, seed=args.seed, threads=args.threads)
+                               spp=args.spp, shade_spp=args.shade_spp, passes=args.passes, seed=args.seed, threads=args.threads)
         render_wood_volume(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         print(f"render_wood_volume.py: error: {error}", file=sys.stderr)

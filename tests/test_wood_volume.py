@@ -181,7 +181,7 @@ def test_conical_shell_sdf_is_exact():
 
 def test_lampshade_scene_holds_the_shell_and_a_light_inside():
     geometry = LampshadeGeometry(6.0, 4.0, 8.0, 0.8, voxel_mm=0.4)
-    scene, shape, origin = lampshade_scene(geometry, DiscLight((0, 0, -1), 20.0, 5.0, 0.0), resolution=(12, 12))
+    scene, shape, origin = lampshade_scene(geometry, DiscLight((0, 0, -1), 12.0, 5.0, 0.0), resolution=(12, 12))
     sdf = scene.boundary.sdf
     assert tuple(sdf.shape) == tuple(n + 1 for n in shape)
     vol = wood_volume(inclined_model(), shape, geometry.voxel_mm, origin, dtype=torch.float64)
@@ -223,8 +223,12 @@ def test_light_behind_nothing_is_refused():
     with pytest.raises(ValueError, match="behind nothing"):           # grazing: part of the disc in front
         veneer_scenes(geometry, DiscLight((1, 0, 0.1), 10.0), resolution=(4, 4))
     veneer_scenes(geometry, DiscLight((0.3, 0, 1), 10.0), resolution=(4, 4))   # behind: accepted
+    shade = LampshadeGeometry(18.0, 9.0, 18.0, 1.0, voxel_mm=1.0)     # wall tilt 26.6°
     with pytest.raises(ValueError, match="behind nothing"):           # shade lit from above, not inside
-        lampshade_scene(LampshadeGeometry(voxel_mm=1.0), DiscLight((0, 0, 1), 10.0))
+        lampshade_scene(shade, DiscLight((0, 0, 1), 10.0))
+    with pytest.raises(ValueError, match="light the outer wall directly"):   # a disc wider than the wall's tilt
+        lampshade_scene(shade, DiscLight((0, 0, -1), 30.0))
+    lampshade_scene(shade, DiscLight((0, 0, -1), 24.0))                # inside only: accepted
 
 
 def test_bad_builder_arguments_are_refused():
@@ -257,7 +261,7 @@ def test_render_wood_volume_script_writes_its_outputs(tmp_path, capsys):
     assert cli.main(["--synthetic", "1", "--synthetic-size", "24", "32", "--out", str(tmp_path / "run"),
                      "--veneer-max-mm", "1.5", "--pixel-mm", "0.3", "--veneer-voxel-mm", "0.3", "0.3",
                      "--shade", "4", "3", "5", "0.8", "--shade-voxel-mm", "0.5", "--shade-resolution", "8", "8",
-                     "--spp", "2", "--passes", "1", "--quiet"]) == 0
+                     "--spp", "2", "--shade-spp", "2", "--passes", "1", "--quiet"]) == 0
     names = set(os.listdir(tmp_path / "run"))
     for stem in ("veneer_fit", "veneer_extruded", "lampshade"):
         assert {stem + ".exr", stem + ".png"} <= names

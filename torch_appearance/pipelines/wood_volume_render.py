@@ -124,9 +124,9 @@ def veneer_scenes(geometry: VeneerGeometry, light: DiscLight, *, resolution, sid
 @dataclass(frozen=True)
 class LampshadeGeometry:
     """An open conical shell: radii at the bottom and top, height, wall thickness (mm), voxel edge (mm)."""
-    bottom_radius_mm: float = 16.0
-    top_radius_mm: float = 11.0
-    height_mm: float = 22.0
+    bottom_radius_mm: float = 18.0
+    top_radius_mm: float = 9.0
+    height_mm: float = 18.0
     thickness_mm: float = 1.0
     voxel_mm: float = 0.25
 
@@ -137,6 +137,11 @@ class LampshadeGeometry:
         if self.thickness_mm >= 2 * min(self.bottom_radius_mm, self.top_radius_mm):
             raise ValueError(f"thickness_mm: expected < 2·min(radii) = {2 * min(self.bottom_radius_mm, self.top_radius_mm):g}"
                              f" mm, got {self.thickness_mm:g}")
+
+    @property
+    def wall_tilt_deg(self):
+        """Angle of the wall from the vertical (> 0: wider at the bottom)."""
+        return math.degrees(math.atan2(self.bottom_radius_mm - self.top_radius_mm, self.height_mm))
 
     @property
     def mid_radius_mm(self):
@@ -165,7 +170,9 @@ def lampshade_scene(geometry: LampshadeGeometry, light: DiscLight, *, resolution
     Args:
         geometry: the shell.
         light: distant disc light; the whole disc must lie below the shade's lower rim plane (direction within
-            90° − radius of −z), so that it shines into the opening and not onto the outer wall from above.
+            90° − radius of −z), else it is behind nothing but the shade's outside, and within the wall's tilt from
+            −z (:attr:`LampshadeGeometry.wall_tilt_deg`), so that it lights the inner wall only: the outer wall
+            faces away from every direction of the disc.
         resolution: (rows, cols).
         elevation_deg: camera elevation above the horizontal (it looks at the shade's centre from −y).
         distance_mm: camera distance (default 4 × height).
@@ -184,6 +191,11 @@ def lampshade_scene(geometry: LampshadeGeometry, light: DiscLight, *, resolution
                          f"within {90.0 - light.angular_radius_deg:.1f}° of −z), got direction "
                          f"{tuple(round(c, 4) for c in light.direction)} with radius {light.angular_radius_deg:g}°: "
                          f"(part of) the light is behind nothing but the shade's outside")
+    if 90.0 - below + light.angular_radius_deg >= geometry.wall_tilt_deg:
+        raise ValueError(f"light: expected a disc light that lights only the inside of the shade (the disc within the "
+                         f"wall tilt {geometry.wall_tilt_deg:.1f}° of −z), got direction "
+                         f"{tuple(round(c, 4) for c in light.direction)} with radius {light.angular_radius_deg:g}°: "
+                         f"it would light the outer wall directly")
     elevation = check_real("elevation_deg", elevation_deg, lo=-80.0, hi=80.0)
     shape, origin = geometry.grid()
     sdf = conical_shell_sdf(shape, geometry.voxel_mm, origin, (0.0, 0.0, 0.0), geometry.bottom_radius_mm,
@@ -225,12 +237,13 @@ class WoodVolumeConfig:
     mapping: str = "table"
     g: float = 0.4
     ior: float = 1.5
-    veneer_light_deg: float = 20.0
+    veneer_light_deg: float = 60.0
     veneer_radiance: float = 10.0
-    shade_light_deg: float = 25.0
+    shade_light_deg: float = 24.0
     shade_radiance: float = 10.0
     ambient: float = 0.02
     spp: int = 32
+    shade_spp: int = 96
     passes: int = 4
     seed: int = 0
     threads: int = 0
@@ -241,6 +254,7 @@ class WoodVolumeConfig:
                              f"got fit_dir={self.fit_dir!r}, synthetic_seed={self.synthetic_seed!r}")
         _check_thickness(self.thickness_mm)
         check_int("spp", self.spp, lo=1)
+        check_int("shade_spp", self.shade_spp, lo=1)
         check_int("passes", self.passes, lo=1)
         check_int("threads", self.threads, lo=0)
         if self.mapping not in ("table", "elek"):
@@ -291,13 +305,14 @@ def _figure(folder, photo, views, side_views, sections, shade, exposures):
     show(fig.add_subplot(grid[0, 1]), views["extruded"], "backlit veneer: extruded", exposures["veneer"])
     show(fig.add_subplot(grid[0, 2]), views["fit"], "backlit veneer: fitted volume", exposures["veneer"])
     show(fig.add_subplot(grid[:, 3]), shade, "lamp shade (light inside, from below)", exposures["shade"])
+    stretch = 4.0   # depth drawn 4× taller than it is (voxels and side-view pixels are square)
     for col, key in ((1, "extruded"), (2, "fit")):
-        show(fig.add_subplot(grid[1, col]), side_views[key], f"edge v = 0 ({key}; light side up)",
-             exposures["side"], aspect="auto")
+        show(fig.add_subplot(grid[1, col]), side_views[key], f"{key}: edge v = 0, light side up, depth ×{stretch:g}",
+             exposures["side"], aspect=stretch)
         ax = fig.add_subplot(grid[2, col])
         ax.imshow(sections[key], cmap="magma", vmin=SIGMA_EARLY * 0.9, vmax=SIGMA_LATE, interpolation="nearest",
-                  aspect="auto")
-        ax.set_title(f"σ_t section v = 0 ({key}; front face up)", fontsize=9)
+                  aspect=stretch)
+        ax.set_title(f"{key}: σ_t at v = 0, front face up, depth ×{stretch:g}", fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.subplots_adjust(left=0.01, right=0.99, top=0.95, bottom=0.01, wspace=0.04, hspace=0.25)
@@ -371,7 +386,7 @@ def render_wood_volume(cfg: WoodVolumeConfig, progress=True, log=print):
                                                                       cfg.seed, bar)
             renders["side_" + key], stats["veneer_side_" + key] = _render(side, vols[key], cfg.spp, cfg.passes,
                                                                          cfg.seed + 1000, bar)
-        renders["shade"], stats["lampshade"] = _render(shade_scene, vols["shade"], cfg.spp, cfg.passes,
+        renders["shade"], stats["lampshade"] = _render(shade_scene, vols["shade"], cfg.shade_spp, cfg.passes,
                                                        cfg.seed + 2000, bar)
     exposures = {"veneer": _exposure(renders["veneer_fit"], renders["veneer_extruded"]),
                  "side": _exposure(renders["side_fit"], renders["side_extruded"]),
