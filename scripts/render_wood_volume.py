@@ -54,6 +54,8 @@ def parse_args(argv=None):
                    s.thickness_mm), metavar=("R_BOTTOM", "R_TOP", "HEIGHT", "WALL"),
                    help="lamp shade in mm (default: %(default)s)")
     p.add_argument("--shade-voxel-mm", type=float, default=s.voxel_mm, help="(default: %(default)s)")
+    p.add_argument("--shade-light-deg", type=float, default=None,
+                   help="angular radius of the light below the shade (default: 0.9 × the wall's tilt)")
     p.add_argument("--shade-resolution", type=int, nargs=2, default=d.shade_resolution, metavar=("ROWS", "COLS"),
                    help="(default: %(default)s)")
     p.add_argument("--sigma-early", type=float, default=d.sigma_early, help="mm⁻¹ (default: %(default)s)")
@@ -81,7 +83,7 @@ def main(argv=None):
                                synthetic_hw=tuple(args.synthetic_size), synthetic_pixel_mm=args.synthetic_pixel_mm,
                                thickness_mm=args.thickness_mm, veneer_voxel_mm=tuple(args.veneer_voxel_mm),
                                veneer_max_extent_mm=args.veneer_max_mm, veneer_resolution_mm=args.pixel_mm,
-                               shade=shade, shade_resolution=tuple(args.shade_resolution),
+                               shade=shade, shade_light_deg=args.shade_light_deg, shade_resolution=tuple(args.shade_resolution),
                                sigma_early=args.sigma_early, sigma_late=args.sigma_late, mapping=args.mapping,
                                spp=args.spp, shade_spp=args.shade_spp, passes=args.passes, seed=args.seed, threads=args.threads)
         render_wood_volume(cfg, progress=not args.quiet)

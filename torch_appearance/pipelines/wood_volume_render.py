@@ -239,7 +239,7 @@ class WoodVolumeConfig:
     ior: float = 1.5
     veneer_light_deg: float = 60.0
     veneer_radiance: float = 10.0
-    shade_light_deg: float = 24.0
+    shade_light_deg: Optional[float] = None   # default: 0.9 × the wall tilt (lights only the inside)
     shade_radiance: float = 10.0
     ambient: float = 0.02
     spp: int = 32
@@ -362,7 +362,8 @@ def render_wood_volume(cfg: WoodVolumeConfig, progress=True, log=print):
     light = DiscLight((0.0, 0.0, 1.0), cfg.veneer_light_deg, cfg.veneer_radiance, cfg.ambient)
     res = (max(1, round(v / cfg.veneer_resolution_mm)), max(1, round(u / cfg.veneer_resolution_mm)))
     front, side = veneer_scenes(geometry, light, resolution=res, g=cfg.g, ior=cfg.ior)
-    shade_light = DiscLight((0.0, 0.0, -1.0), cfg.shade_light_deg, cfg.shade_radiance, cfg.ambient)
+    shade_deg = 0.9 * cfg.shade.wall_tilt_deg if cfg.shade_light_deg is None else cfg.shade_light_deg
+    shade_light = DiscLight((0.0, 0.0, -1.0), shade_deg, cfg.shade_radiance, cfg.ambient)
     shade_scene, shade_shape, shade_origin = lampshade_scene(cfg.shade, shade_light, resolution=cfg.shade_resolution,
                                                              ior=cfg.ior, g=cfg.g)
     common = dict(sigma_early=cfg.sigma_early, sigma_late=cfg.sigma_late, mapping=cfg.mapping, g=cfg.g, ior=cfg.ior)
