@@ -94,9 +94,9 @@ def test_elek_polynomial_end_points():
     c = torch.tensor([0.0, ELEK_CS, 0.2, 1.0], dtype=torch.float64)
     a = elek_albedo(c)
     assert float(a[0]) == 0.0 and float(a[1]) == 0.0 and abs(float(a[3]) - 1.0) < 1e-6
-    x = (0.2 - ELEK_CS) / (1 - ELEK_CS)                          # eq. 1.38 written out
-    expect = sum(ck * (1 - (1 - x) ** dk) for ck, dk in zip(ELEK_C, (3.969542, 15.94272, 46.26871, 59.95706,
-                                                                       206.5716)))
+    x = (0.2 - 0.04526) / (1 - 0.04526)                          # eq. 1.38 written out with the thesis' numbers
+    expect = sum(ck * (1 - (1 - x) ** dk) for ck, dk in zip((0.163581, 0.391943, 0.029277, 0.316847, 0.098352),
+                                                              (3.969542, 15.94272, 46.26871, 59.95706, 206.5716)))
     assert math.isclose(float(a[2]), expect, rel_tol=1e-12)
 
 
@@ -138,7 +138,8 @@ def test_elek_polynomial_is_too_bright_on_our_tracer_above_half():
 # ---- the scenes -----------------------------------------------------------------------------------------------
 def test_backlit_veneer_matches_reference_tracer():
     """A tiny veneer sheet (3 layers, 0.3 mm) of the inclined model lit from behind by a disc light, seen from
-    the front and from its edge: our tracer against tests/reference_tracer.py, per pixel z-tests (Bonferroni)."""
+    the front and from its edge: our tracer against tests/reference_tracer.py, z-tests (Bonferroni) per pixel and
+    on the image mean per channel."""
     m = inclined_model(ring_scale=0.25)
     geometry = VeneerGeometry((0.4, 0.3), thickness_mm=0.3, voxel_mm=(0.1, 0.1))
     light = DiscLight((0.2, 0.1, 1.0), 30.0, radiance=(4.0, 3.0, 2.0), ambient=0.1)
@@ -146,7 +147,7 @@ def test_backlit_veneer_matches_reference_tracer():
     vol = wood_volume(m, geometry.grid_shape, geometry.voxel_size, dtype=torch.float64)
     assert float(vol.sigma_t.max() - vol.sigma_t.min()) > 3.0 and float(vol.albedo.min()) < 0.8  # heterogeneous
     for name, scene in (("front", front), ("side", side)):
-        xs = torch.stack([ta.render_scene(scene, vol.sigma_t, vol.albedo, spp=256, seed=k) for k in range(16)])
+        xs = torch.stack([ta.render_scene(scene, vol.sigma_t, vol.albedo, spp=512, seed=k) for k in range(16)])
         mean, se = xs.mean(0), xs.std(0) / 4.0
         cam = scene.sensor
         sensor = dict(kind="orthographic", origin=cam.origin, target=cam.target, up=cam.up, extent=cam.extent_mm,
@@ -156,13 +157,18 @@ def test_backlit_veneer_matches_reference_tracer():
         diag = {}
         ref, ref_se = reference_render_scene(vol.sigma_t.numpy(), vol.albedo.numpy(), voxel_size=scene.voxel_size,
                                              origin=scene.origin, g=scene.g, boundary="box", ior=1.5, sensor=sensor,
-                                             emitter=emitter, spp=1024, rng=np.random.default_rng(3),
+                                             emitter=emitter, spp=4096, rng=np.random.default_rng(3),
                                              diagnostics=diag)
         assert diag.get("stuck", 0) == 0
         # the disc comes through: red exceeds what the ambient light alone could give (albedo <= 1: L <= 0.1)
         assert float(mean[..., 0].mean()) > 2 * light.ambient[0]
-        assert_z(mean - torch.as_tensor(ref), (se ** 2 + torch.as_tensor(ref_se) ** 2).sqrt(), 0.0,
-                 what=f"veneer {name}")
+        ref, err = torch.as_tensor(ref), (se ** 2 + torch.as_tensor(ref_se) ** 2).sqrt()
+        assert_z(mean - ref, err, 0.0, what=f"veneer {name}")
+        # and the image means per channel (pixels independent): ~1 % standard error, where a 3 % lower albedo or
+        # a 10 % higher σ_t moves them by 5–15 %
+        n = mean.shape[0] * mean.shape[1]
+        assert_z((mean - ref).mean(dim=(0, 1)), (err ** 2).sum(dim=(0, 1)).sqrt() / n, 0.0,
+                 what=f"veneer {name} image mean")
 
 
 def test_conical_shell_sdf_is_exact():
