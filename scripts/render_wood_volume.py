@@ -83,9 +83,11 @@ def main(argv=None):
                                synthetic_hw=tuple(args.synthetic_size), synthetic_pixel_mm=args.synthetic_pixel_mm,
                                thickness_mm=args.thickness_mm, veneer_voxel_mm=tuple(args.veneer_voxel_mm),
                                veneer_max_extent_mm=args.veneer_max_mm, veneer_resolution_mm=args.pixel_mm,
-                               shade=shade, shade_light_deg=args.shade_light_deg, shade_resolution=tuple(args.shade_resolution),
+                               shade=shade, shade_light_deg=args.shade_light_deg,
+                               shade_resolution=tuple(args.shade_resolution),
                                sigma_early=args.sigma_early, sigma_late=args.sigma_late, mapping=args.mapping,
-                               spp=args.spp, shade_spp=args.shade_spp, passes=args.passes, seed=args.seed, threads=args.threads)
+                               spp=args.spp, shade_spp=args.shade_spp, passes=args.passes, seed=args.seed,
+                               threads=args.threads)
         render_wood_volume(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         print(f"render_wood_volume.py: error: {error}", file=sys.stderr)

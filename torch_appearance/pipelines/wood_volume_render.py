@@ -32,7 +32,7 @@ from ..geometry.primitives import conical_shell_sdf
 from ..nn.wood_volume import SIGMA_EARLY, SIGMA_LATE, load_wood_fit, wood_volume
 from ..render import (BoxBoundary, DiscLight, OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary,
                       render_scene)
-from ..render.checks import check_direction, check_int, check_real
+from ..render.checks import check_int, check_real
 
 __all__ = ["VeneerGeometry", "LampshadeGeometry", "veneer_scenes", "lampshade_scene", "lampshade_world_to_board",
            "WoodVolumeConfig", "render_wood_volume"]
@@ -135,8 +135,8 @@ class LampshadeGeometry:
             object.__setattr__(self, name, check_real(name, getattr(self, name), lo=0.0, lo_open=True))
         object.__setattr__(self, "thickness_mm", _check_thickness(self.thickness_mm))
         if self.thickness_mm >= 2 * min(self.bottom_radius_mm, self.top_radius_mm):
-            raise ValueError(f"thickness_mm: expected < 2·min(radii) = {2 * min(self.bottom_radius_mm, self.top_radius_mm):g}"
-                             f" mm, got {self.thickness_mm:g}")
+            limit = 2 * min(self.bottom_radius_mm, self.top_radius_mm)
+            raise ValueError(f"thickness_mm: expected < 2·min(radii) = {limit:g} mm, got {self.thickness_mm:g}")
 
     @property
     def wall_tilt_deg(self):
@@ -397,7 +397,6 @@ def render_wood_volume(cfg: WoodVolumeConfig, progress=True, log=print):
         _write_image(folder, f"veneer_side_{key}", renders["side_" + key], exposures["side"])
     _write_image(folder, "lampshade", renders["shade"], exposures["shade"])
     with torch.no_grad():
-        px = cfg.veneer_resolution_mm
         photo = model.evaluate(torch.stack(torch.meshgrid(
             u0 + (torch.arange(res[1], dtype=torch.float64) + 0.5) * (u / res[1]),
             v0 + (torch.arange(res[0], dtype=torch.float64) + 0.5) * (v / res[0]), indexing="xy"), -1)
