@@ -55,10 +55,10 @@ def parse_args(argv=None):
     p.add_argument("--size", type=int, nargs=2, default=(48, 64), metavar=("ROWS", "COLS"),
                    help="image size (default: %(default)s)")
     p.add_argument("--pixel-mm", type=float, default=0.25, help="pixel pitch on the board (default: %(default)s)")
-    p.add_argument("--spp", type=int, default=64, help="samples per pixel per seed (default: %(default)s)")
-    p.add_argument("--seeds", type=int, default=16, help="independent renders per estimator (default: %(default)s)")
+    p.add_argument("--spp", type=int, default=16, help="samples per pixel per seed (default: %(default)s)")
+    p.add_argument("--seeds", type=int, default=32, help="independent renders per estimator (default: %(default)s)")
     p.add_argument("--fd-spp", type=int, default=4096, help="finite-difference samples per pixel (default: %(default)s)")
-    p.add_argument("--fd-h", type=float, default=0.01, help="relative FD step in s_r (default: %(default)s)")
+    p.add_argument("--fd-h", type=float, default=0.002, help="relative FD step in s_r (default: %(default)s)")
     p.add_argument("--block", type=int, default=4, help="pixel block of the z-tests (default: %(default)s)")
     p.add_argument("--quiet", action="store_true")
     return p.parse_args(argv)
