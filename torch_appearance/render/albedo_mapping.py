@@ -17,6 +17,8 @@ Two inverse mappings C → α:
 Round trip on our tracer (``scripts/make_albedo_table.py`` prints it; tests/test_wood_volume.py checks it), g = 0.4,
 IOR 1.5, ten colours (wood, greys, saturated): the polynomial gives CIEDE2000 mean 1.70, max 2.51 (too dark below
 C ≈ 0.5, too bright above: C = 0.8 renders at 0.88); the table mean 0.17, max 0.52. The table is the default.
+At g = 0 the polynomial misses by mean 3.9, max 5.9, at g = 0.8 by mean 10.3, max 14.7 (tables: 0.13/0.21 and
+0.09/0.18): it holds only near g = 0.4.
 
 Colours below C(0) (the specular reflection alone, 0.04 at IOR 1.5) are out of the gamut of any medium with this
 boundary; both mappings return α = 0 for them (the table by definition; the polynomial is clamped at C_s) and
