@@ -125,7 +125,7 @@ def main(argv=None):
     stats = res["stats"]
     figure(os.path.join(args.out, "gradients.png"), render, res, stats)
     summary = {"settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()},
-               "ring_scale_mm": float(model.ring_scale), "seconds": round(seconds, 1),
+               "ring_scale_mm": float(model.ring_scale.detach()), "seconds": round(seconds, 1),
                "estimators": {k: {kk: vv for kk, vv in v.items() if kk != "z"} for k, v in stats.items()}}
     ta_io.write_json(os.path.join(args.out, "summary.json"), summary)
     for k, v in summary["estimators"].items():

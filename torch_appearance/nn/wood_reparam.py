@@ -93,7 +93,7 @@ def render_filtered(model, height, width, pixel_mm, *, spp=64, seed=0, sigma_px=
 
 def _warp_velocity(model, pts, h_theta, h_x):
     """V(x) = −(∂G/∂s_r)∇G/|∇G|² at points (N, 2) mm, and div V (central differences of width h_x mm)."""
-    s_r = float(model.ring_scale)
+    s_r = float(model.ring_scale.detach())
     up, down = _shifted(model, math.log1p(h_theta)), _shifted(model, math.log1p(-h_theta))
 
     def velocity(p):
@@ -138,7 +138,7 @@ def ring_scale_gradient(model, height, width, pixel_mm, *, spp=64, seed=0, sigma
     pts, centres = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px)
     sigma = sigma_px * pixel_mm
     out = torch.empty(pts.shape[0], 3, dtype=torch.float64)
-    s_r = float(model.ring_scale)
+    s_r = float(model.ring_scale.detach())
     chunk = max(1, chunk // spp) * spp                                      # whole pixels per chunk
     for i in range(0, pts.shape[0], chunk):
         p, c0 = pts[i:i + chunk], centres[i:i + chunk]
@@ -189,7 +189,7 @@ def ring_scale_gradient_fd(model, height, width, pixel_mm, *, spp=4096, seed=0, 
     """
     h = check_real("h_rel", h_rel, lo=0.0, hi=0.5, lo_open=True)
     pts, _ = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px)
-    s_r = float(model.ring_scale)
+    s_r = float(model.ring_scale.detach())
     up, down = _shifted(model, math.log1p(h)), _shifted(model, math.log1p(-h))
     with torch.no_grad():
         d = (_colour(up, pts) - _colour(down, pts)) / (2 * h * s_r)
