@@ -9,7 +9,7 @@ import torch
 from ..render.checks import check_int, check_real, check_vector3
 from ..render.scene import voxel_edges
 
-__all__ = ["corner_points", "sphere_sdf", "torus_sdf", "box_sdf", "spherical_shell_sdf"]
+__all__ = ["corner_points", "sphere_sdf", "torus_sdf", "box_sdf", "spherical_shell_sdf", "conical_shell_sdf"]
 
 
 def corner_points(grid_shape, voxel_size, origin=(0.0, 0.0, 0.0)):
@@ -67,3 +67,31 @@ def spherical_shell_sdf(grid_shape, voxel_size, origin, centre, radius, thicknes
     """A thin curved shell: the points within ``thickness``/2 of the sphere of ``radius`` around ``centre``."""
     t = check_real("thickness", thickness, lo=0.0, lo_open=True)
     return sphere_sdf(grid_shape, voxel_size, origin, centre, radius).abs() - t / 2
+
+
+def conical_shell_sdf(grid_shape, voxel_size, origin, centre, bottom_radius, top_radius, height, thickness):
+    """A lamp shade: the open conical (or, with equal radii, cylindrical) shell around the z axis through ``centre``.
+
+    The mid-surface is the cone through the circles of ``bottom_radius`` at z = centre_z − height/2 and
+    ``top_radius`` at z = centre_z + height/2 (mm); the shell is the set of points within ``thickness``/2 of it (the
+    rims are rounded). Exact: the distance to a surface of revolution is the 2D distance to its generating segment.
+
+    Example:
+        >>> sdf = conical_shell_sdf((8, 16, 16), 0.5, (-4, -4, -2), (0, 0, 0), 3.0, 2.0, 3.0, 0.5)
+        >>> round(sdf[4, 8, 8].item(), 3), sdf.shape   # axis point: 2.5·cos(atan(1/3)) − 0.25 mm from the wall
+        (2.122, torch.Size([9, 17, 17]))
+    """
+    r0 = check_real("bottom_radius", bottom_radius, lo=0.0, lo_open=True)
+    r1 = check_real("top_radius", top_radius, lo=0.0, lo_open=True)
+    hgt = check_real("height", height, lo=0.0, lo_open=True)
+    t = check_real("thickness", thickness, lo=0.0, lo_open=True)
+    if t >= 2 * min(r0, r1):
+        raise ValueError(f"thickness: expected < 2·min(bottom_radius, top_radius) = {2 * min(r0, r1):g} mm, got {t:g}")
+    p = corner_points(grid_shape, voxel_size, origin) - torch.tensor(check_vector3("centre", centre), dtype=torch.float64)
+    rho, z = p[..., :2].norm(dim=-1), p[..., 2]
+    a = torch.tensor([r0, -hgt / 2], dtype=torch.float64)
+    b = torch.tensor([r1, hgt / 2], dtype=torch.float64)
+    q = torch.stack([rho, z], dim=-1)
+    ab = b - a
+    s = ((q - a) @ ab / (ab @ ab)).clamp(0.0, 1.0)
+    return (q - a - s[..., None] * ab).norm(dim=-1) - t / 2
