@@ -175,6 +175,6 @@ def test_init_naive_starts_from_the_naive_extrusion(tmp_path):
     weights = np.load(tmp_path / "naive" / "mixture.npz")["weights"]
     assert weights.shape == tuple(naive.shape)
     assert np.abs(weights - naive.numpy()).max() < 5 * 1e-3
-    optimize_print(PrintConfig(out=str(tmp_path / "white"), **kw), progress=False, log=lambda *_: None)
+    optimize_print(PrintConfig(init="white", out=str(tmp_path / "white"), **kw), progress=False, log=lambda *_: None)
     white = np.load(tmp_path / "white" / "mixture.npz")["weights"]
     assert np.abs(white - naive.numpy()).max() > 0.3

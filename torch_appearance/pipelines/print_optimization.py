@@ -75,7 +75,7 @@ class PrintConfig:
     texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
     shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
     core_ink: str = "white"
-    init: str = "white"  # "white": 97 % white everywhere (the paper); "naive": start from the naive extrusion
+    init: str = "naive"  # "naive": start from the naive extrusion; "white": 97 % white everywhere (the paper)
     estimator: str = "ema"  # "ema": loss gradient at the running mean of past renders; "plain": at this render
     ema_beta: float = 0.98  # decay of that running mean (about 1/(1 − β) renders)
     naive_baseline: bool = True  # score the naive extrusion (costs a table of homogeneous renders)
