@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_appearance.nn import losses
 from torch_appearance.nn.losses import (AppearanceLoss, TexelFilters, appearance_loss, sobel_kernels_3d,
                                         texel_appearance_loss)
 
@@ -107,6 +108,21 @@ def test_matrices_equal_explicit_texel_weights():
         ref = np.where(near, s[idx[..., 0], idx[..., 1], idx[..., 2]], 0.0)
         np.testing.assert_array_equal(m.to_dense().numpy(), ref)
     assert f.gaussian_nnz(torch.float64) == int(inside.sum())
+
+
+def test_chunked_construction_is_the_same(monkeypatch):
+    """The matrices are built in chunks of rows; chunks that split the texels anywhere give the same CSR arrays."""
+    _, pos = _sphere_shell(4.2)
+    whole = TexelFilters(pos)._matrices("gaussian", torch.float64, "cpu")[0]
+    sobel = TexelFilters(pos)._matrices("sobel", torch.float64, "cpu")
+    monkeypatch.setattr(losses, "_ROW_CHUNK", 7)
+    chunked = TexelFilters(pos)
+    parts = chunked._matrices("gaussian", torch.float64, "cpu")[0]
+    for a, b in zip((whole.crow_indices(), whole.col_indices(), whole.values()),
+                    (parts.crow_indices(), parts.col_indices(), parts.values())):
+        assert torch.equal(a, b)
+    for a, b in zip(sobel, chunked._matrices("sobel", torch.float64, "cpu")):
+        assert torch.equal(a.to_dense(), b.to_dense())
 
 
 def test_gradcheck_and_order_invariance():

@@ -613,7 +613,7 @@ class AppearanceLoss(torch.nn.Module):
 # sparse texel path: the same losses on (N, 3) texel colours, without a voxel grid
 # ------------------------------------------------------------------------------------------------------------------
 #: Rows of texels whose neighbour lists are built at once (bounds the temporary memory of the construction).
-_ROW_CHUNK = 16384
+_ROW_CHUNK = 4096
 
 
 def _check_positions(positions):
@@ -713,39 +713,50 @@ class TexelFilters:
                 and torch.equal(positions.detach().to("cpu", torch.int64), self.positions))
 
     # ---------------------------------------------------------------------------------------------- construction
+    def _runs(self, start, stop, row_shift, radius):
+        """For texels ``start:stop`` (sorted order) and every window row ``(dz, dy)``: the first sorted index and the
+        number of texels with ``|dx| <= radius`` in that row, ``(n_c, R)`` each (the run is contiguous)."""
+        base = self._keys[start:stop, None] + row_shift[None, :]
+        first = torch.searchsorted(self._keys, base - radius)
+        return first, torch.searchsorted(self._keys, base + radius, right=True) - first
+
     def _build(self, radius, taps, dtype):
         """CSR structure of the ``(2r+1)³`` window and, per kernel ``(tz, ty, tx)`` (each ``2r+1`` float64 taps),
-        the values ``tz[dz+r] ty[dy+r] tx[dx+r]``; ``(crow, col, [values...])`` with rows/columns in sorted order."""
+        the values ``tz[dz+r] ty[dy+r] tx[dx+r]``; ``(crow, col, [values...])`` with rows/columns in sorted order.
+
+        Two passes over chunks of rows (counts, then entries written into preallocated arrays), so the temporary
+        memory is bounded by the chunk, not by ``nnz``."""
         n, (sz, sy) = self.num_texels, self._strides
         d = torch.arange(-radius, radius + 1)
         dz, dy = torch.meshgrid(d, d, indexing="ij")
         dz, dy = dz.reshape(-1), dy.reshape(-1)  # (R,) rows of the window, in increasing key order
         row_shift = dz * sz + dy * sy
-        counts_all, cols, vals = [], [], [[] for _ in taps]
-        for start in range(0, n, _ROW_CHUNK):
-            k = self._keys[start:start + _ROW_CHUNK]
-            base = k[:, None] + row_shift[None, :]  # (n_c, R)
-            first = torch.searchsorted(self._keys, base - radius)
-            last = torch.searchsorted(self._keys, base + radius, right=True)
-            counts = (last - first).reshape(-1)  # (n_c R,) in row-major (texel, window row) order
-            total = int(counts.sum())
-            run_start = torch.cumsum(counts, 0) - counts
-            j = torch.repeat_interleave(first.reshape(-1) - run_start, counts) + torch.arange(total)
-            i = torch.repeat_interleave(torch.arange(start, start + len(k)).repeat_interleave(len(dz)), counts)
-            w = torch.repeat_interleave(torch.arange(len(dz)).repeat(len(k)), counts)
-            ox = self._pos[j, 2] - self._pos[i, 2] + radius
-            oz, oy = dz[w] + radius, dy[w] + radius
-            for out, (tz, ty, tx) in zip(vals, taps):
-                out.append((tz[oz] * ty[oy] * tx[ox]).to(dtype))
-            counts_all.append(counts.view(len(k), -1).sum(1))
-            cols.append(j)
-            del base, first, last, counts, run_start, i, w, ox, oz, oy
-        nnz = int(sum(c.sum() for c in counts_all))
+        chunks = [(a, min(a + _ROW_CHUNK, n)) for a in range(0, n, _ROW_CHUNK)]
+        row_nnz = torch.cat([self._runs(a, b, row_shift, radius)[1].sum(1) for a, b in chunks])
+        nnz = int(row_nnz.sum())
         index_dtype = torch.int32 if nnz < 2**31 - 1 else torch.int64
-        crow = torch.zeros(n + 1, dtype=index_dtype)
-        crow[1:] = torch.cumsum(torch.cat(counts_all), 0).to(index_dtype)
-        col = torch.cat([c.to(index_dtype) for c in cols])
-        return crow, col, [torch.cat(v) for v in vals]
+        crow = torch.zeros(n + 1, dtype=torch.int64)
+        torch.cumsum(row_nnz, 0, out=crow[1:])
+        col = torch.empty(nnz, dtype=index_dtype)
+        values = [torch.empty(nnz, dtype=dtype) for _ in taps]
+        for a, b in chunks:
+            first, counts = self._runs(a, b, row_shift, radius)
+            counts = counts.reshape(-1)  # (n_c R,) in row-major (texel, window row) order
+            lo, hi = int(crow[a]), int(crow[b])
+            run_start = torch.cumsum(counts, 0) - counts
+            j = torch.repeat_interleave(first.reshape(-1) - run_start, counts, output_size=hi - lo)
+            j += torch.arange(hi - lo)
+            pair = torch.repeat_interleave(counts, output_size=hi - lo)  # (texel, window row) of each entry
+            del first, counts, run_start
+            ox = self._pos[j, 2] - self._pos[a + pair // len(dz), 2] + radius
+            w = pair % len(dz)
+            oz, oy = dz[w] + radius, dy[w] + radius
+            del pair, w
+            col[lo:hi] = j
+            for out, (tz, ty, tx) in zip(values, taps):
+                out[lo:hi] = tz[oz] * ty[oy] * tx[ox]
+            del j, ox, oz, oy
+        return crow.to(index_dtype), col, values
 
     def _matrices(self, kind, dtype, device):
         key = (kind, dtype, torch.device(device))
