@@ -15,8 +15,8 @@ as ``scripts/voxelize.py`` does; its texel positions and colours are cached in `
 * ``peak_rss_mb``: the peak resident memory of the worker (VmHWM, reset after the texels were loaded) minus the
   resident memory at that point: the memory the loss itself needs;
 
-and records E1, E2, E3 (so that dense and sparse can be compared) and, for the sparse path, the number of stored
-matrix entries and their bytes. One JSON line per run is printed and all of them are written atomically to
+and records E1, E2, E3 (so that dense and sparse can be compared; ``--f64`` adds their float64 values) and, for
+the sparse path, the number of stored matrix entries and their bytes. One JSON line per run is printed and all of them are written atomically to
 ``--out``. ``--dense-max-mm`` skips the dense path above that height (it needs 3 floats per bounding-box voxel
 for every filtered volume).
 
@@ -85,7 +85,7 @@ def _texels(args, height):
     return path, info
 
 
-def _worker(variant, path, threads):
+def _worker(variant, path, threads, f64=False):
     """Run one measurement in this (fresh) process; return the JSON-able row."""
     torch.set_num_threads(threads)
     from torch_appearance.geometry.voxelize import VoxelObject
@@ -135,6 +135,11 @@ def _worker(variant, path, threads):
     peak_kb = _status_kb("VmHWM")
     if peak_reset and peak_kb is not None and base_kb is not None:
         row["peak_rss_mb"] = (peak_kb - base_kb) / 1024.0
+    if variant == "sparse" and f64:  # the float64 values (the sparse path equals the dense one there, see tests)
+        with torch.no_grad():
+            _, parts64 = AppearanceLoss(gamma=(1.0, 3.0, 1.0)).forward_parts_texels(
+                pred0.double(), target.double(), positions)
+        row.update({f"{k}_f64": float(v) for k, v in parts64.items()})
     return row
 
 
@@ -152,10 +157,12 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=1, help="torch threads per worker (default: %(default)s)")
     p.add_argument("--out", default=os.path.join(ROOT, "results", "bench_texel_loss", "bench.json"),
                    help="JSON file of the rows (its folder also caches the voxelised texels)")
+    p.add_argument("--f64", action="store_true",
+                   help="also record E1/E2/E3 in float64 (sparse runs, after the timing): the reference for both")
     p.add_argument("--worker", nargs=2, metavar=("VARIANT", "NPZ"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
-        print(json.dumps(_worker(args.worker[0], args.worker[1], args.threads)))
+        print(json.dumps(_worker(args.worker[0], args.worker[1], args.threads, args.f64)))
         return 0
     try:
         heights = [float(h) for h in args.heights_mm.split(",") if h.strip()]
@@ -182,10 +189,12 @@ def main(argv=None):
     for height, variant in bar:
         bar.set_postfix(height=f"{height:g}mm", variant=variant)
         path, info = _texels(args, height)
-        proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker", variant, path,
-                               "--threads", str(args.threads)], capture_output=True, text=True, env=env)
+        command = [sys.executable, os.path.abspath(__file__), "--worker", variant, path, "--threads",
+                   str(args.threads)] + (["--f64"] if args.f64 else [])
+        proc = subprocess.run(command, capture_output=True, text=True, env=env)
         if proc.returncode != 0:
-            row = {**info, "variant": variant, "error": proc.stderr.strip().splitlines()[-1:] or [f"rc {proc.returncode}"]}
+            tail = proc.stderr.strip().splitlines()[-1:] or [f"exit status {proc.returncode}"]
+            row = {**info, "variant": variant, "error": tail[0]}
         else:
             row = {**info, **json.loads(proc.stdout.strip().splitlines()[-1])}
         rows.append(row)
