@@ -12,6 +12,10 @@ arithmetic, so they may be anything (also NaN) and receive zero gradient.
 * :func:`edge_loss_3d` / :class:`EdgeLoss3D` — E3 (eq. 17): squared differences of 3D Sobel responses on
   normalised L*a*b*.
 * :func:`appearance_loss` / :class:`AppearanceLoss` — E (eq. 18): ``Σ γ_k E_k / Σ γ_k``.
+* :func:`texel_appearance_loss` / :class:`TexelFilters` / :meth:`AppearanceLoss.forward_parts_texels` — the same
+  E1, E2, E3 on ``(N, 3)`` texel colours and ``(N, 3)`` voxel positions, without a grid: the Gaussian and Sobel
+  filters are sparse texel-to-texel CSR matrices (built once per set of positions), so an object's loss costs
+  its texels and their neighbours, not its bounding box (objects in the print pipeline use it).
 
 Conventions shared by all losses:
 
@@ -677,7 +681,7 @@ class TexelFilters:
 
     Example:
         >>> pos = torch.tensor([[0, 0, 0], [0, 0, 1], [0, 1, 0], [3, 3, 3]])
-        >>> f = TexelFilters(pos)
+        >>> f = TexelFilters(pos, window_size=5)  # |Δ|∞ <= 2: the first three are neighbours, the last is alone
         >>> f.num_texels, f.gaussian_nnz(torch.float64)
         (4, 10)
     """
