@@ -99,6 +99,23 @@ def test_float32_ssim_is_accurate():
     assert abs(e32 - e64) < 4e-6, (e32, e64)
 
 
+@pytest.mark.parametrize("window_size, sigma", [(1, 1.5), (3, 0.7), (7, 2.0)])
+def test_other_windows_and_a_lone_texel(window_size, sigma):
+    """Other SSIM windows (down to one tap, where the Sobel window is the wider one) and a texel with no
+    neighbour give the dense path's values."""
+    mask, pos = _scattered((5, 6, 7), 0.3, seed=11)
+    mask[:, :, 6] = False
+    mask[0, 0, 6] = True  # alone: |Δ|∞ >= 2 to every other texel
+    mask[:2, :2, 5] = False
+    pos = mask.nonzero()
+    pred, target = _colours(len(pos), 5), _colours(len(pos), 6)
+    _, dense = appearance_loss(_to_grid(pred, pos, mask.shape), _to_grid(target, pos, mask.shape), mask,
+                               window_size=window_size, sigma=sigma, return_parts=True)
+    _, sparse = texel_appearance_loss(pred, target, TexelFilters(pos, window_size, sigma), return_parts=True)
+    for k in ("E1", "E2", "E3"):
+        torch.testing.assert_close(sparse[k], dense[k], **TIGHT, msg=k)
+
+
 def test_matrices_equal_explicit_texel_weights():
     """The CSR matrices hold exactly ``k(p_j − p_i)`` for every pair of texels within the window (an explicit
     all-pairs reference from the 1D taps and ``sobel_kernels_3d``), in the filters' sorted order."""
