@@ -260,8 +260,7 @@ def _final_loss(folder, target, gamma):
     else:
         texels = np.load(os.path.join(folder, "final.npy"))
     with torch.no_grad():
-        loss = AppearanceLoss(gamma=tuple(gamma))(target.to_grid(torch.as_tensor(texels, dtype=torch.float32)),
-                                                  target.target_grid, target.mask)
+        loss, _ = target.appearance(AppearanceLoss(gamma=tuple(gamma)), torch.as_tensor(texels, dtype=torch.float32))
     return float(loss)
 
 

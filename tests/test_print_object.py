@@ -12,6 +12,7 @@ import trimesh
 from torch_appearance.fabrication import InkSet, load_index_volume, read_slices
 from torch_appearance.fabrication.export import VOID
 from torch_appearance.geometry import VoxelObject, voxelize
+from torch_appearance.nn import AppearanceLoss
 from torch_appearance.pipelines import PrintConfig, optimize_print
 from torch_appearance.pipelines.object_target import ObjectTarget
 
@@ -93,6 +94,25 @@ def test_object_naive_extrusion_takes_the_nearest_texel():
         assert any(np.allclose(w[:, k, j, i], texel_weights[:, c], atol=1e-7) for c in candidates)
     outside_shell = ~obj.shell.numpy()
     assert np.allclose(w[:, outside_shell], core[:, None])
+
+
+def test_object_loss_is_the_sparse_texel_path():
+    """The object loop's loss (ObjectTarget.appearance) needs no voxel grid and equals the grid path on the texels
+    of a voxelised sphere (E1, E2, E3 and the gradient of E)."""
+    obj = voxelize(trimesh.creation.icosphere(subdivisions=3, radius=1.0), 0.1, shell_mm=0.2)
+    g = torch.Generator().manual_seed(0)
+    obj.texel_colors = torch.rand(len(obj.texel_voxels), 3, generator=g)
+    target = ObjectTarget(obj)
+    criterion = AppearanceLoss(gamma=(1.0, 3.0, 1.0))
+    x = torch.rand(len(obj.texel_voxels), 3, generator=g, requires_grad=True)
+    total, parts = target.appearance(criterion, x)
+    assert "target_grid" not in vars(target) and "mask" not in vars(target)  # no dense grid was built
+    (grad,) = torch.autograd.grad(total, x)
+    dense_total, dense_parts = criterion.forward_parts(target.to_grid(x), target.target_grid, target.mask)
+    (dense_grad,) = torch.autograd.grad(dense_total, x)
+    for k in ("E1", "E2", "E3"):
+        torch.testing.assert_close(parts[k], dense_parts[k], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grad, dense_grad, rtol=1e-4, atol=1e-7 * float(dense_grad.abs().max()))
 
 
 @pytest.mark.parametrize("overrides, match", [

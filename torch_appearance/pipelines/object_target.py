@@ -3,9 +3,11 @@ needs of an object, next to the slab target of :mod:`.print_optimization`.
 
 The object's surface is a smooth dielectric given by its SDF grid; the texel sensor shoots from the surface texels
 along the inward normal; only a shell of voxels within ``shell_mm`` of the surface carries mixture logits, deeper
-voxels hold the core ink. The appearance losses see the texel colours placed on the voxel grid
-(:meth:`VoxelObject.texels_to_grid`), masked to the texels.
+voxels hold the core ink. The appearance losses see the texel colours at their voxel positions through the sparse
+texel path (:class:`~torch_appearance.nn.losses.TexelFilters`): the same E1/E2/E3 as on the voxel grid
+(:meth:`VoxelObject.texels_to_grid`, masked to the texels) at a cost that follows the texels, not the bounding box.
 """
+import functools
 import io
 import os
 
@@ -35,7 +37,9 @@ class ObjectTarget:
 
     Attributes:
         shape: (D, H, W) of the voxel grid. support: (D, H, W) bool, the optimised shell. target: (N, 3) float32
-        linear RGB texel colours. target_grid, mask: the target on the voxel grid for the losses.
+        linear RGB texel colours. positions: (N, 3) int64 voxel indices of the texels (rows of ``target``).
+        target_grid, mask: the target on the voxel grid (built lazily; the optimisation's loss uses the sparse
+        texel path, :meth:`appearance`, and never builds them).
     """
     kind = "object"
 
@@ -51,11 +55,28 @@ class ObjectTarget:
         if not bool(self.support.any()):
             raise ValueError("shell_mm: the shell holds no voxels")
         self.target = obj.texel_colors.float().clamp(0, 1)
-        self.target_grid = obj.texels_to_grid(self.target)
-        self.mask = obj.texels_to_grid(torch.ones(len(self.target), 1, dtype=torch.bool))[0]
+        self.positions = obj.texel_voxels  # (N, 3) voxel indices (k, j, i) of the texels, rows of ``target``
         self.g, self.ior, self.gradient_seed = g, ior, gradient_seed
         self.emitter = ConstantEnvironment() if emitter is None else emitter
         self.scene = self._scene(obj.voxel_size, obj.sdf.float())
+
+    @functools.cached_property
+    def target_grid(self):
+        """(3, D, H, W) the target on the voxel grid (built on first use: 3 floats per bounding-box voxel)."""
+        return self.obj.texels_to_grid(self.target)
+
+    @functools.cached_property
+    def mask(self):
+        """(D, H, W) bool texel mask on the voxel grid (built on first use)."""
+        return self.obj.texels_to_grid(torch.ones(len(self.target), 1, dtype=torch.bool))[0]
+
+    def appearance(self, criterion, texels):
+        """``(E, {"E1", "E2", "E3"})`` of (N, 3) texel colours against the target with the
+        :class:`~torch_appearance.nn.AppearanceLoss` ``criterion``, on the sparse texel path
+        (:meth:`~torch_appearance.nn.AppearanceLoss.forward_parts_texels`): no voxel grid is built, the filter
+        matrices are cached in ``criterion``; equal to the grid path ``criterion.forward_parts(to_grid(texels),
+        target_grid, mask)`` to float rounding."""
+        return criterion.forward_parts_texels(texels, self.target, self.positions)
 
     def use_g(self, g):
         """Render with Henyey–Greenstein ``g`` (a run with another ink set may have another common g)."""

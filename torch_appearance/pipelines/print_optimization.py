@@ -196,6 +196,11 @@ class SlabTarget:
     def to_grid(self, texels):
         return slab_texel_grid(texels, self.cfg.depth)[0]
 
+    def appearance(self, criterion, texels):
+        """``(E, {"E1", "E2", "E3"})`` of the face texels (F, H, W, 3) on the voxel grid (dense path: the faces
+        are whole layers, which the grid path filters with per-axis matrices)."""
+        return criterion.forward_parts(self.to_grid(texels), self.target_grid, self.mask)
+
     def scored(self, texels):
         """The top face is scored (the bottom face is reported separately)."""
         return texels[0], self.target[0]
@@ -623,7 +628,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
 
     def loss_row(texels):
         with torch.no_grad():
-            loss, parts = criterion.forward_parts(target.to_grid(texels), target.target_grid, target.mask)
+            loss, parts = target.appearance(criterion, texels)
         return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
     if not rows:  # a fresh run: the naive extrusion, quantised and scored the same way as the result
@@ -668,13 +673,13 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
             now = image.detach()
             primal = now if ema["count"] == 0 else ema["sum"] / (1.0 - cfg.ema_beta ** ema["count"])
             x = primal.clone().requires_grad_(True)
-            loss, parts = criterion.forward_parts(target.to_grid(x), target.target_grid, target.mask)
+            loss, parts = target.appearance(criterion, x)
             (adjoint,) = torch.autograd.grad(loss, x)
             ema["sum"] = (1.0 - cfg.ema_beta) * now + (0.0 if ema["sum"] is None else cfg.ema_beta * ema["sum"])
             ema["count"] += 1
             surrogate = (adjoint * image).sum()
         else:
-            loss, parts = criterion.forward_parts(target.to_grid(image), target.target_grid, target.mask)
+            loss, parts = target.appearance(criterion, image)
             surrogate = loss
         optimizer.zero_grad(set_to_none=True)
         surrogate.backward()
