@@ -97,7 +97,8 @@ std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_
                                                      const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
                                                      bool ratio, const TraceOptions& opt);
 
-// Path replay. Returns (grad_sigma_t or undefined, grad_albedo or undefined, scatter events of both replays).
+// Path replay (one recording walk per path, core/tape.h). Returns (grad_sigma_t or undefined, grad_albedo or
+// undefined, scatter events of the replay walks).
 std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
