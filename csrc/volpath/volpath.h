@@ -116,5 +116,9 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
     const SceneOptions& opt);
 
+// Test-only: the initial per-thread tape capacity of the replay (segments; collisions get half). 0 makes every path
+// take the two-pass fallback, so tests can compare both replays. Returns the previous value.
+int64_t set_tape_capacity(int64_t segments);
+
 }  // namespace volpath
 }  // namespace ta

@@ -5,6 +5,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <string>
 #include <vector>
@@ -338,15 +339,16 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
 
 // Per-thread tape of the single-walk replay (core/tape.h). It starts small and doubles (up to a cap) when a path
 // overflows it; a path that overflows is replayed with the two-pass method, so every path is exact.
+std::atomic<int64_t> g_initial_tape_segments{int64_t(1) << 14};  // set_tape_capacity (tests)
+
 template <typename T, int LANES>
 struct TapeStore {
-  static constexpr int64_t kInitialSegments = int64_t(1) << 14;
   static constexpr int64_t kMaxSegments = int64_t(1) << 21;  // float: 32 MiB of segments + 32 MiB of collisions
   std::vector<core::TapeSegment<T, LANES>> segs;
   std::vector<core::TapeCollision<T, LANES>> cols;
   core::Tape<T, LANES> tape;
 
-  TapeStore() { resize(kInitialSegments); }
+  TapeStore() { resize(std::min(kMaxSegments, g_initial_tape_segments.load())); }
   void resize(int64_t nseg) {
     segs.resize(nseg);
     cols.resize(nseg / 2);
@@ -357,7 +359,7 @@ struct TapeStore {
   }
   // After an overflow: a larger tape for the paths to come, while the cap allows.
   void grow() {
-    if (tape.seg_cap < kMaxSegments) resize(std::min(kMaxSegments, 2 * tape.seg_cap));
+    if (tape.seg_cap > 0 && tape.seg_cap < kMaxSegments) resize(std::min(kMaxSegments, 2 * tape.seg_cap));
   }
 };
 
@@ -492,6 +494,11 @@ std::vector<int64_t> image_shape(const SceneOptions& o, const torch::Tensor& sig
 }
 
 }  // namespace
+
+int64_t set_tape_capacity(int64_t segments) {
+  TORCH_CHECK(segments >= 0, "segments: expected >= 0, got ", segments);
+  return g_initial_tape_segments.exchange(segments);
+}
 
 std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                                                            const torch::Tensor& ref_sigma_t,
