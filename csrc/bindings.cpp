@@ -104,4 +104,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
         py::arg("need_albedo"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
         "General-scene path replay: (grad_sigma_t, grad_albedo, scatter events).");
+  m.def("_set_tape_capacity", &ta::volpath::set_tape_capacity, py::arg("segments"),
+        "Test-only: initial per-thread tape capacity of the replay (0: every path replays twice); returns the old.");
 }

@@ -19,6 +19,15 @@ voxels, smooth dielectric boundary with IOR 1.5, HG g = 0.4, top face):
                  constant environment; 16 spp
     camera       (render_scene) the same sphere seen by a 64 x 64 perspective camera under a disc light with
                  ambient; 16 spp
+    print-slab   the print optimisation's start: 18 voxels (1.5 mm) of the default ink set's 97 % white mixture
+                 (MaterialMixture at initialisation, chromatic) at 300 DPI (0.0847 mm voxels), --slab-size texels per
+                 side (default 190; the issue's Nefertiti-sized slab is 760), top face; 32 spp
+
+Error per second: unless ``--ref-mult 0``, each scene is also rendered once at ``--ref-mult`` times its spp with an
+independent seed (cached under ``<out folder>/reference/``), and the rows give the RMSE of the image and of the two
+gradients against it. The reference carries noise of its own, 1/ref-mult of the estimate's variance for the same
+estimator; ``*_rmse`` are corrected for it (raw MSE / (1 + 1/ref-mult)). ``efficiency_*`` = 1 / (RMSE² · seconds)
+(forward + backward) is the measure to compare variants by: higher is better, independent of spp.
 
 With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
 into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry
@@ -32,6 +41,8 @@ with the fields
     scene, texels, grid_dhw, spp, threads, forward_s, backward_s (medians of the wall-clock times),
     backward_over_forward, forward_min_s, backward_min_s (the fastest repetitions: robust to a busy machine),
     scatter_events, events_per_s, backward_scatter_events, backward_events_per_s,
+    image_rmse, grad_sigma_t_rmse, grad_albedo_rmse, ref_spp, efficiency_image, efficiency_grad_sigma_t,
+    efficiency_grad_albedo (see "Error per second"),
     forward_tracer_s, backward_tracer_s (the tracer's own timers from ``stats``),
     peak_rss_mb (peak resident memory while the scene ran: VmHWM after resetting it, else getrusage maxrss),
     rss_growth_mb (that peak minus the resident memory just before the scene was built), maxrss_mb
@@ -45,6 +56,7 @@ Usage::
     python scripts/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
 """
 import argparse
+import io
 import json
 import math
 import os
@@ -153,6 +165,20 @@ def scene_camera(generator):
     return sigma_t, albedo, 16, _sphere_scene(cam, DiscLight((1, -1, 2), 15, 20.0, 0.5))
 
 
+PRINT_VOXEL = 25.4 / 300  # mm: the print optimisation's default 300 DPI
+PRINT_DEPTH = 18  # voxels: 1.5 mm
+
+
+def scene_print_slab(generator, size=190):
+    from torch_appearance.fabrication import InkSet
+    from torch_appearance.nn import MaterialMixture
+    with torch.no_grad():
+        sigma_t, albedo = MaterialMixture(InkSet.from_names(), shape=(1, 1, 1))()  # 97 % white everywhere
+    shape = (PRINT_DEPTH, size, size)
+    return (sigma_t.double().reshape(3, 1, 1, 1).expand(3, *shape).clone(),
+            albedo.double().reshape(3, 1, 1, 1).expand(3, *shape).clone(), 32)
+
+
 SCENES = {
     "ink-slab": scene_ink_slab,
     "achromatic": scene_achromatic,
@@ -160,8 +186,20 @@ SCENES = {
     "thin": scene_thin,
     "sphere": scene_sphere,
     "camera": scene_camera,
+    "print-slab": scene_print_slab,
 }
-SLAB_SCENES = ("ink-slab", "achromatic", "white-dense", "thin")
+SLAB_SCENES = ("ink-slab", "achromatic", "white-dense", "thin", "print-slab")
+SCENE_VOXEL = {"print-slab": PRINT_VOXEL}  # voxel edge (mm) of the scenes that do not use VOXEL_SIZE
+
+
+def make_scene(name, generator, args):
+    """(sigma_t, albedo, default spp, render_scene Scene or None) of a named scene."""
+    if name == "print-slab":
+        out = scene_print_slab(generator, args.slab_size)
+    else:
+        out = SCENES[name](generator)
+    sigma_t, albedo, spp, *scene = out
+    return sigma_t, albedo, spp, (scene[0] if scene else None)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -197,15 +235,15 @@ def _maxrss_mb():
 # --------------------------------------------------------------------------------------------------------------
 # timing
 # --------------------------------------------------------------------------------------------------------------
-def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None):
-    """One forward + backward; returns wall seconds and the tracer's stats."""
+def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None, voxel_size=VOXEL_SIZE, keep=False):
+    """One forward + backward; returns wall seconds, the tracer's stats and (keep) the image and gradients."""
     st = sigma_t.detach().clone().requires_grad_()
     al = albedo.detach().clone().requires_grad_()
     stats = {}
     start = time.perf_counter()
     if scene is None:
         image = torch_appearance.render_texels(
-            st, al, voxel_size=VOXEL_SIZE, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats
+            st, al, voxel_size=voxel_size, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats
         )
     else:
         image = torch_appearance.render_scene(scene, st, al, spp=spp, seed=seed, stats=stats)
@@ -216,7 +254,34 @@ def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None):
     backward_s = time.perf_counter() - start
     if st.grad is None or al.grad is None:
         raise RuntimeError("render_texels produced no gradient for sigma_t/albedo")
+    if keep:
+        return forward_s, backward_s, stats, (image.detach(), st.grad, al.grad)
     return forward_s, backward_s, stats
+
+
+def _reference(name, sigma_t, albedo, weights, spp, args, scene, voxel_size):
+    """Image and gradients at ``args.ref_mult`` × spp with an independent seed, cached in <out>/reference/."""
+    ref_spp = spp * args.ref_mult
+    size = "x".join(str(n) for n in sigma_t.shape[1:])
+    folder = os.path.join(os.path.dirname(os.path.abspath(args.out)), "reference")
+    path = os.path.join(folder, f"{name}-{size}-spp{ref_spp}-ior{args.ior}-g{args.g}-seed{args.seed}.pt")
+    if os.path.exists(path):
+        return torch.load(path), ref_spp
+    print(f"{name}: reference at {ref_spp} spp (once, cached in {path}) ...", file=sys.stderr, flush=True)
+    *_, ref = _run_once(sigma_t, albedo, weights, ref_spp, args.seed + 7919, args.ior, args.g, scene, voxel_size,
+                        keep=True)
+    os.makedirs(folder, exist_ok=True)
+    buffer = io.BytesIO()
+    torch.save(ref, buffer)
+    ta_io.atomic_write_bytes(path, buffer.getvalue())
+    return ref, ref_spp
+
+
+def _rmse(estimate, reference, ref_mult):
+    """RMSE of a Monte Carlo estimate against a noisy reference of the same estimator at ref_mult × the samples:
+    E|x − r|² = σ²(1 + 1/ref_mult), so the raw MSE is divided by that factor."""
+    mse = float(((estimate.double() - reference.double()) ** 2).mean())
+    return math.sqrt(mse / (1.0 + 1.0 / ref_mult))
 
 
 def bench_scene(name, threads, args):
@@ -224,8 +289,8 @@ def bench_scene(name, threads, args):
     peak_reset = _reset_peak_rss() and _status_kb("VmHWM") is not None
     baseline_kb = _status_kb("VmRSS")  # after the reset, so that VmHWM >= baseline
     generator = torch.Generator().manual_seed(args.seed + zlib.crc32(name.encode()))
-    sigma_t, albedo, default_spp, *scene = SCENES[name](generator)
-    scene = scene[0] if scene else None
+    sigma_t, albedo, default_spp, scene = make_scene(name, generator, args)
+    voxel_size = SCENE_VOXEL.get(name, VOXEL_SIZE)
     sigma_t = sigma_t.to(torch.float32).contiguous()
     albedo = albedo.to(torch.float32).contiguous()
     spp = args.spp if args.spp is not None else default_spp
@@ -233,8 +298,9 @@ def bench_scene(name, threads, args):
     out_shape = (height, width, 3) if scene is None else scene.output_shape((depth, height, width))
     weights = torch.rand(out_shape, generator=generator, dtype=torch.float64).to(torch.float32)
 
-    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene)  # warm-up
-    runs = [_run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene) for _ in range(args.reps)]
+    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene, voxel_size)  # warm-up
+    runs = [_run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene, voxel_size,
+                      keep=rep == args.reps - 1) for rep in range(args.reps)]
     forward_s = statistics.median(r[0] for r in runs)
     backward_s = statistics.median(r[1] for r in runs)
     stats = runs[-1][2]
@@ -249,6 +315,15 @@ def bench_scene(name, threads, args):
         peak_mb = _status_kb("VmHWM") / 1024.0
     else:
         peak_mb = _maxrss_mb()
+    error = {}
+    if args.ref_mult > 0:
+        ref, ref_spp = _reference(name, sigma_t, albedo, weights, spp, args, scene, voxel_size)
+        seconds = forward_s + backward_s
+        error["ref_spp"] = ref_spp
+        for key, est, want in zip(("image", "grad_sigma_t", "grad_albedo"), runs[-1][3], ref):
+            rmse = _rmse(est, want, args.ref_mult)
+            error[f"{key}_rmse"] = float(f"{rmse:.6g}")
+            error[f"efficiency_{key}"] = float(f"{1.0 / (rmse * rmse * seconds):.6g}") if rmse > 0 else None
     return {
         "scene": name,
         "texels": math.prod(out_shape[:-1]),
@@ -272,6 +347,7 @@ def bench_scene(name, threads, args):
         "rss_growth_mb": round(max(0.0, peak_mb - baseline_kb / 1024.0), 1) if baseline_kb is not None else None,
         "maxrss_mb": round(_maxrss_mb(), 1),
         "grid_mb": round((sigma_t.numel() + albedo.numel()) * sigma_t.element_size() / 2**20, 3),
+        **error,
         "reps": args.reps,
         "seed": args.seed,
     }
@@ -301,9 +377,13 @@ C.volpath_backward(w, s, a, rs, ra, True, True, o)
 t0 = time.perf_counter()
 image, counts = C.volpath_forward(s, a, s, a, False, o)
 t1 = time.perf_counter()
-C.volpath_backward(w, s, a, rs, ra, True, True, o)
+gs, ga, _ = C.volpath_backward(w, s, a, rs, ra, True, True, o)
 t2 = time.perf_counter()
-print(json.dumps({"forward_s": t1 - t0, "backward_s": t2 - t1, "checksum": float(image.double().sum())}))
+with open(f"/proc/self/status") as f:
+    peak = [int(l.split()[1]) / 1024 for l in f if l.startswith("VmHWM:")]
+print(json.dumps({"forward_s": t1 - t0, "backward_s": t2 - t1, "checksum": float(image.double().sum()),
+                  "grad_checksum": [float(gs.double().sum()), float(ga.double().sum()), float(gs.double().abs().sum()),
+                                    float(ga.double().abs().sum())], "peak_rss_mb": peak[0] if peak else None}))
 """
 
 
@@ -334,16 +414,17 @@ def compare_baseline(name, threads, args, old_so, sha):
     from torch_appearance.autograd.volpath import sampling_lanes
     from torch_appearance.render.scene import SlabScene
     generator = torch.Generator().manual_seed(args.seed + zlib.crc32(name.encode()))
-    sigma_t, albedo, default_spp = SCENES[name](generator)
+    sigma_t, albedo, default_spp, _ = make_scene(name, generator, args)
+    voxel_size = SCENE_VOXEL.get(name, VOXEL_SIZE)
     sigma_t = sigma_t.to(torch.float32).contiguous()
     albedo = albedo.to(torch.float32).contiguous()
     spp = args.spp if args.spp is not None else default_spp
     _, depth, height, width = sigma_t.shape
     weights = torch.rand((height, width, 3), generator=generator, dtype=torch.float64).to(torch.float32)
-    slab = SlabScene.create(VOXEL_SIZE, g=args.g, ior=args.ior, spp=spp, seed=args.seed)
+    slab = SlabScene.create(voxel_size, g=args.g, ior=args.ior, spp=spp, seed=args.seed)
     ref_s = sigma_t.clamp_min(slab.sigma_t_floor(sigma_t.shape)).contiguous()
     ref_a = albedo.clamp_min(slab.settings.albedo_floor).contiguous()
-    options = dict(voxel_size=[VOXEL_SIZE] * 3, face=0, g=args.g, ior=args.ior, environment=[1.0, 1.0, 1.0],
+    options = dict(voxel_size=[voxel_size] * 3, face=0, g=args.g, ior=args.ior, environment=[1.0, 1.0, 1.0],
                    spp=spp, seed=args.seed, max_depth=slab.settings.max_depth, rr_depth=slab.settings.rr_depth,
                    lanes=sampling_lanes(sigma_t))
     new_so = torch_appearance._C.__file__
@@ -367,7 +448,10 @@ def compare_baseline(name, threads, args, old_so, sha):
         "ratio_backward": round(med["new"]["backward_s"] / med["old"]["backward_s"], 4),
         "ratio_forward_min": round(low["new"]["forward_s"] / low["old"]["forward_s"], 4),
         "ratio_backward_min": round(low["new"]["backward_s"] / low["old"]["backward_s"], 4),
+        "old_peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in runs["old"]),
+        "new_peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in runs["new"]),
         "same_image": runs["old"][0]["checksum"] == runs["new"][0]["checksum"],
+        "same_gradient_checksums": runs["old"][0].get("grad_checksum") == runs["new"][0].get("grad_checksum"),
         "reps": args.reps,
     }
 
@@ -437,6 +521,10 @@ def parse_args(argv=None):
     parser.add_argument("--out", default="results/bench/volpath.jsonl",
                         help="JSON-lines result file; the plot goes beside it (default: %(default)s)")
     parser.add_argument("--no-plot", action="store_true", help="do not draw the bar chart")
+    parser.add_argument("--slab-size", type=int, default=190,
+                        help="print-slab: texels per side (default: %(default)s; the issue's slab is 760)")
+    parser.add_argument("--ref-mult", type=int, default=8,
+                        help="reference spp = this × spp for the RMSE columns; 0: no reference (default: %(default)s)")
     parser.add_argument("--baseline", metavar="REV", default=None,
                         help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)
@@ -444,6 +532,10 @@ def parse_args(argv=None):
         parser.error(f"--spp must be >= 1, got {args.spp}")
     if args.reps < 1:
         parser.error(f"--reps must be >= 1, got {args.reps}")
+    if args.slab_size < 1:
+        parser.error(f"--slab-size must be >= 1, got {args.slab_size}")
+    if args.ref_mult < 0:
+        parser.error(f"--ref-mult must be >= 0, got {args.ref_mult}")
     return args
 
 

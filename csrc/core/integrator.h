@@ -20,6 +20,8 @@
 //   ∂V_c/∂σ_c(v) = V_c·(−ℓ_v) for every flight segment in v   +   V_c^{¬σ-factor}/σ̂(v) for a collision in v
 //   ∂V_c/∂α_c(v) = V_c^{¬α-factor}/(p_s·q)                     for a scattering collision in v
 // where V^{¬f} (V without factor f) is evaluated zero-safely (σ_c = 0 or α_c = 0 factors give exact derivatives).
+// Both need the final V: the walk either records the events in a tape and deposits after it ends (RECORD, one walk,
+// tape.h) or is replayed twice, first for V, then depositing (ADJOINT; the fallback for paths longer than a tape).
 //
 // Random numbers: event 0 places the start (u0, u1) and decides the first Fresnel event (u2); each free flight
 // draws one event (u0 distance, u1 absorption or Fresnel at the end of the flight, u2 u3 the new direction); a
@@ -33,6 +35,7 @@
 #include "core/optics.h"
 #include "core/rng.h"
 #include "core/sensor.h"
+#include "core/tape.h"
 
 namespace ta {
 namespace core {
@@ -71,12 +74,6 @@ struct PathResult {
   T direction[3];          // escape direction (world), where the emitter is evaluated
   int64_t scatter_events = 0;
 };
-
-template <typename T>
-TA_HD inline T weight_without(T factor, T value, T prod_nonzero, int zeros) {
-  if (factor != T(0)) return zeros == 0 ? value / factor : T(0);
-  return zeros == 1 ? prod_nonzero : T(0);
-}
 
 // Entry of a ray from outside the object (grid-local p, unit d): moves p to the first surface point, sets the
 // cell idx there and the outward unit normal n. False when the ray leaves without hitting the object.
@@ -176,10 +173,14 @@ TA_HD inline void escape(PathResult<T, LANES>& res, const T w[LANES], const T d[
 // One random walk of the path that starts at sensor element `elem`, sample `sample`.
 // `chan` is the channel for LANES == 1 (lanes map to channels 0..2 for LANES == 3).
 // With ADJOINT, `pass1` holds this path's result from a non-adjoint replay and `adj[l]` = grad_out·L_e/spp.
-template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool RATIO, bool ADJOINT>
+// With RECORD, the walk writes what its derivative needs into `tape` (for the gradient buffers named in A; see
+// tape.h) and the caller deposits after the walk: one walk instead of two.
+template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool RATIO, bool ADJOINT, bool RECORD = false>
 TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan,
-                                             const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T>& A) {
+                                             const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T>& A,
+                                             Tape<T, LANES>* tape = nullptr) {
   static_assert(!ADJOINT || RATIO, "the adjoint replay always carries ratio weights");
+  static_assert(!RECORD || (RATIO && !ADJOINT), "the recording walk carries ratio weights and deposits nothing");
   constexpr bool SDF = BOUNDARY == kSDFBoundary;
   PathResult<T, LANES> res;
   for (int l = 0; l < LANES; ++l) {
@@ -326,6 +327,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
           excess[l] += (M.sigma_t[c * N + v] - M.ref_sigma_t[ch0 * N + v]) * len;
         }
       }
+      if (RECORD && A.grad_sigma_t && len > T(0)) tape->segment(v, len);
       if (ADJOINT && A.grad_sigma_t && len > T(0)) {
         for (int l = 0; l < LANES; ++l) {
           const int c = LANES == 1 ? chan : l;
@@ -388,12 +390,24 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       }
       if (!(u[1] < ps * q)) return res;  // absorbed or killed by roulette: contributes 0
       const T inv_psq = T(1) / (ps * q);
+      TapeCollision<T, LANES>* rec = nullptr;
+      if (RECORD) {
+        rec = tape->collision(v);
+        if (rec) {
+          rec->sref = M.ref_sigma_t[ch0 * N + v];
+          rec->inv_psq = inv_psq;
+        }
+      }
       for (int l = 0; l < LANES; ++l) {
         const int c = LANES == 1 ? chan : l;
         wref[l] *= aref[l] * inv_psq;
         const T fa = M.albedo[c * N + v] * inv_psq;  // albedo factor α_c/(p_s q)
         T fs = T(1);                                 // collision factor σ_c/σ̂
         if (RATIO) fs = M.sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
+        if (RECORD && rec) {
+          rec->fs[l] = fs;
+          rec->fa[l] = fa;
+        }
         if (ADJOINT) {
           if (A.grad_sigma_t)
             A.grad_sigma_t[c * N + v] += adj[l] *

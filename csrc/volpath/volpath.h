@@ -97,7 +97,8 @@ std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_
                                                      const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
                                                      bool ratio, const TraceOptions& opt);
 
-// Path replay. Returns (grad_sigma_t or undefined, grad_albedo or undefined, scatter events of both replays).
+// Path replay (one recording walk per path, core/tape.h). Returns (grad_sigma_t or undefined, grad_albedo or
+// undefined, scatter events of the replay walks).
 std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
@@ -114,6 +115,10 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
     const SceneOptions& opt);
+
+// Test-only: the initial per-thread tape capacity of the replay (segments; collisions get half). 0 makes every path
+// take the two-pass fallback, so tests can compare both replays. Returns the previous value.
+int64_t set_tape_capacity(int64_t segments);
 
 }  // namespace volpath
 }  // namespace ta

@@ -5,6 +5,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <string>
 #include <vector>
@@ -336,12 +337,41 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
   return total;
 }
 
-// Replays one path twice: first for its final weight and escape direction, then depositing ∂/∂θ (only escaped
-// paths that see a non-zero emitter carry any). `g` is grad_output of the element (3 channels).
+// Per-thread tape of the single-walk replay (core/tape.h). It starts small and doubles (up to a cap) when a path
+// overflows it; a path that overflows is replayed with the two-pass method, so every path is exact.
+std::atomic<int64_t> g_initial_tape_segments{int64_t(1) << 14};  // set_tape_capacity (tests)
+
+template <typename T, int LANES>
+struct TapeStore {
+  static constexpr int64_t kMaxSegments = int64_t(1) << 21;  // float: 32 MiB of segments + 32 MiB of collisions
+  std::vector<core::TapeSegment<T, LANES>> segs;
+  std::vector<core::TapeCollision<T, LANES>> cols;
+  core::Tape<T, LANES> tape;
+
+  TapeStore() { resize(std::min(kMaxSegments, g_initial_tape_segments.load())); }
+  void resize(int64_t nseg) {
+    segs.resize(nseg);
+    cols.resize(nseg / 2);
+    tape.segs = segs.data();
+    tape.cols = cols.data();
+    tape.seg_cap = int64_t(segs.size());
+    tape.col_cap = int64_t(cols.size());
+  }
+  // After an overflow: a larger tape for the paths to come, while the cap allows.
+  void grow() {
+    if (tape.seg_cap > 0 && tape.seg_cap < kMaxSegments) resize(std::min(kMaxSegments, 2 * tape.seg_cap));
+  }
+};
+
+// Replays one path: a single walk that records its events in the tape, then the deposit of ∂/∂θ (only escaped paths
+// that see a non-zero emitter carry any). A path that does not fit the tape is walked once more, depositing as it
+// goes (the two-pass replay). `g` is grad_output of the element (3 channels).
 template <typename T, int LANES, int B, bool DIEL>
-inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* g, const Adjoint<T>& A) {
-  const Adjoint<T> none;
-  const auto r1 = core::trace_path<T, LANES, B, DIEL, true, false>(S, t, s, ch, nullptr, nullptr, none);
+inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* g, const Adjoint<T>& A,
+                      TapeStore<T, LANES>& store) {
+  auto& tape = store.tape;
+  tape.clear();
+  const auto r1 = core::trace_path<T, LANES, B, DIEL, true, false, true>(S, t, s, ch, nullptr, nullptr, A, &tape);
   if (!r1.escaped) return r1.scatter_events;
   T Le[3], adj[LANES];
   S.emitter.eval(r1.direction, Le);
@@ -352,6 +382,11 @@ inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* 
     any |= adj[l] != T(0);
   }
   if (!any) return r1.scatter_events;
+  if (!tape.overflow) {
+    core::deposit_tape<T, LANES>(tape, r1.value, r1.prod_nonzero, r1.zeros, ch, adj, A, S.medium.voxels());
+    return r1.scatter_events;
+  }
+  store.grow();
   const auto r2 = core::trace_path<T, LANES, B, DIEL, true, true>(S, t, s, ch, &r1, adj, A);
   return r1.scatter_events + r2.scatter_events;
 }
@@ -375,6 +410,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
       else { bufs_a[c - 1].assign(n, T(0)); A.grad_albedo = bufs_a[c - 1].data(); }
     }
     int64_t ev = 0;
+    TapeStore<T, LANES> store;
     for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
       const T* g = grad_out + t * 3;
       bool live[3], any = false;  // channels whose paths can carry a derivative
@@ -384,11 +420,11 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
       }
       if (!any) return;
       for (int64_t s = 0; s < S.spp; ++s) {
-        if (LANES == 3) {
-          ev += replay<T, 3, B, DIEL>(S, t, s, 0, g, A);
+        if constexpr (LANES == 3) {
+          ev += replay<T, 3, B, DIEL>(S, t, s, 0, g, A, store);
         } else {
           for (int ch = 0; ch < 3; ++ch)
-            if (live[ch]) ev += replay<T, 1, B, DIEL>(S, t, s, ch, g, A);
+            if (live[ch]) ev += replay<T, 1, B, DIEL>(S, t, s, ch, g, A, store);
         }
       }
     });
@@ -458,6 +494,11 @@ std::vector<int64_t> image_shape(const SceneOptions& o, const torch::Tensor& sig
 }
 
 }  // namespace
+
+int64_t set_tape_capacity(int64_t segments) {
+  TORCH_CHECK(segments >= 0, "segments: expected >= 0, got ", segments);
+  return g_initial_tape_segments.exchange(segments);
+}
 
 std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                                                            const torch::Tensor& ref_sigma_t,

@@ -1,9 +1,10 @@
 """``VolumePathTrace``: the C++ volume path tracer as a ``torch.autograd.Function``.
 
 Forward renders the radiance seen by the sensor (texels or pixels); backward is radiative backpropagation by path
-replay (csrc/core/integrator.h): each path is regenerated from its counter-based random numbers and ∂(path contribution)/∂θ is deposited into the
-voxels it touched. Linear time, no tape, memory independent of path length; gradient work only for inputs
-with ``requires_grad``.
+replay (csrc/core/integrator.h): each path is regenerated once from its counter-based random numbers, its events
+are kept in a bounded per-thread record (csrc/core/tape.h) and ∂(path contribution)/∂θ is deposited into the voxels
+it touched when the path ends. Linear time, no tape of the render, memory independent of path length; gradient
+work only for inputs with ``requires_grad``.
 """
 import time
 import warnings
