@@ -68,10 +68,10 @@ def test_object_run_folder_shell_void_and_resume(sphere_ply, tmp_path):
     assert [int(r["iteration"]) for r in rows] == list(range(5))
     assert float(rows[-1]["dE00_mean"]) < 0.8 * float(rows[0]["dE00_mean"])
     # resume: 2 iterations, then continue to 4 = one run of 4 (same seeds per iteration)
-    optimize_print(config(sphere_ply, tmp_path / "split", iterations=2), **QUIET)
+    optimize_print(config(sphere_ply, tmp_path / "split", iterations=2, init="white"), **QUIET)
     with pytest.raises(ValueError, match="already holds a run"):
-        optimize_print(config(sphere_ply, tmp_path / "split"), **QUIET)
-    resumed = optimize_print(config(sphere_ply, tmp_path / "split", resume=True), **QUIET)
+        optimize_print(config(sphere_ply, tmp_path / "split", init="white"), **QUIET)
+    resumed = optimize_print(config(sphere_ply, tmp_path / "split", resume=True, init="white"), **QUIET)
     split_rows = list(csv.DictReader(open(tmp_path / "split" / "log.csv")))
     assert [r["loss"] for r in split_rows] == [r["loss"] for r in rows]
     assert resumed["final_quantized"] == summary["final_quantized"]
