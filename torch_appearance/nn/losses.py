@@ -519,6 +519,24 @@ def _check_gamma(gamma):
     return values
 
 
+def _combine_terms(gamma, terms, return_parts):
+    """E = Σ γ_k E_k / Σ γ (eq. 18) from lazily evaluated terms (E1, E2, E3); a term with weight 0 is skipped, or
+    evaluated without gradient when ``return_parts`` asks for it."""
+    parts, total = {}, 0.0
+    for name, weight, term in zip(("E1", "E2", "E3"), gamma, terms):
+        if weight > 0:
+            value = term()
+            total = total + weight * value
+        elif return_parts:
+            with torch.no_grad():
+                value = term()
+        else:
+            continue
+        parts[name] = value
+    total = total / sum(gamma)
+    return (total, parts) if return_parts else total
+
+
 def appearance_loss(pred, target, mask, gamma=(1.0, 3.0, 1.0), window_size=11, sigma=1.5, return_parts=False):
     r"""E (eq. 18): :math:`E = \sum_k \gamma_k E_k / \sum_k \gamma_k` of E1 (colour), E2 (SSIM), E3 (edges).
 
@@ -550,19 +568,7 @@ def appearance_loss(pred, target, mask, gamma=(1.0, 3.0, 1.0), window_size=11, s
         lambda: _ssim_term(norm_pred, norm_target, texels, window_size, sigma),
         lambda: _edge_term(norm_pred, norm_target, texels),
     )
-    parts, total = {}, 0.0
-    for name, weight, term in zip(("E1", "E2", "E3"), gamma, terms):
-        if weight > 0:
-            value = term()
-            total = total + weight * value
-        elif return_parts:
-            with torch.no_grad():
-                value = term()
-        else:
-            continue
-        parts[name] = value
-    total = total / sum(gamma)
-    return (total, parts) if return_parts else total
+    return _combine_terms(gamma, terms, return_parts)
 
 
 class AppearanceLoss(torch.nn.Module):
@@ -903,16 +909,4 @@ def texel_appearance_loss(pred, target, filters, gamma=(1.0, 3.0, 1.0), return_p
         responses = filters.sobel(norm_x - norm_y)
         return _EDGE_FACTOR * sum(s.square().sum() for s in responses) / count
 
-    parts, total = {}, 0.0
-    for name, weight, term in zip(("E1", "E2", "E3"), gamma, (color, ssim, edge)):
-        if weight > 0:
-            value = term()
-            total = total + weight * value
-        elif return_parts:
-            with torch.no_grad():
-                value = term()
-        else:
-            continue
-        parts[name] = value
-    total = total / sum(gamma)
-    return (total, parts) if return_parts else total
+    return _combine_terms(gamma, (color, ssim, edge), return_parts)
