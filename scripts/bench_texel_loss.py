@@ -39,25 +39,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SPOT = os.path.join(ROOT, "tests", "data", "meshes", "spot")
 
-
-def _status_kb(field):
-    try:
-        with open("/proc/self/status") as handle:
-            for line in handle:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
-
-
-def _reset_peak_rss():
-    try:
-        with open("/proc/self/clear_refs", "w") as handle:
-            handle.write("5")
-        return True
-    except OSError:
-        return False
+from bench_volpath import _reset_peak_rss, _status_kb  # noqa: E402  (the same /proc memory probes)
 
 
 def _texels(args, height):
