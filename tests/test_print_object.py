@@ -326,3 +326,45 @@ def test_fixed_fraction_by_material_name(tmp_path):
     with pytest.raises(ValueError, match="a slab has no materials"):
         optimize_print(PrintConfig(fixed=("white=0.5:material:lid",), out=str(tmp_path / "slab")), **QUIET)
     assert not (tmp_path / "bad").exists() and not (tmp_path / "slab").exists()
+
+
+def test_quantised_white_object_renders_like_its_continuous_mixture():
+    """A sphere printed in white only: the quantised micro-voxel volume is the same medium as the continuous one,
+    so their texel colours agree in distribution. The micro-voxels whose centre is outside are VOID, but the
+    smooth surface cuts some of them; light crosses those first, so they must hold the printed neighbour's ink
+    (white), not a placeholder ink (cyan is ink 0 here: a cyan skin would take red out of every texel)."""
+    from conftest import assert_z, seed_stats
+
+    from torch_appearance.fabrication.quantize import quantize_mixture
+    from torch_appearance.nn import mix_inks
+
+    obj = voxelize(trimesh.creation.icosphere(subdivisions=3, radius=1.0), 0.125, shell_mm=0.3)
+    obj.texel_colors = torch.full((len(obj.texel_voxels), 3), 0.5)
+    target = ObjectTarget(obj)
+    inks = InkSet.from_names(["cyan", "white"])
+    weights = torch.zeros(2, *target.shape)
+    weights[1] = 1.0
+    indices = target.quantized_void(quantize_mixture(weights, obj.voxel_size, (609.6, 406.4, 609.6), seed=0))
+    assert (indices == VOID).any() and set(np.unique(indices)) == {1, VOID}
+    sigma_t, albedo = mix_inks(weights, inks)
+    with torch.no_grad():
+        cont, se_c = seed_stats(lambda k: target.render(sigma_t, albedo, 32, 100 + k), range(6))
+    quant, se_q = seed_stats(lambda k: target.render_quantized(indices, inks, (609.6, 406.4, 609.6), 32, 200 + k),
+                             range(6))
+    assert_z(quant.mean(0) - cont.mean(0), (se_q.pow(2).mean(0) + se_c.pow(2).mean(0)).sqrt() / len(cont) ** 0.5,
+             0.0, what="mean texel colour, quantised vs continuous")
+    assert_z(quant - cont, (se_q ** 2 + se_c ** 2).sqrt(), 0.0, what="texel colours, quantised vs continuous")
+
+
+def test_fill_void_at_surface_takes_the_inner_neighbour():
+    from torch_appearance.pipelines.object_target import fill_void_at_surface
+
+    # a 1-D column along x: printed inks 2, 0 then VOID; the surface (SDF 0) lies inside voxel 2 at x = 2.4
+    indices = np.array([[[2, 0, VOID, VOID]]], dtype=np.uint8)
+    sdf_x = np.array([-2.4, -1.4, -0.4, 0.6, 1.6], dtype=np.float32)
+    sdf = torch.as_tensor(np.broadcast_to(sdf_x, (2, 2, 5)).copy())
+    out = fill_void_at_surface(indices, sdf)
+    assert out.tolist() == [[[2, 0, 0, VOID]]]      # the straddling voxel takes its printed neighbour; the outer stays
+    assert indices[0, 0, 2] == VOID                  # the input is not modified
+    with pytest.raises(ValueError, match="corner_sdf: expected shape"):
+        fill_void_at_surface(indices, sdf[:, :, :4])

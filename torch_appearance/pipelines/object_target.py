@@ -21,7 +21,7 @@ from ..fabrication.quantize import micro_grid_pitch
 from ..render import ConstantEnvironment, Scene, SDFBoundary, SurfaceTexels
 from ..render.volpath import render_scene
 
-__all__ = ["ObjectTarget"]
+__all__ = ["ObjectTarget", "fill_void_at_surface"]
 
 
 class ObjectTarget:
@@ -180,14 +180,22 @@ class ObjectTarget:
                                                align_corners=True)[0, 0].contiguous()
 
     def quantized_medium(self, indices, inks, printer_dpi):
-        """σ_t and albedo (3, Dz, Hy, Wx) of a printer-resolution index volume (an ink table lookup; VOID voxels,
-        outside the boundary, take ink 0) and the scene pieces at the micro pitch: (sigma_t, albedo, edges, sdf)."""
+        """σ_t and albedo (3, Dz, Hy, Wx) of a printer-resolution index volume (an ink table lookup) and the scene
+        pieces at the micro pitch: (sigma_t, albedo, edges, sdf).
+
+        The renderer's surface is the smooth SDF, while the printer prints whole micro-voxels (those whose centre is
+        inside; the others are VOID). A VOID micro-voxel that straddles the surface still has a part inside the
+        smooth boundary that light crosses first: it takes the ink of its most interior printed neighbour
+        (:func:`fill_void_at_surface`), i.e. the printed material continues to the smooth surface. VOID voxels
+        wholly outside are never entered and take ink 0."""
         dz, hy, wx = indices.shape
-        idx = torch.as_tensor(np.where(indices == VOID, 0, indices).astype(np.int64)).reshape(-1)
+        sdf = self.micro_sdf((dz, hy, wx))
+        filled = fill_void_at_surface(indices, sdf)
+        idx = torch.as_tensor(np.where(filled == VOID, 0, filled).astype(np.int64)).reshape(-1)
         sigma_t = inks.sigma_t(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
         albedo = inks.albedo(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
         edges = micro_grid_pitch(self.shape, self.obj.voxel_size, printer_dpi)
-        return sigma_t, albedo, edges, self.micro_sdf((dz, hy, wx))
+        return sigma_t, albedo, edges, sdf
 
     def render_quantized(self, indices, inks, printer_dpi, spp, seed, sensor=None):
         """(N, 3) texel colours (or the image of ``sensor``, e.g. a camera) of a printer-resolution index volume
@@ -279,3 +287,62 @@ class ObjectTarget:
     def describe(self):
         return {"grid_dhw": list(self.shape), "texels": int(len(self.target)), "shell_voxels": int(self.support.sum()),
                 "inside_voxels": int(self.obj.occupancy.sum()), "voxel_size_mm": self.obj.voxel_size}
+
+
+def fill_void_at_surface(indices, corner_sdf, passes=4):
+    """Give the VOID micro-voxels that straddle the surface the ink of a printed neighbour.
+
+    A micro-voxel is VOID when its centre lies outside the object, but the smooth surface (the zero set of the
+    trilinear corner SDF) may still cut it: the part inside is what light meets first below the surface. Each such
+    voxel (VOID with a corner SDF ≤ 0) takes the ink of its face neighbour (6-neighbourhood) with the lowest centre
+    SDF among those already holding an ink; ``passes`` rounds of this reach voxels whose neighbours were straddling
+    too. Straddling voxels still unfilled after that (isolated slivers) take the most common printed ink.
+
+    Args:
+        indices: (Dz, Hy, Wx) uint8 ink indices, :data:`VOID` outside.
+        corner_sdf: (Dz+1, Hy+1, Wx+1) float SDF at the micro-voxel corners (negative inside).
+        passes: neighbour rounds.
+
+    Returns:
+        (Dz, Hy, Wx) uint8: a copy of ``indices`` with the straddling VOID voxels filled (the others stay VOID).
+    """
+    indices = np.asarray(indices)
+    sdf = torch.as_tensor(corner_sdf)
+    if indices.ndim != 3 or tuple(sdf.shape) != tuple(n + 1 for n in indices.shape):
+        raise ValueError(f"corner_sdf: expected shape {tuple(n + 1 for n in indices.shape)} for indices of shape "
+                         f"{indices.shape}, got {tuple(sdf.shape)}")
+    out = indices.copy()
+    void = out == VOID
+    if not void.any() or void.all():
+        return out
+    dz, hy, wx = indices.shape
+    corners = [sdf[a:a + dz, b:b + hy, c:c + wx].numpy() for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    lowest = functools.reduce(np.minimum, corners)
+    todo = np.argwhere(void & (lowest <= 0))                                     # (M, 3) straddling VOID voxels
+    del lowest
+    if len(todo) == 0:
+        return out
+
+    def centre_sdf(p):                                                           # (M, 3) voxel indices -> (M,)
+        return sum(c[tuple(p.T)].astype(np.float64) for c in corners) / 8
+    shape = np.array(indices.shape)
+    steps = np.array([(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)])
+    for _ in range(passes):
+        best = np.full(len(todo), np.inf)
+        ink = np.full(len(todo), VOID, dtype=out.dtype)
+        for step in steps:
+            nb = todo + step
+            inside = ((nb >= 0) & (nb < shape)).all(1)
+            nbi = np.where(inside[:, None], nb, 0)
+            cand = out[tuple(nbi.T)]
+            score = np.where(inside & (cand != VOID), centre_sdf(nbi), np.inf)
+            better = score < best
+            best[better], ink[better] = score[better], cand[better]
+        done = ink != VOID
+        out[tuple(todo[done].T)] = ink[done]
+        todo = todo[~done]
+        if len(todo) == 0:
+            return out
+    printed = out[out != VOID]
+    out[tuple(todo.T)] = np.bincount(printed.astype(np.int64)).argmax()
+    return out
