@@ -8,11 +8,16 @@ at fixed positions and misses the moving ring boundaries; the reparameterisation
 boundaries (torch_appearance/nn/wood_reparam.py). Both are compared per pixel block with central finite differences
 of the image (common samples, high sample count): z-tests with a Bonferroni threshold, relative L1 error.
 
+With --cylinder-radius-mm R the face is bent into the lamp shade's curved surface instead: a cylinder of radius R
+(axis along the image columns' direction, through the image centre) seen from the side, Lambert-shaded from the
+camera on a black background; the warp follows the rings on the curved surface and vanishes at its silhouette.
+
 Writes --out/gradients.png (render, FD, reparameterised, naive, z maps) and --out/summary.json.
 
 Examples:
     python scripts/wood_gradients.py --out results/wood_gradients
     python scripts/wood_gradients.py --fit-dir results/board --out results/board_gradients --size 48 48
+    python scripts/wood_gradients.py --cylinder-radius-mm 6 --out results/wood_gradients_cylinder
 """
 import argparse
 import os
@@ -31,7 +36,7 @@ from tqdm import tqdm
 
 from torch_appearance import io as ta_io
 from torch_appearance.nn import WoodModel
-from torch_appearance.nn.wood_reparam import compare_ring_scale_gradients, render_filtered
+from torch_appearance.nn.wood_reparam import CylinderView, compare_ring_scale_gradients, render_filtered
 
 
 def demo_model():
@@ -60,6 +65,9 @@ def parse_args(argv=None):
     p.add_argument("--fd-spp", type=int, default=4096, help="finite-difference samples per pixel (default: %(default)s)")
     p.add_argument("--fd-h", type=float, default=0.002, help="relative FD step in s_r (default: %(default)s)")
     p.add_argument("--block", type=int, default=4, help="pixel block of the z-tests (default: %(default)s)")
+    p.add_argument("--cylinder-radius-mm", type=float, default=None, metavar="R",
+                   help="render the curved surface of a cylinder of radius R mm (axis through the image centre, "
+                        "along the columns) instead of the flat face")
     p.add_argument("--quiet", action="store_true")
     return p.parse_args(argv)
 
@@ -112,13 +120,15 @@ def main(argv=None):
             model = demo_model()
         os.makedirs(args.out, exist_ok=True)
         h, w = args.size
+        surface = None if args.cylinder_radius_mm is None else CylinderView(args.cylinder_radius_mm,
+                                                                             0.5 * w * args.pixel_mm)
         t0 = time.perf_counter()
         with tqdm(total=1 + 2 * args.seeds, desc="wood_gradients", disable=args.quiet) as bar:
             res = compare_ring_scale_gradients(model, h, w, args.pixel_mm, spp=args.spp, seeds=args.seeds,
                                                fd_spp=args.fd_spp, h_rel=args.fd_h, block=args.block,
-                                               progress=lambda: bar.update(1))
+                                               progress=lambda: bar.update(1), surface=surface)
         seconds = time.perf_counter() - t0
-        render = render_filtered(model, h, w, args.pixel_mm, spp=64)
+        render = render_filtered(model, h, w, args.pixel_mm, spp=64, surface=surface)
     except (ValueError, TypeError) as error:
         print(f"wood_gradients.py: error: {error}", file=sys.stderr)
         return 2

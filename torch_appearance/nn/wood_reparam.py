@@ -21,6 +21,14 @@ control variate, since the weight has zero mean) (a box filter would need one at
 delta there). ∂G/∂θ and div V are taken by central differences of the smooth G (no frac), ∇G by autograd.
 V is singular where ∇G = 0 (at the pith): boards that contain the pith are not supported.
 
+Curved shapes (``surface=``, e.g. :class:`CylinderView`, the lamp shade seen from the side): the image-plane point
+x maps to a surface point S(x) in the board frame and the pixel sees shade(x)·rgb(G(S(x))) (black background). The
+same estimator holds with G∘S in place of G: V = −(∂G/∂θ)∇_x(G∘S)/|∇_x(G∘S)|². The silhouette is a discontinuity
+that does not move with θ; the warp must not carry samples across it. Two things keep that exact: the Lambert shade
+falls to 0 at the silhouette, so the image is continuous there, and |∇_x(G∘S)| grows without bound as the surface
+turns away (∂S/∂x → ∞), so V → 0 there wherever the rings are not parallel to the view direction. Outside the
+silhouette V = 0. Sharp creases (a cube's edges) would need V tangent to them and are not handled.
+
 Example:
     >>> import torch
     >>> from torch_appearance.nn import WoodModel
@@ -40,7 +48,7 @@ import torch
 
 from ..render.checks import check_int, check_real, check_seed
 
-__all__ = ["pixel_samples", "render_filtered", "ring_scale_gradient", "ring_scale_gradient_fd",
+__all__ = ["CylinderView", "pixel_samples", "render_filtered", "ring_scale_gradient", "ring_scale_gradient_fd",
            "compare_ring_scale_gradients", "ESTIMATORS"]
 
 ESTIMATORS = ("reparam", "naive")
@@ -68,12 +76,53 @@ def pixel_samples(height, width, pixel_mm, spp, seed, sigma_px=0.5, dtype=torch.
     return centres + noise, centres
 
 
-def _colour(model, pts):
-    return model.evaluate(pts.to(model.color_map.dtype), board=True)["rgb"].double()
+class CylinderView:
+    """A cylinder seen from the side by an orthographic camera: the curved surface of a lamp shade.
+
+    The cylinder's axis is parallel to the image rows' direction v (board v), at image column position ``axis_mm``;
+    the image point (x, y) mm (see :func:`pixel_samples`) sees the front surface point
+    (u, v, w) = (x, y, √(R² − (x − a)²) − R) in the board frame (w = 0 on the line nearest the camera, the board
+    plane; the shade is cut from the wood just below the fitted face), lit from the camera: shade = n·view =
+    √(R² − (x − a)²)/R. Points with |x − a| ≥ R miss the cylinder (black background).
+
+    Args:
+        radius_mm: R > 0. axis_mm: a, the axis' image x in mm.
+    """
+
+    def __init__(self, radius_mm, axis_mm):
+        self.radius = check_real("radius_mm", radius_mm, lo=0.0, lo_open=True)
+        self.axis = check_real("axis_mm", axis_mm)
+
+    def __call__(self, pts):
+        """Image points (N, 2) mm → (board points (N, 3) mm, shade (N,) in [0, 1], hit (N,) bool)."""
+        r = self.radius
+        dx = pts[:, 0] - self.axis
+        hit = dx.abs() < r
+        depth = torch.sqrt((r * r - dx * dx).clamp_min(0.0))                  # differentiable in x where hit
+        q = torch.stack([pts[:, 0], pts[:, 1], depth - r], -1)
+        return q, torch.where(hit, depth / r, torch.zeros_like(depth)), hit
+
+    def __repr__(self):
+        return f"CylinderView(radius_mm={self.radius}, axis_mm={self.axis})"
 
 
-def _growth(model, pts):
-    return model.evaluate(pts.to(model.color_map.dtype), board=True)["G"].double()
+def _surface_points(surface, pts):
+    """(points for model.evaluate(board=True), shade or None, hit mask or None) of image points (N, 2)."""
+    if surface is None:
+        return pts, None, None
+    return surface(pts)
+
+
+def _colour(model, pts, surface=None):
+    q, shade, hit = _surface_points(surface, pts)
+    rgb = model.evaluate(q.to(model.color_map.dtype), board=True)["rgb"].double()
+    return rgb if shade is None else rgb * shade.double()[:, None]
+
+
+def _growth(model, pts, surface=None):
+    q, _, hit = _surface_points(surface, pts)
+    g = model.evaluate(q.to(model.color_map.dtype), board=True)["G"].double()
+    return g if hit is None else torch.where(hit, g, torch.zeros_like(g))
 
 
 def _shifted(model, log_scale_delta):
@@ -83,29 +132,33 @@ def _shifted(model, log_scale_delta):
     return m
 
 
-def render_filtered(model, height, width, pixel_mm, *, spp=64, seed=0, sigma_px=0.5):
-    """(H, W, 3) Gaussian-filtered surface render of the board's colour (Monte Carlo, ``spp`` samples per pixel)."""
+def render_filtered(model, height, width, pixel_mm, *, spp=64, seed=0, sigma_px=0.5, surface=None):
+    """(H, W, 3) Gaussian-filtered surface render of the board's colour (Monte Carlo, ``spp`` samples per pixel);
+    ``surface``: None (the flat board face) or a curved view such as :class:`CylinderView`."""
     pts, _ = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px)
     with torch.no_grad():
-        c = _colour(model, pts)
+        c = _colour(model, pts, surface)
     return c.reshape(height, width, spp, 3).mean(2)
 
 
-def _warp_velocity(model, pts, h_theta, h_x):
-    """V(x) = −(∂G/∂s_r)∇G/|∇G|² at points (N, 2) mm, and div V (central differences of width h_x mm)."""
+def _warp_velocity(model, pts, h_theta, h_x, surface=None):
+    """V(x) = −(∂G/∂s_r)∇G/|∇G|² at image points (N, 2) mm (G∘S on a curved ``surface``; 0 where the sample
+    misses it), and div V (central differences of width h_x mm)."""
     s_r = float(model.ring_scale.detach())
     up, down = _shifted(model, math.log1p(h_theta)), _shifted(model, math.log1p(-h_theta))
 
     def velocity(p):
         p = p.detach().requires_grad_(True)
-        g = _growth(model, p)
+        g = _growth(model, p, surface)
         (grad,) = torch.autograd.grad(g.sum(), p)
         with torch.no_grad():
-            dg = (_growth(up, p) - _growth(down, p)) / (2 * h_theta * s_r)     # ∂G/∂s_r, G smooth in s_r
+            dg = (_growth(up, p, surface) - _growth(down, p, surface)) / (2 * h_theta * s_r)  # ∂G/∂s_r, smooth
             n2 = (grad * grad).sum(-1, keepdim=True)
-            if bool((n2 <= 0).any()):
+            hit = torch.ones_like(n2, dtype=torch.bool) if surface is None else surface(p)[2][:, None]
+            if bool((hit & ~(n2 > 0)).any()):
                 raise ValueError("model: ∇G = 0 at a sample (the pith is on the board); the warp is undefined there")
-            return -dg[:, None] * grad / n2
+            v = -dg[:, None] * grad / torch.where(hit, n2, torch.ones_like(n2))
+            return torch.where(hit & torch.isfinite(v), v, torch.zeros_like(v))
 
     v = velocity(pts)
     div = torch.zeros(pts.shape[0], dtype=torch.float64)
@@ -117,7 +170,7 @@ def _warp_velocity(model, pts, h_theta, h_x):
 
 
 def ring_scale_gradient(model, height, width, pixel_mm, *, spp=64, seed=0, sigma_px=0.5, estimator="reparam",
-                        baseline=True, chunk=1 << 16):
+                        baseline=True, chunk=1 << 16, surface=None):
     """Monte Carlo estimate of dI/ds_r (per pixel and channel, colour units per mm of ring scale).
 
     Args:
@@ -129,6 +182,7 @@ def ring_scale_gradient(model, height, width, pixel_mm, *, spp=64, seed=0, sigma
         baseline: (reparam) subtract the leave-one-out mean colour of the pixel's other samples from each sample's
             colour, a control variate that keeps the estimator unbiased (the weight has zero mean) and removes most
             of its variance, which otherwise grows with |V| ~ r/|∇r| (mm) far from the pith. Needs spp >= 2.
+        surface: None (the flat board face seen straight on) or a curved view, e.g. :class:`CylinderView`.
 
     Returns:
         (H, W, 3) float64 gradient image.
@@ -144,7 +198,7 @@ def ring_scale_gradient(model, height, width, pixel_mm, *, spp=64, seed=0, sigma
         p, c0 = pts[i:i + chunk], centres[i:i + chunk]
         if estimator == "naive":
             # forward-mode autograd of the samples in log s_r at fixed positions, then d/ds_r = (1/s_r) d/dlog s_r
-            wrapper = _Evaluate(model)
+            wrapper = _Evaluate(model, surface)
             params = {k: v.detach() for k, v in wrapper.named_parameters()}
             tangent = {k: torch.zeros_like(v) for k, v in params.items()}
             tangent["model.log_ring_scale"] = torch.ones_like(params["model.log_ring_scale"])
@@ -152,10 +206,10 @@ def ring_scale_gradient(model, height, width, pixel_mm, *, spp=64, seed=0, sigma
             _, dc = torch.func.jvp(lambda prm: torch.func.functional_call(wrapper, prm, (pm,)), (params,), (tangent,))
             out[i:i + chunk] = dc.double() / s_r
         else:
-            v, div = _warp_velocity(model, p, h_theta=1e-4, h_x=1e-4 * pixel_mm)
+            v, div = _warp_velocity(model, p, h_theta=1e-4, h_x=1e-4 * pixel_mm, surface=surface)
             score = -(p - c0) / sigma ** 2                                   # ∇ log f
             with torch.no_grad():
-                c = _colour(model, p)
+                c = _colour(model, p, surface)
             weight = div + (score * v).sum(-1)
             if baseline and spp > 1:
                 # E[div V + ∇log f·V] = ∫ div(f V) dx = 0, so subtracting a constant from c keeps the estimator
@@ -163,21 +217,39 @@ def ring_scale_gradient(model, height, width, pixel_mm, *, spp=64, seed=0, sigma
                 cp = c.reshape(-1, spp, 3)
                 c = (cp - (cp.sum(1, keepdim=True) - cp) / (spp - 1)).reshape(-1, 3)
             out[i:i + chunk] = c * weight[:, None]
+            if surface is not None:
+                # c = shade(x)·rgb(G∘S(x)): G is constant along the warp but the smooth shade is not, so the warped
+                # sample's colour changes by rgb·(∇shade·V) per unit θ
+                out[i:i + chunk] += _shade_derivative(model, p, v, surface)
     return out.reshape(height, width, spp, 3).mean(2)
 
 
-class _Evaluate(torch.nn.Module):
-    """``model.evaluate(points, board=True)["rgb"]`` as a module call (for torch.func.functional_call)."""
+def _shade_derivative(model, pts, v, surface):
+    """rgb(G∘S(x))·(∇shade(x)·V(x)) at image points (N, 2): the smooth part of d c(x(θ))/dθ along the warp."""
+    p = pts.detach().requires_grad_(True)
+    q, shade, hit = surface(p)
+    (grad,) = torch.autograd.grad(shade.sum(), p)
+    with torch.no_grad():
+        rgb = model.evaluate(q.detach().to(model.color_map.dtype), board=True)["rgb"].double()
+        rate = torch.where(hit, (grad.double() * v).sum(-1), torch.zeros_like(shade, dtype=torch.float64))
+        return rgb * torch.nan_to_num(rate, nan=0.0, posinf=0.0, neginf=0.0)[:, None]
 
-    def __init__(self, model):
+
+class _Evaluate(torch.nn.Module):
+    """The seen colour (``model.evaluate(points, board=True)["rgb"]``, shaded on a curved ``surface``) as a module
+    call (for torch.func.functional_call)."""
+
+    def __init__(self, model, surface=None):
         super().__init__()
         self.model = model
+        self.surface = surface
 
     def forward(self, points):
-        return self.model.evaluate(points, board=True)["rgb"]
+        return _colour(self.model, points, self.surface)
 
 
-def ring_scale_gradient_fd(model, height, width, pixel_mm, *, spp=4096, seed=0, sigma_px=0.5, h_rel=0.002):
+def ring_scale_gradient_fd(model, height, width, pixel_mm, *, spp=4096, seed=0, sigma_px=0.5, h_rel=0.002,
+                           surface=None):
     """Central finite differences (I(s_r(1 + h)) − I(s_r(1 − h)))/(2 h s_r) of the filtered image with common
     samples: unbiased for the finite difference of the expected image (O(h²) from the derivative), the
     reference of the gradient comparisons. Boundaries move by about G·h ring widths: keep G·h small (on a synthetic
@@ -192,13 +264,13 @@ def ring_scale_gradient_fd(model, height, width, pixel_mm, *, spp=4096, seed=0, 
     s_r = float(model.ring_scale.detach())
     up, down = _shifted(model, math.log1p(h)), _shifted(model, math.log1p(-h))
     with torch.no_grad():
-        d = (_colour(up, pts) - _colour(down, pts)) / (2 * h * s_r)
+        d = (_colour(up, pts, surface) - _colour(down, pts, surface)) / (2 * h * s_r)
     d = d.reshape(height, width, spp, 3)
     return d.mean(2), d.std(2) / math.sqrt(spp)
 
 
 def compare_ring_scale_gradients(model, height, width, pixel_mm, *, spp=16, seeds=32, fd_spp=4096, h_rel=0.002,
-                                 block=4, sigma_px=0.5, family_alpha=1e-3, progress=None):
+                                 block=4, sigma_px=0.5, family_alpha=1e-3, progress=None, surface=None):
     """dI/ds_r by reparameterisation and by naive autograd against central finite differences, per pixel block.
 
     The reparameterised and naive estimates are means over ``seeds`` independent renders of ``spp`` samples per
@@ -220,7 +292,7 @@ def compare_ring_scale_gradients(model, height, width, pixel_mm, *, spp=16, seed
         raise ValueError(f"block: expected at most min(height, width) = {min(height, width)}, got {block}")
     tick = progress if progress is not None else (lambda: None)
     fd, fd_se = ring_scale_gradient_fd(model, height, width, pixel_mm, spp=fd_spp, seed=10 ** 6, sigma_px=sigma_px,
-                                       h_rel=h_rel)
+                                       h_rel=h_rel, surface=surface)
     tick()
     result = {"fd": fd, "fd_se": fd_se}
     n_tests = hb * wb * 3
@@ -237,7 +309,7 @@ def compare_ring_scale_gradients(model, height, width, pixel_mm, *, spp=16, seed
         runs = []
         for k in range(seeds):
             runs.append(ring_scale_gradient(model, height, width, pixel_mm, spp=spp, seed=k, sigma_px=sigma_px,
-                                            estimator=name))
+                                            estimator=name, surface=surface))
             tick()
         runs = torch.stack(runs)
         mean, se = runs.mean(0), runs.std(0) / math.sqrt(seeds)
