@@ -254,6 +254,21 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
   // HERO: lrho[k] = log(p_k/p_h) of the path so far, lw[c] = log of the product of f_c/p_h's non-zero factors
   T lrho[3] = {0, 0, 0}, lw[LANES];
   for (int l = 0; l < LANES; ++l) lw[l] = T(0);
+  // HERO: the last argument and value of each of the collision's logarithms (slots 0..2: σ̂_k/σ̂_h, 3..5: the
+  // lanes' f_c/p_h factors); a walk through voxels of equal values (a homogeneous ink) takes no logarithm again
+  T memo_arg[6], memo_log[6];
+  for (int i = 0; i < 6; ++i) memo_arg[i] = memo_log[i] = T(0);
+  auto log_memo = [&](int slot, T x) {  // log x for a finite x > 0
+    if (x != memo_arg[slot]) {
+      memo_arg[slot] = x;
+      memo_log[slot] = tlog(x);
+    }
+    return memo_log[slot];
+  };
+  auto log_ratio_memo = [&](int slot, T a, T b) {  // log(a / b), a >= 0, b > 0 (see log_ratio)
+    const T r = a / b;
+    return r > T(0) && r < tinf<T>() ? log_memo(slot, r) : log_ratio(a, b);
+  };
   auto finish = [&](const T dir[3]) {
     if constexpr (HERO) hero_escape(res, lw, lrho, dir);
     else escape(res, w, dir);
@@ -456,7 +471,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       if constexpr (HERO) {  // the collision density ratios σ̂_k/σ̂_h of the path pdfs
         const T sh = M.ref_sigma_t[ch0 * N + v];
         for (int k = 0; k < 3; ++k)
-          if (k != ch0) lrho[k] += log_ratio(M.ref_sigma_t[k * N + v], sh);  // −inf for σ̂_k = 0: p_k = 0
+          if (k != ch0) lrho[k] += log_ratio_memo(k, M.ref_sigma_t[k * N + v], sh);  // −inf for σ̂_k = 0
       }
       TapeCollision<T, LANES>* rec = nullptr;
       if (RECORD) {
@@ -491,7 +506,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
           if (fa == T(0)) ++res.zeros[l];
           if (fs != T(0) && fa != T(0)) {
             const T f = fs * fa;  // one logarithm unless the product leaves the normal range
-            lw[l] += (f > T(0) && f < tinf<T>()) ? tlog(f) : tlog(fs) + tlog(fa);
+            lw[l] += (f > T(0) && f < tinf<T>()) ? log_memo(3 + l, f) : tlog(fs) + tlog(fa);
           }
         } else if (RATIO || LANES > 1) {
           w[l] *= fs * fa;
