@@ -30,6 +30,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("max_depth", &TraceOptions::max_depth)
       .def_readwrite("rr_depth", &TraceOptions::rr_depth)
       .def_readwrite("lanes", &TraceOptions::lanes)
+      .def_readwrite("hero", &TraceOptions::hero)
       .def_readwrite("part_rank", &TraceOptions::part_rank)
       .def_readwrite("part_world", &TraceOptions::part_world);
 
@@ -81,6 +82,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("max_depth", &SceneOptions::max_depth)
       .def_readwrite("rr_depth", &SceneOptions::rr_depth)
       .def_readwrite("lanes", &SceneOptions::lanes)
+      .def_readwrite("hero", &SceneOptions::hero)
       .def_readwrite("part_rank", &SceneOptions::part_rank)
       .def_readwrite("part_world", &SceneOptions::part_world);
 

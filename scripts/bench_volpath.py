@@ -29,6 +29,13 @@ gradients against it. The reference carries noise of its own, 1/ref-mult of the 
 estimator; ``*_rmse`` are corrected for it (raw MSE / (1 + 1/ref-mult)). ``efficiency_*`` = 1 / (RMSE² · seconds)
 (forward + backward) is the measure to compare variants by: higher is better, independent of spp.
 
+Chromatic estimators (``--chromatic per_channel,hero``): each scene is run once per estimator of a chromatic
+sampling density (render_texels' ``chromatic``: one walk per channel, or one hero-channel walk with spectral MIS);
+the reference is always the per-channel estimator, so a variant's raw MSE holds the reference's noise variance,
+taken as the per-channel row's corrected MSE / ref-mult (run per_channel first) and subtracted. Rows of a variant
+carry ``chromatic`` and ``efficiency_*_vs_per_channel`` (its efficiency over that of the per-channel row of the
+same scene and thread count: > 1 means the variant gives less error per second).
+
 With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
 into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry
 points (``_C.volpath_forward``/``volpath_backward``, the forward on the parameters, the backward on the floored
@@ -54,6 +61,7 @@ Usage::
 
     python scripts/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
     python scripts/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
+    python scripts/bench_volpath.py --scenes print-slab,ink-slab --chromatic per_channel,hero --threads 2
 """
 import argparse
 import io
@@ -235,7 +243,8 @@ def _maxrss_mb():
 # --------------------------------------------------------------------------------------------------------------
 # timing
 # --------------------------------------------------------------------------------------------------------------
-def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None, voxel_size=VOXEL_SIZE, keep=False):
+def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None, voxel_size=VOXEL_SIZE, keep=False,
+              chromatic="per_channel"):
     """One forward + backward; returns wall seconds, the tracer's stats and (keep) the image and gradients."""
     st = sigma_t.detach().clone().requires_grad_()
     al = albedo.detach().clone().requires_grad_()
@@ -243,10 +252,10 @@ def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None, voxel_siz
     start = time.perf_counter()
     if scene is None:
         image = torch_appearance.render_texels(
-            st, al, voxel_size=voxel_size, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats
-        )
+            st, al, voxel_size=voxel_size, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed, stats=stats,
+            chromatic=chromatic)
     else:
-        image = torch_appearance.render_scene(scene, st, al, spp=spp, seed=seed, stats=stats)
+        image = torch_appearance.render_scene(scene, st, al, spp=spp, seed=seed, stats=stats, chromatic=chromatic)
     forward_s = time.perf_counter() - start
     loss = (image * weights).sum()
     start = time.perf_counter()
@@ -277,14 +286,19 @@ def _reference(name, sigma_t, albedo, weights, spp, args, scene, voxel_size):
     return ref, ref_spp
 
 
-def _rmse(estimate, reference, ref_mult):
+def _rmse(estimate, reference, ref_mult, ref_var=None):
     """RMSE of a Monte Carlo estimate against a noisy reference of the same estimator at ref_mult × the samples:
-    E|x − r|² = σ²(1 + 1/ref_mult), so the raw MSE is divided by that factor."""
+    E|x − r|² = σ²(1 + 1/ref_mult), so the raw MSE is divided by that factor. With ``ref_var`` (the reference's
+    noise variance, for an estimator other than the reference's) that is subtracted instead."""
     mse = float(((estimate.double() - reference.double()) ** 2).mean())
+    if ref_var is not None:
+        return math.sqrt(max(mse - ref_var, 0.0))
     return math.sqrt(mse / (1.0 + 1.0 / ref_mult))
 
 
-def bench_scene(name, threads, args):
+def bench_scene(name, threads, args, chromatic="per_channel", ref_var=None):
+    """One JSON row; ``ref_var`` (key → the reference's noise variance) corrects the RMSE of a variant whose
+    estimator differs from the reference's (see "Chromatic estimators")."""
     torch.set_num_threads(threads)
     peak_reset = _reset_peak_rss() and _status_kb("VmHWM") is not None
     baseline_kb = _status_kb("VmRSS")  # after the reset, so that VmHWM >= baseline
@@ -298,9 +312,10 @@ def bench_scene(name, threads, args):
     out_shape = (height, width, 3) if scene is None else scene.output_shape((depth, height, width))
     weights = torch.rand(out_shape, generator=generator, dtype=torch.float64).to(torch.float32)
 
-    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene, voxel_size)  # warm-up
+    _run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene, voxel_size,
+              chromatic=chromatic)  # warm-up
     runs = [_run_once(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene, voxel_size,
-                      keep=rep == args.reps - 1) for rep in range(args.reps)]
+                      keep=rep == args.reps - 1, chromatic=chromatic) for rep in range(args.reps)]
     forward_s = statistics.median(r[0] for r in runs)
     backward_s = statistics.median(r[1] for r in runs)
     stats = runs[-1][2]
@@ -321,11 +336,14 @@ def bench_scene(name, threads, args):
         seconds = forward_s + backward_s
         error["ref_spp"] = ref_spp
         for key, est, want in zip(("image", "grad_sigma_t", "grad_albedo"), runs[-1][3], ref):
-            rmse = _rmse(est, want, args.ref_mult)
+            rmse = _rmse(est, want, args.ref_mult, None if ref_var is None else ref_var.get(key))
             error[f"{key}_rmse"] = float(f"{rmse:.6g}")
             error[f"efficiency_{key}"] = float(f"{1.0 / (rmse * rmse * seconds):.6g}") if rmse > 0 else None
     return {
         "scene": name,
+        "chromatic": chromatic,
+        "hero": stats.get("hero"),
+        "lanes": stats.get("lanes"),
         "texels": math.prod(out_shape[:-1]),
         "grid_dhw": [depth, height, width],
         "spp": spp,
@@ -466,7 +484,7 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = [f"{r['scene']}\n{r['threads']} thr, {r['spp']} spp" for r in rows]
+    labels = [f"{r['scene']}{' (hero)' if r.get('hero') else ''}\n{r['threads']} thr, {r['spp']} spp" for r in rows]
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(rows)), 4.0))
     ax.bar(x - 0.2, [r["forward_s"] for r in rows], 0.4, label="forward")
@@ -506,6 +524,15 @@ def _scene_list(text):
     return names
 
 
+def _chromatic_list(text):
+    from torch_appearance.render.scene import CHROMATIC
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [n for n in names if n not in CHROMATIC]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown estimator(s) {unknown or text!r}; choose from {', '.join(CHROMATIC)}")
+    return names
+
+
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -525,6 +552,9 @@ def parse_args(argv=None):
                         help="print-slab: texels per side (default: %(default)s; the issue's slab is 760)")
     parser.add_argument("--ref-mult", type=int, default=8,
                         help="reference spp = this × spp for the RMSE columns; 0: no reference (default: %(default)s)")
+    parser.add_argument("--chromatic", type=_chromatic_list, default=["per_channel"],
+                        help="comma-separated estimators for chromatic media, from per_channel,hero; run per_channel "
+                             "first (default: %(default)s)")
     parser.add_argument("--baseline", metavar="REV", default=None,
                         help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)
@@ -545,8 +575,18 @@ def main(argv=None):
     os.makedirs(directory, exist_ok=True)
     rows = []
     for threads in args.threads:
-        for name in args.scenes:
-            row = bench_scene(name, threads, args)
+        for name, chromatic in ((n, c) for n in args.scenes for c in args.chromatic):
+            base = [r for r in rows if r["scene"] == name and r["threads"] == threads
+                    and r["chromatic"] == "per_channel"]
+            ref_var = None
+            if chromatic != "per_channel" and base and args.ref_mult > 0:
+                ref_var = {k: base[0][f"{k}_rmse"] ** 2 / args.ref_mult
+                           for k in ("image", "grad_sigma_t", "grad_albedo")}
+            row = bench_scene(name, threads, args, chromatic, ref_var)
+            if base and chromatic != "per_channel" and args.ref_mult > 0:
+                for k in ("image", "grad_sigma_t", "grad_albedo"):
+                    e0, e1 = base[0].get(f"efficiency_{k}"), row.get(f"efficiency_{k}")
+                    row[f"efficiency_{k}_vs_per_channel"] = round(e1 / e0, 4) if e0 and e1 else None
             if name == "achromatic":
                 chromatic = [r for r in rows if r["scene"] == "ink-slab" and r["threads"] == row["threads"]
                              and r["spp"] == row["spp"]]

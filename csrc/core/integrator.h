@@ -8,6 +8,19 @@
 //   RATIO       the walk is sampled from a reference medium that may differ from the parameters and carries the
 //               ratio weights f(θ)/p_ref. Off for the default forward pass (reference = parameters).
 //   ADJOINT     path replay of radiative backpropagation: deposit ∂/∂θ of the path contribution.
+//   HERO        (LANES == 3, chromatic reference) hero-channel spectral MIS: one walk serves all three channels; it
+//               samples free flights with the reference density σ̂_h of a hero channel h (uniform per sample:
+//               h = (o + sample) mod 3 with a random offset o per sensor element) and weights each channel with
+//               the one-sample balance heuristic over the channels (Wilkie et al. 2014; Miller et al. 2019):
+//                 V_c(x) = f_c(x) / ((1/3) Σ_k p_k(x)),
+//               p_k the pdf of the whole path x had it been sampled with channel k's reference density. The
+//               continuation probability p_s = max_c α̂_c and the roulette q do not depend on the hero, so p_k/p_h
+//               is the product of the free-flight ratios exp(−∫(σ̂_k − σ̂_h)) and, per collision, σ̂_k/σ̂_h. The
+//               walk keeps log(p_k/p_h) and the log of the product of f_c/p_h's non-zero factors, so stiff media
+//               (σ̂ differing by 10⁴ between channels, optical depths of 10⁴) neither overflow nor underflow; the
+//               weight is combined by log-sum-exp when the path escapes. The MIS weight depends on the detached
+//               reference only, so ∂V_c/∂θ is the non-hero formula below with V_c including the weight and σ̂ the
+//               hero's.
 //
 // Estimator (per channel c, for one path x sampled from the reference medium σ̂, α̂):
 //   V_c(x) = L_e,c(ω_escape) · Π_flights exp(−Σ_voxels (σ_c − σ̂)·ℓ) · Π_collisions (σ_c/σ̂) · (α_c / (p_s·q))
@@ -23,7 +36,8 @@
 // Both need the final V: the walk either records the events in a tape and deposits after it ends (RECORD, one walk,
 // tape.h) or is replayed twice, first for V, then depositing (ADJOINT; the fallback for paths longer than a tape).
 //
-// Random numbers: event 0 places the start (u0, u1) and decides the first Fresnel event (u2); each free flight
+// Random numbers (stream `channel` of rng.h: the walk's channel, 3 for a shared walk, 4 for a hero walk, whose hero
+// offset is drawn from stream 5): event 0 places the start (u0, u1) and decides the first Fresnel event (u2); each free flight
 // draws one event (u0 distance, u1 absorption or Fresnel at the end of the flight, u2 u3 the new direction); a
 // surface hit from outside after the first draws one more event (u0 Fresnel).
 #pragma once
@@ -163,6 +177,38 @@ TA_HD inline bool start_inside(const Scene<T>& S, const T p[3], int64_t idx[3]) 
   return S.sdf.value_gradient(M, idx, p, grad) < T(0);
 }
 
+// The hero channel of sample `sample` of sensor element `elem`: uniform over the three channels for every sample
+// (a random offset per element, then rotating over the samples, so the channels are stratified).
+template <typename T>
+TA_HD inline int hero_channel(uint64_t seed, int64_t elem, int64_t sample) {
+  const PathRng<T> r{seed, uint32_t(elem), 0u, 5u};
+  T u[4];
+  r.draw(0, u);
+  const int offset = tmin(2, int(u[0] * T(3)));
+  return int((uint64_t(offset) + uint64_t(sample) % 3u) % 3u);
+}
+
+// log(a / b) for a >= 0, b > 0 (−inf for a = 0), also where a / b leaves the floating-point range.
+template <typename T>
+TA_HD inline T log_ratio(T a, T b) {
+  const T r = a / b;
+  return (r > T(0) && r < tinf<T>()) || a == T(0) ? tlog(r) : tlog(a) - tlog(b);
+}
+
+// Escape of a hero walk: V_c = exp(lw_c − log((1/3) Σ_k exp(lrho_k))) (0 for a path with a zero factor), and the
+// same for the product of the non-zero factors. lrho_h = 0, so the log-sum-exp's maximum is >= 0.
+template <typename T>
+TA_HD inline void hero_escape(PathResult<T, 3>& res, const T lw[3], const T lrho[3], const T d[3]) {
+  const T m = tmax(lrho[0], tmax(lrho[1], lrho[2]));
+  const T lse = m + tlog((texp(lrho[0] - m) + texp(lrho[1] - m) + texp(lrho[2] - m)) * T(1.0 / 3.0));
+  res.escaped = true;
+  for (int l = 0; l < 3; ++l) {
+    res.prod_nonzero[l] = texp(lw[l] - lse);
+    res.value[l] = res.zeros[l] == 0 ? res.prod_nonzero[l] : T(0);
+  }
+  for (int k = 0; k < 3; ++k) res.direction[k] = d[k];
+}
+
 template <typename T, int LANES>
 TA_HD inline void escape(PathResult<T, LANES>& res, const T w[LANES], const T d[3]) {
   res.escaped = true;
@@ -175,12 +221,14 @@ TA_HD inline void escape(PathResult<T, LANES>& res, const T w[LANES], const T d[
 // With ADJOINT, `pass1` holds this path's result from a non-adjoint replay and `adj[l]` = grad_out·L_e/spp.
 // With RECORD, the walk writes what its derivative needs into `tape` (for the gradient buffers named in A; see
 // tape.h) and the caller deposits after the walk: one walk instead of two.
-template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool RATIO, bool ADJOINT, bool RECORD = false>
+template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool RATIO, bool ADJOINT, bool RECORD = false,
+          bool HERO = false>
 TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan,
                                              const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T>& A,
                                              Tape<T, LANES>* tape = nullptr) {
   static_assert(!ADJOINT || RATIO, "the adjoint replay always carries ratio weights");
   static_assert(!RECORD || (RATIO && !ADJOINT), "the recording walk carries ratio weights and deposits nothing");
+  static_assert(!HERO || LANES == 3, "a hero walk serves all three channels");
   constexpr bool SDF = BOUNDARY == kSDFBoundary;
   PathResult<T, LANES> res;
   for (int l = 0; l < LANES; ++l) {
@@ -192,16 +240,39 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
   const Medium<T>& M = S.medium;
   const int64_t N = M.voxels();
   const T* vs = M.voxel;
-  const int ch0 = LANES == 1 ? chan : 0;  // the channel whose reference density drives the walk
+  // the channel whose reference density drives the walk
+  const int ch0 = HERO ? hero_channel<T>(S.seed, elem, sample) : (LANES == 1 ? chan : 0);
   const int64_t dims[3] = {M.W, M.H, M.D};
 
-  const PathRng<T> rng{S.seed, uint32_t(elem), uint32_t(sample), uint32_t(LANES == 1 ? chan : 3)};
+  const PathRng<T> rng{S.seed, uint32_t(elem), uint32_t(sample), uint32_t(HERO ? 4 : (LANES == 1 ? chan : 3))};
   uint32_t event = 0;
   T u[4];
   rng.draw(event++, u);
 
   T w[LANES], wref[LANES];  // path weight (with zero factors) and reference-only weight (for roulette)
   for (int l = 0; l < LANES; ++l) w[l] = wref[l] = T(1);
+  // HERO: lrho[k] = log(p_k/p_h) of the path so far, lw[c] = log of the product of f_c/p_h's non-zero factors
+  T lrho[3] = {0, 0, 0}, lw[LANES];
+  for (int l = 0; l < LANES; ++l) lw[l] = T(0);
+  // HERO: the last argument and value of each of the collision's logarithms (slots 0..2: σ̂_k/σ̂_h, 3..5: the
+  // lanes' f_c/p_h factors); a walk through voxels of equal values (a homogeneous ink) takes no logarithm again
+  T memo_arg[6], memo_log[6];
+  for (int i = 0; i < 6; ++i) memo_arg[i] = memo_log[i] = T(0);
+  auto log_memo = [&](int slot, T x) {  // log x for a finite x > 0
+    if (x != memo_arg[slot]) {
+      memo_arg[slot] = x;
+      memo_log[slot] = tlog(x);
+    }
+    return memo_log[slot];
+  };
+  auto log_ratio_memo = [&](int slot, T a, T b) {  // log(a / b), a >= 0, b > 0 (see log_ratio)
+    const T r = a / b;
+    return r > T(0) && r < tinf<T>() ? log_memo(slot, r) : log_ratio(a, b);
+  };
+  auto finish = [&](const T dir[3]) {
+    if constexpr (HERO) hero_escape(res, lw, lrho, dir);
+    else escape(res, w, dir);
+  };
   T p[3], d[3];  // grid-local position (mm) and unit direction
   int64_t idx[3];
   bool inside;
@@ -227,7 +298,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       const T r = fresnel_dielectric(T(1), T(1) / S.ior);
       if (u[2] < r) {
         const T back[3] = {0, 0, -d[2]};
-        escape(res, w, back);
+        finish(back);
         return res;
       }
     }
@@ -244,7 +315,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       // ---- outside the object: fly to the next surface point or escape
       T n[3];
       if (!find_entry<T, BOUNDARY>(S, p, d, idx, n)) {
-        escape(res, w, d);
+        finish(d);
         return res;
       }
       if (!fresh) {
@@ -262,7 +333,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
         if (u_fresnel < fresnel_dielectric(cos_i, eta)) {
           reflect(d, n, cos_i);
           if (!SDF) {  // a convex box: the reflected ray leaves
-            escape(res, w, d);
+            finish(d);
             return res;
           }
           continue;
@@ -298,6 +369,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
     T t = 0, acc = 0;
     T excess[LANES];  // Σ (σ_c − σ̂)·ℓ over the flight, for the transmittance ratio
     for (int l = 0; l < LANES; ++l) excess[l] = T(0);
+    T ref_excess[3] = {0, 0, 0};  // HERO: Σ (σ̂_k − σ̂_h)·ℓ over the flight
     bool collided = false, surface = false;
     int exit_axis = -1;
     int64_t v = 0;
@@ -327,6 +399,9 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
           excess[l] += (M.sigma_t[c * N + v] - M.ref_sigma_t[ch0 * N + v]) * len;
         }
       }
+      if (HERO) {
+        for (int k = 0; k < 3; ++k) ref_excess[k] += (M.ref_sigma_t[k * N + v] - sref) * len;
+      }
       if (RECORD && A.grad_sigma_t && len > T(0)) tape->segment(v, len);
       if (ADJOINT && A.grad_sigma_t && len > T(0)) {
         for (int l = 0; l < LANES; ++l) {
@@ -354,7 +429,10 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       tnext[a] += tdelta[a];
     }
     for (int k = 0; k < 3; ++k) p[k] += d[k] * t;
-    if (RATIO) {
+    if constexpr (HERO) {
+      for (int k = 0; k < 3; ++k) lrho[k] -= ref_excess[k];
+      for (int l = 0; l < LANES; ++l) lw[l] -= RATIO ? excess[l] : ref_excess[l];  // f_c/p_h of the flight
+    } else if (RATIO) {
       for (int l = 0; l < LANES; ++l) {
         const T f = texp(-excess[l]);
         w[l] *= f;
@@ -390,6 +468,11 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       }
       if (!(u[1] < ps * q)) return res;  // absorbed or killed by roulette: contributes 0
       const T inv_psq = T(1) / (ps * q);
+      if constexpr (HERO) {  // the collision density ratios σ̂_k/σ̂_h of the path pdfs
+        const T sh = M.ref_sigma_t[ch0 * N + v];
+        for (int k = 0; k < 3; ++k)
+          if (k != ch0) lrho[k] += log_ratio_memo(k, M.ref_sigma_t[k * N + v], sh);  // −inf for σ̂_k = 0
+      }
       TapeCollision<T, LANES>* rec = nullptr;
       if (RECORD) {
         rec = tape->collision(v);
@@ -404,6 +487,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
         const T fa = M.albedo[c * N + v] * inv_psq;  // albedo factor α_c/(p_s q)
         T fs = T(1);                                 // collision factor σ_c/σ̂
         if (RATIO) fs = M.sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
+        else if (HERO) fs = M.ref_sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
         if (RECORD && rec) {
           rec->fs[l] = fs;
           rec->fa[l] = fa;
@@ -417,7 +501,14 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
             A.grad_albedo[c * N + v] += adj[l] *
                 weight_without(fa, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) * inv_psq;
         }
-        if (RATIO || LANES > 1) {
+        if constexpr (HERO) {
+          if (fs == T(0)) ++res.zeros[l];
+          if (fa == T(0)) ++res.zeros[l];
+          if (fs != T(0) && fa != T(0)) {
+            const T f = fs * fa;  // one logarithm unless the product leaves the normal range
+            lw[l] += (f > T(0) && f < tinf<T>()) ? log_memo(3 + l, f) : tlog(fs) + tlog(fa);
+          }
+        } else if (RATIO || LANES > 1) {
           w[l] *= fs * fa;
           if (fs == T(0)) ++res.zeros[l]; else res.prod_nonzero[l] *= fs;
           if (fa == T(0)) ++res.zeros[l]; else res.prod_nonzero[l] *= fa;
@@ -456,7 +547,7 @@ TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, in
       }
     }
     if (!SDF || !surface) {  // left the box (convex) or, for an SDF, the grid: escaped
-      escape(res, w, d);
+      finish(d);
       return res;
     }
     if (++depth > S.max_depth) {

@@ -18,7 +18,9 @@
 //   grad_output                   the shape of the forward's image
 // Scalars: spp >= 1, seed, max_depth >= 1 and rr_depth >= 0 (interactions: scatterings plus internal
 // reflections; SDF boundaries also count crossings), `lanes` 3 = one walk for all channels (requires an achromatic
-// ref_sigma_t), 1 = one walk per channel.
+// ref_sigma_t unless `hero`), 1 = one walk per channel; `hero` = 1 (with lanes 3): one walk for all channels of a
+// chromatic ref_sigma_t, distances sampled with a hero channel's density and weighted by the balance heuristic
+// over the channels (core/integrator.h, HERO).
 #pragma once
 
 #include <torch/extension.h>
@@ -41,6 +43,7 @@ struct TraceOptions {
   int64_t max_depth = 1;
   int64_t rr_depth = 0;
   int64_t lanes = 1;
+  int64_t hero = 0;        // 1 (with lanes 3): hero-channel spectral MIS walk for a chromatic reference
   int64_t part_rank = 0;   // data-parallel share: this process traces the sensor elements t with
   int64_t part_world = 1;  // t % part_world == part_rank (others: 0 in the image, no gradient)
 };
@@ -82,6 +85,7 @@ struct SceneOptions {
   int64_t max_depth = 1;
   int64_t rr_depth = 0;
   int64_t lanes = 1;
+  int64_t hero = 0;        // 1 (with lanes 3): one hero-channel walk with spectral MIS serves a chromatic reference
   int64_t part_rank = 0;   // data-parallel share: this process traces the sensor elements t with
   int64_t part_world = 1;  // t % part_world == part_rank (others: 0 in the image, no gradient); the random
                            // numbers are keyed by the global t, so the shares of all ranks sum to the full image

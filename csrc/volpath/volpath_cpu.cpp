@@ -82,6 +82,8 @@ void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
   TORCH_CHECK(o.max_depth >= 1, "max_depth: expected >= 1, got ", o.max_depth);
   TORCH_CHECK(o.rr_depth >= 0, "rr_depth: expected >= 0, got ", o.rr_depth);
   TORCH_CHECK(o.lanes == 1 || o.lanes == 3, "lanes: expected 1 or 3, got ", o.lanes);
+  TORCH_CHECK(o.hero == 0 || o.hero == 1, "hero: expected 0 or 1, got ", o.hero);
+  TORCH_CHECK(o.hero == 0 || o.lanes == 3, "hero: the hero-channel walk serves three lanes, got lanes=", o.lanes);
   TORCH_CHECK(o.part_world >= 1 && o.part_rank >= 0 && o.part_rank < o.part_world,
               "partition: expected 0 <= rank < world, got rank ", o.part_rank, " of ", o.part_world);
   // boundary
@@ -161,6 +163,7 @@ SceneOptions slab_scene(const TraceOptions& t) {
   o.max_depth = t.max_depth;
   o.rr_depth = t.rr_depth;
   o.lanes = t.lanes;
+  o.hero = t.hero;
   o.part_rank = t.part_rank;
   o.part_world = t.part_world;
   return o;
@@ -287,7 +290,7 @@ int64_t num_chunks(int64_t n) {
   return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), blocks));
 }
 
-template <typename T, int LANES, int B, bool DIEL, bool RATIO>
+template <typename T, int LANES, int B, bool DIEL, bool RATIO, bool HERO>
 ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
   const int64_t nchunks = num_chunks(share.count);
   const bool constant = S.emitter.kind == core::kConstant;
@@ -300,7 +303,8 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
       T Le[3];
       for (int64_t s = 0; s < S.spp; ++s) {
         if (LANES == 3) {
-          const auto r = core::trace_path<T, 3, B, DIEL, RATIO, false>(S, t, s, 0, nullptr, nullptr, none);
+          const auto r =
+              core::trace_path<T, 3, B, DIEL, RATIO, false, false, HERO>(S, t, s, 0, nullptr, nullptr, none);
           ev += r.scatter_events;
           cut += r.truncated;
           if (constant) {
@@ -366,12 +370,13 @@ struct TapeStore {
 // Replays one path: a single walk that records its events in the tape, then the deposit of ∂/∂θ (only escaped paths
 // that see a non-zero emitter carry any). A path that does not fit the tape is walked once more, depositing as it
 // goes (the two-pass replay). `g` is grad_output of the element (3 channels).
-template <typename T, int LANES, int B, bool DIEL>
+template <typename T, int LANES, int B, bool DIEL, bool HERO>
 inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* g, const Adjoint<T>& A,
                       TapeStore<T, LANES>& store) {
   auto& tape = store.tape;
   tape.clear();
-  const auto r1 = core::trace_path<T, LANES, B, DIEL, true, false, true>(S, t, s, ch, nullptr, nullptr, A, &tape);
+  const auto r1 =
+      core::trace_path<T, LANES, B, DIEL, true, false, true, HERO>(S, t, s, ch, nullptr, nullptr, A, &tape);
   if (!r1.escaped) return r1.scatter_events;
   T Le[3], adj[LANES];
   S.emitter.eval(r1.direction, Le);
@@ -387,11 +392,11 @@ inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* 
     return r1.scatter_events;
   }
   store.grow();
-  const auto r2 = core::trace_path<T, LANES, B, DIEL, true, true>(S, t, s, ch, &r1, adj, A);
+  const auto r2 = core::trace_path<T, LANES, B, DIEL, true, true, false, HERO>(S, t, s, ch, &r1, adj, A);
   return r1.scatter_events + r2.scatter_events;
 }
 
-template <typename T, int LANES, int B, bool DIEL>
+template <typename T, int LANES, int B, bool DIEL, bool HERO>
 int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share) {
   const int64_t nchunks = num_chunks(share.count);
   const int64_t n = 3 * S.medium.voxels();
@@ -421,10 +426,10 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
       if (!any) return;
       for (int64_t s = 0; s < S.spp; ++s) {
         if constexpr (LANES == 3) {
-          ev += replay<T, 3, B, DIEL>(S, t, s, 0, g, A, store);
+          ev += replay<T, 3, B, DIEL, HERO>(S, t, s, 0, g, A, store);
         } else {
           for (int ch = 0; ch < 3; ++ch)
-            if (live[ch]) ev += replay<T, 1, B, DIEL>(S, t, s, ch, g, A, store);
+            if (live[ch]) ev += replay<T, 1, B, DIEL, false>(S, t, s, ch, g, A, store);
         }
       }
     });
@@ -445,19 +450,22 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
   return total;
 }
 
-// Runtime flags → template instance: f(lanes, boundary kind, dielectric).
+// Runtime flags → template instance: f(lanes, hero, boundary kind, dielectric) (hero only with three lanes).
 template <typename F>
-void dispatch_scene(int64_t lanes, int boundary, bool dielectric, const F& f) {
-  auto with_diel = [&](auto lanes_c, auto bound_c) {
-    if (dielectric) f(lanes_c, bound_c, std::true_type{});
-    else f(lanes_c, bound_c, std::false_type{});
+void dispatch_scene(int64_t lanes, bool hero, int boundary, bool dielectric, const F& f) {
+  auto with_diel = [&](auto lanes_c, auto hero_c, auto bound_c) {
+    if (dielectric) f(lanes_c, hero_c, bound_c, std::true_type{});
+    else f(lanes_c, hero_c, bound_c, std::false_type{});
   };
-  auto with_bound = [&](auto lanes_c) {
-    if (boundary == core::kSDFBoundary) with_diel(lanes_c, std::integral_constant<int, core::kSDFBoundary>{});
-    else with_diel(lanes_c, std::integral_constant<int, core::kBoxBoundary>{});
+  auto with_bound = [&](auto lanes_c, auto hero_c) {
+    if (boundary == core::kSDFBoundary)
+      with_diel(lanes_c, hero_c, std::integral_constant<int, core::kSDFBoundary>{});
+    else
+      with_diel(lanes_c, hero_c, std::integral_constant<int, core::kBoxBoundary>{});
   };
-  if (lanes == 3) with_bound(std::integral_constant<int, 3>{});
-  else with_bound(std::integral_constant<int, 1>{});
+  if (lanes == 3 && hero) with_bound(std::integral_constant<int, 3>{}, std::true_type{});
+  else if (lanes == 3) with_bound(std::integral_constant<int, 3>{}, std::false_type{});
+  else with_bound(std::integral_constant<int, 1>{}, std::false_type{});
 }
 
 void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const torch::Tensor& ref_sigma_t,
@@ -473,7 +481,7 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
     check_values<scalar_t>(albedo, "albedo", 0, 1);
     if (!ref_sigma_t.is_same(sigma_t)) check_values<scalar_t>(ref_sigma_t, "sampling_sigma_t", 0, inf);
     if (!ref_albedo.is_same(albedo)) check_values<scalar_t>(ref_albedo, "sampling_albedo", 0, 1);
-    if (opt.lanes == 3) {
+    if (opt.lanes == 3 && !opt.hero) {
       const scalar_t* r = ref_sigma_t.data_ptr<scalar_t>();
       const int64_t n = ref_sigma_t.numel() / 3;
       bool same = true;
@@ -512,13 +520,15 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
     using T = scalar_t;
     SceneStorage store;
     const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
-    dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
+    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
+                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
       constexpr int L = decltype(lanes_c)::value;
+      constexpr bool HERO = decltype(hero_c)::value;
       constexpr int B = decltype(bound_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
       const Share share(S.elements(), opt.part_rank, opt.part_world);
-      counts = ratio ? forward_kernel<T, L, B, DIEL, true>(S, out.data_ptr<T>(), share)
-                     : forward_kernel<T, L, B, DIEL, false>(S, out.data_ptr<T>(), share);
+      counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
+                     : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
     });
   });
   return {out, counts};
@@ -551,11 +561,14 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
-    dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
+    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
+                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
       constexpr int L = decltype(lanes_c)::value;
+      constexpr bool HERO = decltype(hero_c)::value;
       constexpr int B = decltype(bound_c)::value;
       constexpr bool DIEL = decltype(diel_c)::value;
-      events = backward_kernel<T, L, B, DIEL>(S, g, pgs, pga, Share(S.elements(), opt.part_rank, opt.part_world));
+      events = backward_kernel<T, L, B, DIEL, HERO>(S, g, pgs, pga,
+                                                    Share(S.elements(), opt.part_rank, opt.part_world));
     });
   });
   return {gs, ga, events};

@@ -14,7 +14,7 @@ from torch.autograd.function import once_differentiable
 
 from .._ext import _C
 
-__all__ = ["VolumePathTrace", "reference_medium", "sampling_lanes"]
+__all__ = ["VolumePathTrace", "reference_medium", "sampling_lanes", "walk_options"]
 
 _TRUNCATION_WARN = 1e-3  # warn when more than this fraction of paths was cut by max_depth
 
@@ -23,6 +23,17 @@ def sampling_lanes(ref_sigma_t):
     """3 if the sampling density is the same in all channels (one walk serves all three), else 1."""
     r = ref_sigma_t.detach()
     return 3 if torch.equal(r[0], r[1]) and torch.equal(r[0], r[2]) else 1
+
+
+def walk_options(job, ref_sigma_t, seed, grid_shape, dtype):
+    """The C++ ``SceneOptions`` of ``job`` for a walk that samples ``ref_sigma_t``: three lanes in one walk for an
+    achromatic density; for a chromatic one, one walk per channel, or with ``job.chromatic == "hero"`` one
+    hero-channel walk with spectral MIS (``options.hero = 1``)."""
+    lanes = sampling_lanes(ref_sigma_t)
+    hero = lanes == 1 and getattr(job, "chromatic", "per_channel") == "hero"
+    options = job.scene_options(3 if hero else lanes, seed, grid_shape, dtype)
+    options.hero = int(hero)
+    return options
 
 
 def reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo, sigma_t_floor=0.0, albedo_floor=0.0):
@@ -64,7 +75,7 @@ class VolumePathTrace(torch.autograd.Function):
         sigma_t = sigma_t.contiguous()
         albedo = albedo.contiguous()
         ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
-        options = job.scene_options(sampling_lanes(ref_s), job.seed, tuple(sigma_t.shape[1:]), sigma_t.dtype)
+        options = walk_options(job, ref_s, job.seed, tuple(sigma_t.shape[1:]), sigma_t.dtype)
         start = time.perf_counter()
         image, counts = _C.scene_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
         if stats is not None:
@@ -72,6 +83,7 @@ class VolumePathTrace(torch.autograd.Function):
             stats["scatter_events"] = counts.scatter_events
             stats["truncated_paths"] = counts.truncated_paths
             stats["lanes"] = options.lanes
+            stats["hero"] = bool(options.hero)
         walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
         if counts.truncated_paths > _TRUNCATION_WARN * walks:
             warnings.warn(f"{job.name}: {counts.truncated_paths} of {walks} paths were cut at max_depth="
@@ -95,7 +107,7 @@ class VolumePathTrace(torch.autograd.Function):
         ref_s, ref_a, _ = reference_medium(sigma_t, albedo, samp_s, samp_a,
                                            sigma_t_floor=job.sigma_t_floor(sigma_t.shape),
                                            albedo_floor=job.settings.albedo_floor)
-        options = job.scene_options(sampling_lanes(ref_s), job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype)
+        options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype)
         start = time.perf_counter()
         grad_s, grad_a, events = _C.scene_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),
                                                    albedo.detach(), ref_s, ref_a, need_s, need_a, options)

@@ -3,7 +3,7 @@ settings and a seed sequence, ``forward(sigma_t, albedo)`` renders."""
 import torch
 
 from ..render.checks import check_seed, check_spp
-from ..render.scene import Scene, SlabScene
+from ..render.scene import Scene, SlabScene, check_chromatic
 from ..render.volpath import render_scene, render_texels
 
 __all__ = ["VolumeRenderer", "SceneRenderer"]
@@ -18,7 +18,8 @@ class VolumeRenderer(torch.nn.Module):
 
     Args:
         voxel_size: voxel edge in mm.
-        face, g, ior, environment, spp, max_depth, rr_depth, sigma_t_floor, albedo_floor: as in render_texels.
+        face, g, ior, environment, spp, max_depth, rr_depth, sigma_t_floor, albedo_floor, chromatic: as in
+            render_texels.
         seed: first seed of the sequence.
 
     Example:
@@ -29,11 +30,11 @@ class VolumeRenderer(torch.nn.Module):
     """
 
     def __init__(self, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0, max_depth=None,
-                 rr_depth=None, sigma_t_floor=None, albedo_floor=0.05):
+                 rr_depth=None, sigma_t_floor=None, albedo_floor=0.05, chromatic="per_channel"):
         super().__init__()
         self.kwargs = dict(voxel_size=voxel_size, face=face, g=g, ior=ior, environment=environment, spp=spp,
                            max_depth=max_depth, rr_depth=rr_depth, sigma_t_floor=sigma_t_floor,
-                           albedo_floor=albedo_floor)
+                           albedo_floor=albedo_floor, chromatic=chromatic)
         SlabScene.create(seed=seed, **self.kwargs)  # validate now, not at the first forward
         self.next_seed = int(seed)
         self.last_stats = {}
@@ -63,6 +64,7 @@ class SceneRenderer(torch.nn.Module):
         scene: the scene (boundary, sensor, emitter, placement).
         spp: samples per sensor element.
         seed: first seed of the sequence.
+        chromatic: "per_channel" or "hero", the estimator for chromatic media (see render_scene).
 
     Example:
         >>> import torch
@@ -74,13 +76,14 @@ class SceneRenderer(torch.nn.Module):
         torch.Size([4, 4, 3])
     """
 
-    def __init__(self, scene, spp=16, seed=0):
+    def __init__(self, scene, spp=16, seed=0, chromatic="per_channel"):
         super().__init__()
         if not isinstance(scene, Scene):
             raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
         self.scene = scene
         self.spp = check_spp(spp)
         self.next_seed = check_seed("seed", seed)
+        self.chromatic = check_chromatic(chromatic)
         self.last_stats = {}
 
     def forward(self, sigma_t, albedo, seed=None, seed_grad=None, sampling_sigma_t=None, sampling_albedo=None):
@@ -91,7 +94,7 @@ class SceneRenderer(torch.nn.Module):
         self.last_stats = {}
         return render_scene(self.scene, sigma_t, albedo, spp=self.spp, seed=seed, seed_grad=seed_grad,
                             sampling_sigma_t=sampling_sigma_t, sampling_albedo=sampling_albedo,
-                            stats=self.last_stats)
+                            stats=self.last_stats, chromatic=self.chromatic)
 
     def extra_repr(self):
         return (f"sensor={type(self.scene.sensor).__name__}, boundary={type(self.scene.boundary).__name__}, "

@@ -26,7 +26,7 @@ from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, Su
 
 __all__ = [
     "Scene", "SlabScene", "PathSettings", "voxel_edges", "check_grid", "check_medium", "default_max_depth",
-    "default_rr_depth", "derive_seed_grad", "default_sigma_t_floor",
+    "default_rr_depth", "derive_seed_grad", "default_sigma_t_floor", "CHROMATIC", "check_chromatic",
     # the pieces, re-exported for older imports
     "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment", "TexelSensor", "FACES",
 ]
@@ -48,12 +48,14 @@ class PathSettings:
     ``sigma_t_floor`` (mm⁻¹, default 0.5 optical depths along the grid diagonal) and ``albedo_floor`` (default 0.05) bound the default
     sampling density of the gradient replay from below, so σ_t → 0 voxels give no unbounded 1/σ_t terms and
     albedo = 0 voxels still receive their derivative. The forward pass samples the parameters themselves.
+    ``chromatic`` is the estimator for a sampling density that differs between channels (see :data:`CHROMATIC`).
     """
     seed: int = 0
     max_depth: int = default_max_depth
     rr_depth: int = default_rr_depth
     sigma_t_floor: Optional[float] = None
     albedo_floor: float = 0.05
+    chromatic: str = "per_channel"
 
     def __post_init__(self):
         check_seed("seed", self.seed)
@@ -62,6 +64,7 @@ class PathSettings:
         if self.sigma_t_floor is not None:
             object.__setattr__(self, "sigma_t_floor", check_real("sigma_t_floor", self.sigma_t_floor, lo=0.0))
         object.__setattr__(self, "albedo_floor", check_real("albedo_floor", self.albedo_floor, lo=0.0, hi=1.0))
+        object.__setattr__(self, "chromatic", check_chromatic(self.chromatic))
 
 
 @dataclass(frozen=True)
@@ -88,7 +91,7 @@ class SlabScene:
 
     @staticmethod
     def create(voxel_size, *, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0, max_depth=None,
-               rr_depth=None, sigma_t_floor=None, albedo_floor=0.05, seed_grad=None):
+               rr_depth=None, sigma_t_floor=None, albedo_floor=0.05, seed_grad=None, chromatic="per_channel"):
         """The scene of :func:`torch_appearance.render_texels` from its keyword arguments (``ior=None``: index matched)."""
         return SlabScene(
             voxel_size=voxel_size,
@@ -99,7 +102,8 @@ class SlabScene:
             settings=PathSettings(seed=seed,
                                   max_depth=default_max_depth if max_depth is None else max_depth,
                                   rr_depth=default_rr_depth if rr_depth is None else rr_depth,
-                                  sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor),
+                                  sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor,
+                                  chromatic=chromatic),
             gradient_seed=seed_grad)
 
     def sigma_t_floor(self, grid_shape):
@@ -119,6 +123,10 @@ class SlabScene:
         return self.settings.seed
 
     @property
+    def chromatic(self):
+        return self.settings.chromatic
+
+    @property
     def seed_grad(self):
         # by default render_texels replays the forward's own paths (its behaviour since the first wave)
         return self.settings.seed if self.gradient_seed is None else self.gradient_seed
@@ -129,6 +137,23 @@ class SlabScene:
         return _assemble(self.voxel_size, (0.0, 0.0, 0.0), self.phase.g, boundary.to_cpp(grid_shape, dtype),
                          FaceTexels(self.sensor.face).to_cpp(self, grid_shape, dtype), self.emitter.to_cpp(dtype),
                          self.sensor.spp, seed, self.settings, lanes)
+
+
+#: Estimators for a sampling density that differs between the colour channels:
+#: "per_channel" one walk per channel, each sampling distances with its own channel's density;
+#: "hero" one walk serves all three channels: distances are sampled with the density of a hero channel (uniform
+#: per sample) and every channel is weighted by the balance heuristic over the channels' path densities
+#: (hero-wavelength spectral MIS, Wilkie et al. 2014). Both are unbiased; an achromatic density always takes one walk.
+CHROMATIC = ("per_channel", "hero")
+
+
+def check_chromatic(chromatic):
+    """Validate the ``chromatic`` estimator name (see :data:`CHROMATIC`)."""
+    if not isinstance(chromatic, str):
+        raise TypeError(f"chromatic: expected one of {CHROMATIC}, got {type(chromatic).__name__}")
+    if chromatic not in CHROMATIC:
+        raise ValueError(f"chromatic: expected one of {CHROMATIC}, got {chromatic!r}")
+    return chromatic
 
 
 def default_sigma_t_floor(settings, voxel_size, grid_shape):
@@ -268,6 +293,7 @@ class _TraceJob:
     spp: int
     seed: int
     seed_grad: int
+    chromatic: str = "per_channel"
     name: str = "render_scene"
 
     @property

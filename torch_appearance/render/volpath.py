@@ -2,14 +2,15 @@
 ``render_scene`` (any :class:`Scene`: box or SDF boundary, surface texels or cameras, any emitter)."""
 
 from .checks import check_seed, check_spp
-from .scene import Scene, SlabScene, _TraceJob, check_grid, check_medium, derive_seed_grad
+from .scene import Scene, SlabScene, _TraceJob, check_chromatic, check_grid, check_medium, derive_seed_grad
 
 __all__ = ["render_texels", "render_scene"]
 
 
 def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0,
                   max_depth=None, rr_depth=None, sampling_sigma_t=None, sampling_albedo=None,
-                  sigma_t_floor=None, albedo_floor=0.05, stats=None, seed_grad=None, partition=None):
+                  sigma_t_floor=None, albedo_floor=0.05, stats=None, seed_grad=None, partition=None,
+                  chromatic="per_channel"):
     """Render the radiance leaving a voxel slab along the face normal, one texel per voxel column.
 
     The slab is D×H×W voxels of edge ``voxel_size`` mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W,
@@ -45,7 +46,7 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         sigma_t_floor: density floor (mm⁻¹) of the default gradient sampling (default: 0.5 optical depths
             along the grid diagonal, see :meth:`SlabScene.sigma_t_floor`).
         albedo_floor: albedo floor of the default gradient sampling, in [0, 1] (default 0.05).
-        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes`` and, after backward,
+        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes``, ``hero`` and, after backward,
             ``backward_s`` and ``backward_scatter_events``.
         seed_grad: seed of the gradient replay; default None = ``seed`` (the replay retraces the forward's own
             random numbers, with the floored reference). :func:`torch_appearance.render.derive_seed_grad` gives
@@ -53,6 +54,10 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         partition: optional (rank, world): trace only the texels t (flat index) with t % world == rank, the others
             are 0 and get no gradient; random numbers are keyed by the global t, so the images of all ranks sum to
             the full image (see :mod:`torch_appearance.distributed`).
+        chromatic: estimator when the sampling density differs between channels: "per_channel" (one walk per
+            channel) or "hero" (one walk, hero-channel distance sampling with the balance heuristic over the
+            channels; see :data:`torch_appearance.render.scene.CHROMATIC`). Applies to the forward and the
+            gradient replay alike.
 
     Returns:
         (H, W, 3) linear RGB texel radiance for one face, (2, H, W, 3) for "both" (0 = top, 1 = bottom).
@@ -75,7 +80,7 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
     check_medium(sigma_t, albedo)
     scene = SlabScene.create(voxel_size, face=face, g=g, ior=ior, environment=environment, spp=spp, seed=seed,
                              max_depth=max_depth, rr_depth=rr_depth, sigma_t_floor=sigma_t_floor,
-                             albedo_floor=albedo_floor, seed_grad=seed_grad)
+                             albedo_floor=albedo_floor, seed_grad=seed_grad, chromatic=chromatic)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, partitioned(scene, partition), stats)
 
@@ -97,7 +102,7 @@ def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
 
 
 def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, sampling_sigma_t=None,
-                 sampling_albedo=None, stats=None, partition=None):
+                 sampling_albedo=None, stats=None, partition=None, chromatic="per_channel"):
     """Render what ``scene``'s sensor sees of a heterogeneous voxel medium, differentiably.
 
     The medium (per-voxel, per-channel σ_t and albedo, piecewise constant, exact regular tracking) fills the grid
@@ -120,11 +125,13 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
         seed: 64-bit seed of the forward pass; results are reproducible for a seed, independent of threads.
         seed_grad: 64-bit seed of the gradient replay; default :func:`derive_seed_grad` (seed).
         sampling_sigma_t, sampling_albedo: optional detached (3, D, H, W) sampling medium (see render_texels).
-        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes`` and, after backward,
+        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes``, ``hero`` and, after backward,
             ``backward_s`` and ``backward_scatter_events``.
         partition: optional (rank, world): trace only the sensor elements t (flat texel or pixel index) with
             t % world == rank; the others are 0 and get no gradient. The random numbers are keyed by the global t,
             so the images of all ranks sum to the full image (see :mod:`torch_appearance.distributed`).
+        chromatic: "per_channel" or "hero", the estimator for a sampling density that differs between channels
+            (see :func:`render_texels`).
 
     Returns:
         Linear RGB radiance: (rows, cols, 3) for a camera (row 0 is the camera's up side), (N, 3) for surface texels,
@@ -158,7 +165,7 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     seed = check_seed("seed", seed)
     seed_grad = derive_seed_grad(seed) if seed_grad is None else check_seed("seed_grad", seed_grad)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
-    job = _TraceJob(scene, spp, seed, seed_grad)
+    job = _TraceJob(scene, spp, seed, seed_grad, check_chromatic(chromatic))
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, partitioned(job, partition), stats)
 
 
