@@ -23,6 +23,8 @@ from ..render.volpath import render_scene
 
 __all__ = ["ObjectTarget"]
 
+_CHUNK = 1 << 22  # micro-voxels per chunk of the quantised-volume passes (bounds their temporaries to ~100 MB)
+
 
 class ObjectTarget:
     """Texel colours of a voxelised object as the optimisation target.
@@ -163,13 +165,15 @@ class ObjectTarget:
     # ------------------------------------------------------------------------------------------ quantisation
     def quantized_void(self, indices):
         """Mark the printer micro-voxels whose centres lie outside the object (SDF > 0, trilinear) as VOID."""
-        d, h, w = self.shape
         dz, hy, wx = indices.shape
         sdf = self.micro_sdf((dz, hy, wx))
-        centre = (sdf[:-1, :-1, :-1] + sdf[1:, 1:, 1:] + sdf[1:, :-1, :-1] + sdf[:-1, 1:, :-1] + sdf[:-1, :-1, 1:]
-                  + sdf[1:, 1:, :-1] + sdf[1:, :-1, 1:] + sdf[:-1, 1:, 1:]) / 8
         out = indices.copy()
-        out[centre.numpy() > 0] = VOID
+        step = max(1, _CHUNK // ((hy + 1) * (wx + 1)))
+        for z0 in range(0, dz, step):  # chunks of micro layers: temporaries of ~_CHUNK floats, not of the volume
+            s = sdf[z0:min(dz, z0 + step) + 1]
+            centre = (s[:-1, :-1, :-1] + s[1:, 1:, 1:] + s[1:, :-1, :-1] + s[:-1, 1:, :-1] + s[:-1, :-1, 1:]
+                      + s[1:, 1:, :-1] + s[1:, :-1, 1:] + s[:-1, 1:, 1:]) / 8
+            out[z0:z0 + centre.shape[0]][centre.numpy() > 0] = VOID
         return out
 
     def micro_sdf(self, micro_shape):
@@ -183,9 +187,15 @@ class ObjectTarget:
         """σ_t and albedo (3, Dz, Hy, Wx) of a printer-resolution index volume (an ink table lookup; VOID voxels,
         outside the boundary, take ink 0) and the scene pieces at the micro pitch: (sigma_t, albedo, edges, sdf)."""
         dz, hy, wx = indices.shape
-        idx = torch.as_tensor(np.where(indices == VOID, 0, indices).astype(np.int64)).reshape(-1)
-        sigma_t = inks.sigma_t(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
-        albedo = inks.albedo(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
+        # an ink table lookup a chunk of micro layers at a time (no int64 index or transposed copy of the volume)
+        tables = [inks.sigma_t(torch.float32).t().contiguous(), inks.albedo(torch.float32).t().contiguous()]  # (3, N)
+        sigma_t, albedo = (torch.empty(3, dz, hy, wx, dtype=torch.float32) for _ in range(2))
+        step = max(1, _CHUNK // (hy * wx))
+        for z0 in range(0, dz, step):
+            idx = torch.from_numpy(indices[z0:z0 + step].astype(np.int64))
+            idx[idx == VOID] = 0
+            for out, table in zip((sigma_t, albedo), tables):
+                out[:, z0:z0 + step] = table[:, idx]
         edges = micro_grid_pitch(self.shape, self.obj.voxel_size, printer_dpi)
         return sigma_t, albedo, edges, self.micro_sdf((dz, hy, wx))
 

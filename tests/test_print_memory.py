@@ -1,0 +1,69 @@
+"""Memory of the object pipeline's quantised passes (issue 13: Spot at 40 mm within 8 GB): quantisation,
+the void marking and the printer-resolution medium work a chunk of layers at a time and give exactly the
+whole-volume results."""
+import tracemalloc
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from torch_appearance.fabrication import InkSet, quantize_mixture
+from torch_appearance.fabrication.export import VOID
+from torch_appearance.geometry import voxelize
+from torch_appearance.pipelines import object_target
+from torch_appearance.pipelines.object_target import ObjectTarget
+
+
+def test_quantize_holds_no_float64_copy_of_the_volume():
+    """tracemalloc (numpy allocations): the peak stays below the uint8 result plus a small part of one float64
+    copy of the weights; the whole-volume cumulative sum held 2–3 such copies."""
+    rng = np.random.default_rng(0)
+    w = rng.random((5, 40, 48, 48)).astype(np.float32)
+    w /= w.sum(0)
+    voxel = 25.4 / 300
+    tracemalloc.start()
+    try:
+        out = quantize_mixture(w, voxel, seed=3)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    float64_copy = w.size * 8
+    assert peak < out.nbytes + 0.25 * float64_copy, (peak, out.nbytes, float64_copy)
+    # the same draws as the whole-volume computation: thresholds from the float64 cumulative sum of each voxel
+    cdf = np.cumsum(w.astype(np.float64), axis=0)
+    cdf = cdf[:-1] / cdf[-1:]
+    from torch_appearance.fabrication.quantize import micro_grid_shape, source_index
+    dz, hy, wx = micro_grid_shape(w.shape[1:], voxel)
+    u = np.random.Generator(np.random.PCG64(3)).random((dz, hy, wx))
+    iz, iy, ix = source_index(40, dz), source_index(48, hy), source_index(48, wx)
+    thresholds = cdf[:, iz[:, None, None], iy[None, :, None], ix[None, None, :]]
+    assert np.array_equal(out, (u[None] >= thresholds).sum(0).astype(np.uint8))
+
+
+@pytest.fixture(scope="module")
+def sphere_target():
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    mesh.visual.vertex_colors = np.tile([200, 120, 60, 255], (len(mesh.vertices), 1))
+    obj = voxelize(mesh, 0.12, shell_mm=0.4)
+    return ObjectTarget(obj, ior=1.5, g=0.4)
+
+
+def test_chunked_void_and_medium_equal_the_whole_volume(sphere_target, monkeypatch):
+    """quantized_void and quantized_medium in chunks of one micro layer give bitwise the whole-volume
+    computation (the trilinear SDF at the micro-voxel centres; the ink table looked up per voxel)."""
+    target, inks = sphere_target, InkSet.from_names()
+    rng = np.random.default_rng(1)
+    dz, hy, wx = 13, 9, 10
+    indices = rng.integers(0, len(inks), size=(dz, hy, wx)).astype(np.uint8)
+    monkeypatch.setattr(object_target, "_CHUNK", 1)  # one micro layer (at least) per chunk
+    void = target.quantized_void(indices)
+    sdf = target.micro_sdf((dz, hy, wx))
+    centre = (sdf[:-1, :-1, :-1] + sdf[1:, 1:, 1:] + sdf[1:, :-1, :-1] + sdf[:-1, 1:, :-1] + sdf[:-1, :-1, 1:]
+              + sdf[1:, 1:, :-1] + sdf[1:, :-1, 1:] + sdf[:-1, 1:, 1:]) / 8
+    want = np.where(centre.numpy() > 0, VOID, indices)
+    assert np.array_equal(void, want) and 0 < int((void == VOID).sum()) < void.size
+    sigma_t, albedo, _, _ = target.quantized_medium(void, inks, (600, 300, 940))
+    idx = torch.as_tensor(np.where(void == VOID, 0, void).astype(np.int64)).reshape(-1)
+    assert torch.equal(sigma_t, inks.sigma_t(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx))
+    assert torch.equal(albedo, inks.albedo(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx))
