@@ -67,3 +67,67 @@ def test_chunked_void_and_medium_equal_the_whole_volume(sphere_target, monkeypat
     idx = torch.as_tensor(np.where(void == VOID, 0, void).astype(np.int64)).reshape(-1)
     assert torch.equal(sigma_t, inks.sigma_t(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx))
     assert torch.equal(albedo, inks.albedo(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx))
+
+
+def _palette_scene(target):
+    from torch_appearance.render import Scene, SDFBoundary
+    obj = target.obj
+    return Scene(voxel_size=obj.voxel_size, origin=obj.origin, boundary=SDFBoundary(obj.sdf.float(), ior=1.5),
+                 sensor=target.scene.sensor, g=0.4)
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_palette_medium_renders_the_dense_medium_bitwise(sphere_target, grey):
+    """render_scene_indexed (uint8 index + ink table) gives bitwise the image of render_scene on the dense grids
+    table[index], whole and as partition shares; chromatic (one walk per channel) and grey (one walk for all)."""
+    from torch_appearance.render import render_scene, render_scene_indexed
+    target = sphere_target
+    scene = _palette_scene(target)
+    d, h, w = target.shape
+    rng = np.random.default_rng(2)
+    table_s = torch.tensor(rng.uniform(2.0, 20.0, size=(4, 3)), dtype=torch.float32)
+    table_a = torch.tensor(rng.uniform(0.5, 0.99, size=(4, 3)), dtype=torch.float32)
+    if grey:
+        table_s[:] = table_s[:, :1]
+    index = torch.from_numpy(rng.integers(0, 3, size=(d, h, w)).astype(np.uint8))  # entry 3 unused
+    dense_s = table_s[index.long()].permute(3, 0, 1, 2).contiguous()
+    dense_a = table_a[index.long()].permute(3, 0, 1, 2).contiguous()
+    want = render_scene(scene, dense_s, dense_a, spp=2, seed=7)
+    got = render_scene_indexed(scene, index, table_s, table_a, spp=2, seed=7)
+    assert got.dtype == torch.float32 and torch.equal(got, want) and float(want.mean()) > 0.05
+    shares = [render_scene_indexed(scene, index.numpy(), table_s, table_a, spp=2, seed=7, partition=(r, 2))
+              for r in range(2)]
+    assert torch.equal(shares[0] + shares[1], want)
+
+
+def test_palette_medium_refusals(sphere_target):
+    from torch_appearance.render import render_scene_indexed
+    scene = _palette_scene(sphere_target)
+    index = torch.zeros(sphere_target.shape, dtype=torch.uint8)
+    table = torch.full((2, 3), 5.0)
+    with pytest.raises(ValueError, match=r"index: expected entries < P = 2"):
+        render_scene_indexed(scene, index + 2, table, table.clamp(max=1))
+    with pytest.raises(TypeError, match=r"index: expected a \(D, H, W\) uint8"):
+        render_scene_indexed(scene, index.long(), table, table.clamp(max=1))
+    with pytest.raises(ValueError, match=r"sigma_t_table: expected shape \(P, 3\)"):
+        render_scene_indexed(scene, index, table.t(), table.clamp(max=1))
+    with pytest.raises(ValueError, match=r"albedo_table: expected finite values in \[0, 1"):
+        render_scene_indexed(scene, index, table, table)
+    with pytest.raises(ValueError, match=r"sdf: expected shape"):
+        render_scene_indexed(scene, index[:-1], table, table.clamp(max=1))
+
+
+def test_quantized_render_equals_the_dense_medium(sphere_target):
+    """ObjectTarget.render_quantized (palette medium) gives bitwise the image of the dense quantised medium."""
+    from torch_appearance.render import Scene, SDFBoundary, render_scene
+    target, inks = sphere_target, InkSet.from_names()
+    dpi = (600, 300, 940)
+    from torch_appearance.fabrication.quantize import micro_grid_shape
+    shape = micro_grid_shape(target.shape, target.obj.voxel_size, dpi)
+    rng = np.random.default_rng(4)
+    indices = target.quantized_void(rng.integers(0, len(inks), size=shape).astype(np.uint8))
+    got = target.render_quantized(indices, inks, dpi, spp=1, seed=3)
+    sigma_t, albedo, edges, sdf = target.quantized_medium(indices, inks, dpi)
+    scene = Scene(voxel_size=edges, origin=target.obj.origin, boundary=SDFBoundary(sdf, ior=target.ior),
+                  sensor=target.scene.sensor, emitter=target.emitter, g=target.g)
+    assert torch.equal(got, render_scene(scene, sigma_t, albedo, spp=1, seed=3))

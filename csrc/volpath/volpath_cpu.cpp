@@ -91,9 +91,10 @@ void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
               "ior: expected >= 1 (or <= 0 for index matched), got ", b.ior);
   if (b.kind == 1) {
     check_float_tensor(b.sdf, "sdf", {D + 1, H + 1, W + 1});
-    const auto s = b.sdf.to(at::kDouble).contiguous();
+    const auto& s = b.sdf;  // only the six outer faces are converted (not a float64 copy of the whole grid)
     const auto outer = torch::cat({s.select(0, 0).flatten(), s.select(0, D).flatten(), s.select(1, 0).flatten(),
-                                   s.select(1, H).flatten(), s.select(2, 0).flatten(), s.select(2, W).flatten()});
+                                   s.select(1, H).flatten(), s.select(2, 0).flatten(), s.select(2, W).flatten()})
+                           .to(at::kDouble);
     TORCH_CHECK((outer > 0).all().item<bool>(),
                 "sdf: expected > 0 on the grid's outer corners (the object must lie strictly inside the grid)");
   }
@@ -177,21 +178,17 @@ void copy3(const std::vector<double>& v, T out[3]) {
   for (int k = 0; k < 3; ++k) out[k] = T(v[k]);
 }
 
+// The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
 template <typename T>
-Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-                    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store) {
+Scene<T> make_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W, at::ScalarType dtype,
+                    SceneStorage& store) {
   Scene<T> S;
   auto& M = S.medium;
-  M.D = sigma_t.size(1);
-  M.H = sigma_t.size(2);
-  M.W = sigma_t.size(3);
+  M.D = D;
+  M.H = H;
+  M.W = W;
   copy3(o.voxel_size, M.voxel);
   copy3(o.origin, M.origin);
-  M.sigma_t = sigma_t.data_ptr<T>();
-  M.albedo = albedo.data_ptr<T>();
-  M.ref_sigma_t = ref_sigma_t.data_ptr<T>();
-  M.ref_albedo = ref_albedo.data_ptr<T>();
-  const auto dtype = sigma_t.scalar_type();
   if (o.boundary.kind == 1) {
     store.sdf = o.boundary.sdf.to(dtype).contiguous();
     const T* s = store.sdf.data_ptr<T>();
@@ -255,6 +252,17 @@ Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const t
   S.seed = uint64_t(o.seed);
   S.max_depth = o.max_depth;
   S.rr_depth = o.rr_depth;
+  return S;
+}
+
+template <typename T>
+Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store) {
+  Scene<T> S = make_scene<T>(o, sigma_t.size(1), sigma_t.size(2), sigma_t.size(3), sigma_t.scalar_type(), store);
+  S.medium.sigma_t = sigma_t.data_ptr<T>();
+  S.medium.albedo = albedo.data_ptr<T>();
+  S.medium.ref_sigma_t = ref_sigma_t.data_ptr<T>();
+  S.medium.ref_albedo = ref_albedo.data_ptr<T>();
   return S;
 }
 
@@ -483,11 +491,11 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
   });
 }
 
-std::vector<int64_t> image_shape(const SceneOptions& o, const torch::Tensor& sigma_t) {
+std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
   switch (o.sensor.kind) {
     case core::kFaceTexels:
-      if (o.sensor.face == core::kFaceBoth) return {2, sigma_t.size(2), sigma_t.size(3), 3};
-      return {sigma_t.size(2), sigma_t.size(3), 3};
+      if (o.sensor.face == core::kFaceBoth) return {2, H, W, 3};
+      return {H, W, 3};
     case core::kSurfaceTexels: return {o.sensor.points.size(0), 3};
     default: return {o.sensor.rows, o.sensor.cols, 3};
   }
@@ -505,8 +513,8 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
                                                            const torch::Tensor& ref_albedo, bool ratio,
                                                            const SceneOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
-  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t), sigma_t.options())
-                                : torch::empty(image_shape(opt, sigma_t), sigma_t.options());
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options())
+                                : torch::empty(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options());
   ForwardCounts counts;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
@@ -530,7 +538,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const SceneOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
   int64_t expected = 1;
-  for (int64_t s : image_shape(opt, sigma_t)) expected *= s;
+  for (int64_t s : image_shape(opt, sigma_t.size(2), sigma_t.size(3))) expected *= s;
   TORCH_CHECK(grad_output.device().is_cpu() && grad_output.scalar_type() == sigma_t.scalar_type(),
               "grad_output: expected a CPU tensor of dtype ", sigma_t.scalar_type());
   TORCH_CHECK(grad_output.numel() == expected, "grad_output: expected ", expected, " elements, got ",
@@ -559,6 +567,63 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     });
   });
   return {gs, ga, events};
+}
+
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::Tensor& index,
+                                                                   const torch::Tensor& sigma_t_table,
+                                                                   const torch::Tensor& albedo_table,
+                                                                   const SceneOptions& opt) {
+  TORCH_CHECK(index.defined() && index.device().is_cpu() && index.scalar_type() == at::kByte && index.dim() == 3 &&
+                  index.is_contiguous(),
+              "index: expected a contiguous CPU uint8 tensor of shape (D, H, W)");
+  for (const auto* t : {&sigma_t_table, &albedo_table}) {
+    const char* name = t == &sigma_t_table ? "sigma_t_table" : "albedo_table";
+    TORCH_CHECK(t->defined() && t->device().is_cpu(), name, ": expected a CPU tensor");
+    TORCH_CHECK(t->scalar_type() == at::kFloat || t->scalar_type() == at::kDouble, name,
+                ": expected dtype float32 or float64, got ", t->scalar_type());
+    TORCH_CHECK(t->dim() == 2 && t->size(0) == 3 && t->size(1) >= 1 && t->size(1) <= 256 && t->is_contiguous(), name,
+                ": expected a contiguous (3, P) palette with 1 <= P <= 256, got ", t->sizes());
+  }
+  TORCH_CHECK(albedo_table.sizes() == sigma_t_table.sizes() && albedo_table.scalar_type() == sigma_t_table.scalar_type(),
+              "albedo_table: expected the shape and dtype of sigma_t_table");
+  const int64_t D = index.size(0), H = index.size(1), W = index.size(2), P = sigma_t_table.size(1);
+  check_scene(opt, D, H, W);
+  const uint8_t* idx = index.data_ptr<uint8_t>();
+  uint8_t top = 0;
+  for (int64_t i = 0; i < index.numel(); ++i) top = std::max(top, idx[i]);
+  TORCH_CHECK(int64_t(top) < P, "index: expected entries < P = ", P, " (the palette size), got ", int(top));
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, H, W), sigma_t_table.options())
+                                : torch::empty(image_shape(opt, H, W), sigma_t_table.options());
+  ForwardCounts counts;
+  AT_DISPATCH_FLOATING_TYPES(sigma_t_table.scalar_type(), "volpath_forward_indexed", [&] {
+    using T = scalar_t;
+    check_values<T>(sigma_t_table, "sigma_t_table", 0, std::numeric_limits<T>::max());
+    check_values<T>(albedo_table, "albedo_table", 0, 1);
+    if (opt.lanes == 3) {
+      const T* r = sigma_t_table.data_ptr<T>();
+      bool same = true;
+      for (int64_t k = 0; k < P; ++k) same &= (r[k] == r[P + k]) & (r[k] == r[2 * P + k]);
+      TORCH_CHECK(same, "sigma_t_table: lanes=3 (one walk for all channels) needs equal channels");
+    }
+    SceneStorage store;
+    Scene<T> S = make_scene<T>(opt, D, H, W, sigma_t_table.scalar_type(), store);
+    core::Channels<T> st, al;
+    st.index = al.index = idx;
+    st.voxels = al.voxels = D * H * W;
+    st.entries = al.entries = P;
+    st.palette = sigma_t_table.data_ptr<T>();
+    al.palette = albedo_table.data_ptr<T>();
+    S.medium.sigma_t = S.medium.ref_sigma_t = st;
+    S.medium.albedo = S.medium.ref_albedo = al;
+    dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
+      constexpr int L = decltype(lanes_c)::value;
+      constexpr int B = decltype(bound_c)::value;
+      constexpr bool DIEL = decltype(diel_c)::value;
+      counts = forward_kernel<T, L, B, DIEL, false>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
+                                                                                opt.part_world));
+    });
+  });
+  return {out, counts};
 }
 
 std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,

@@ -346,9 +346,10 @@ class MaterialMixture(torch.nn.Module):
                              f"got {tuple(weights.shape)}")
         if isinstance(floor, bool) or not isinstance(floor, numbers.Real) or not 0.0 < floor < 0.5:
             raise ValueError(f"floor: expected a number in (0, 0.5), got {floor!r}")
-        w = weights.detach().to(torch.float64).reshape(self.n_inks, -1)
-        if self.support_index is not None:
-            w = w[:, self.support_index.cpu()]
+        w = weights.detach().reshape(self.n_inks, -1)
+        if self.support_index is not None:  # select first, then float64: no float64 copy of the whole grid
+            w = w[:, self.support_index.to(w.device)]
+        w = w.to(torch.float64)
         w = w.clamp(floor, 1.0 - floor)
         logits = torch.log(w) - torch.log1p(-w) if self.parameterization == "sigmoid" else torch.log(w)
         self.logits.copy_(logits.view(self.logits.shape).to(self.logits.dtype))

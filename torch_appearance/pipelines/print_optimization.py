@@ -715,7 +715,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
     if target.kind == "slab" and target.faces == 2:
         final["bottom"] = _score(final_img[1], target.target[1])
     ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), _npz_bytes(
-        weights=weights.numpy().astype(np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
+        weights=np.asarray(weights.numpy(), np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
     save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
     export_slices(indices, inks, os.path.join(folder, "slices"))
     _plots(folder, rows, baseline, weights, inks, cfg, target, final, remap)
