@@ -131,3 +131,70 @@ def test_quantized_render_equals_the_dense_medium(sphere_target):
     scene = Scene(voxel_size=edges, origin=target.obj.origin, boundary=SDFBoundary(sdf, ior=target.ior),
                   sensor=target.scene.sensor, emitter=target.emitter, g=target.g)
     assert torch.equal(got, render_scene(scene, sigma_t, albedo, spp=1, seed=3))
+
+
+def _floor_case(scene_kind):
+    g = torch.Generator().manual_seed(5)
+    if scene_kind == "slab":
+        shape = (3, 5, 7, 6)
+    else:
+        shape = (3, 8, 8, 8)
+    sigma_t = (0.02 + 12.0 * torch.rand(shape, generator=g) ** 3).requires_grad_()  # many voxels below the floor
+    albedo = (0.01 + 0.98 * torch.rand(shape, generator=g) ** 2).requires_grad_()   # and below 0.05
+    return sigma_t, albedo
+
+
+@pytest.mark.parametrize("kind", ["slab", "scene"])
+def test_replay_floors_on_the_fly_equal_the_floored_copies(kind):
+    """The replay's default sampling medium (σ_t and albedo floored inside the tracer, no copies of the grids)
+    gives bitwise the gradients of the same floors passed as explicit sampling grids (clamp_min copies)."""
+    import torch_appearance as ta
+    from torch_appearance.render import Scene, SDFBoundary, SurfaceTexels
+    from torch_appearance.render.scene import SlabScene, default_sigma_t_floor
+    sigma_t, albedo = _floor_case(kind)
+    if kind == "slab":
+        def render(**k):
+            return ta.render_texels(sigma_t, albedo, voxel_size=0.1, spp=3, seed=4, seed_grad=9, face="both", **k)
+        slab = SlabScene.create(0.1)
+        settings, edges = slab.settings, slab.voxel_size
+    else:
+        k, j, i = torch.meshgrid(*(torch.arange(9.0),) * 3, indexing="ij")
+        sdf = ((i - 4) ** 2 + (j - 4) ** 2 + (k - 4) ** 2).sqrt() * 0.1 - 0.33
+        pts = torch.tensor([[0.0, 0.0, 0.3], [0.3, 0.0, 0.0], [0.0, -0.3, 0.0]], dtype=torch.float64)
+        scene = Scene(voxel_size=0.1, origin=(-0.4, -0.4, -0.4), boundary=SDFBoundary(sdf, ior=1.5),
+                      sensor=SurfaceTexels(pts, pts / 0.3, footprint_mm=0.05), g=0.4)
+
+        def render(**k):
+            return ta.render_scene(scene, sigma_t, albedo, spp=4, seed=4, seed_grad=9, **k)
+        settings, edges = scene.settings, scene.voxel_size
+    floor = default_sigma_t_floor(settings, edges, sigma_t.shape)
+    assert float((sigma_t < floor).float().mean()) > 0.1 and float((albedo < settings.albedo_floor).float().mean()) > 0.1
+    grads = []
+    for explicit in (False, True):
+        extra = dict(sampling_sigma_t=sigma_t.detach().clamp_min(floor),
+                     sampling_albedo=albedo.detach().clamp_min(settings.albedo_floor)) if explicit else {}
+        image = render(**extra)
+        w = torch.linspace(0.5, 1.5, image.numel()).view_as(image)
+        gs, ga = torch.autograd.grad((image * w).sum(), (sigma_t, albedo))
+        grads.append((gs, ga))
+    assert float(grads[0][0].abs().max()) > 0 and float(grads[0][1].abs().max()) > 0
+    assert torch.equal(grads[0][0], grads[1][0]) and torch.equal(grads[0][1], grads[1][1])
+
+
+@pytest.mark.parametrize("parameterization", ["sigmoid", "softmax"])
+def test_unconstrained_mixture_equals_the_constrained_path(parameterization):
+    """Without fixed fractions the mixture skips its masking (and its temporaries): the same weights and
+    gradients, bitwise, as with a constraint whose mask is empty (which takes the masked path)."""
+    from torch_appearance.nn import FixedFraction, MaterialMixture
+    shape = (4, 5, 6)
+    support = torch.rand(shape, generator=torch.Generator().manual_seed(1)) < 0.6
+    outs = []
+    for fixed in ((), (FixedFraction(torch.zeros(shape, dtype=torch.bool), "white", 0.5),)):
+        m = MaterialMixture(InkSet.from_names(), shape, parameterization=parameterization, support=support,
+                            fixed=fixed)
+        with torch.no_grad():
+            m.logits.copy_(torch.randn(m.logits.shape, generator=torch.Generator().manual_seed(2)) * 3)
+        sigma_t, albedo = m()
+        (sigma_t.sum() * 0.01 + (albedo ** 2).sum()).backward()
+        outs.append((m.weights().detach(), m.logits.grad))
+    assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])

@@ -8,18 +8,20 @@
 namespace ta {
 namespace core {
 
-// Per-channel values of the grid, channel-planar (3, D, H, W), read as x[c * N + v] (N voxels): a dense array, or
-// a (D, H, W) byte index into a (3, P) palette (a quantised print: one byte per voxel instead of 3 values).
+// Per-channel values of the grid, channel-planar (3, D, H, W), read as x[c * N + v] (N voxels): a dense array
+// (floored at `floor`, so that the sampling medium of the replay, max(σ_t, floor), needs no copy of the grid), or a
+// (D, H, W) byte index into a (3, P) palette (a quantised print: one byte per voxel instead of 3 values).
 template <typename T>
 struct Channels {
   const T* data = nullptr;         // dense (3, D, H, W)
+  T floor = T(0);                  // dense values read as max(data, floor); 0 leaves the (non-negative) data as is
   const uint8_t* index = nullptr;  // or: palette entry of each voxel
   const T* palette = nullptr;      // (3, P) channel-planar palette
   int64_t voxels = 0, entries = 0;  // N, P
   Channels() = default;
   TA_HD Channels(const T* dense) : data(dense) {}  // NOLINT(google-explicit-constructor): a plain grid pointer
   TA_HD T operator[](int64_t i) const {
-    if (index == nullptr) return data[i];
+    if (index == nullptr) return tmax(data[i], floor);
     const int64_t c = i / voxels;
     return palette[c * entries + index[i - c * voxels]];
   }

@@ -111,10 +111,11 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
                                                            const torch::Tensor& ref_albedo, bool ratio,
                                                            const SceneOptions& opt);
 
+// sigma_t_floor, albedo_floor: the replay samples max(ref, floor) (read on the fly: no floored copy of the grids).
 std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const SceneOptions& opt);
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor);
 
 // Forward only, of a palette medium: index (D, H, W) uint8 entries of the (3, P) tables sigma_t_table and
 // albedo_table (a quantised print: one byte per voxel instead of 2 × 3 values). Equals scene_forward_cpu of the

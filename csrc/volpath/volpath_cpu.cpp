@@ -469,7 +469,7 @@ void dispatch_scene(int64_t lanes, int boundary, bool dielectric, const F& f) {
 }
 
 void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const torch::Tensor& ref_sigma_t,
-               const torch::Tensor& ref_albedo, const SceneOptions& opt) {
+               const torch::Tensor& ref_albedo, const SceneOptions& opt, double sigma_t_floor = 0) {
   check_grid(sigma_t, "sigma_t", sigma_t);
   check_grid(albedo, "albedo", sigma_t);
   check_grid(ref_sigma_t, "sampling_sigma_t", sigma_t);
@@ -484,8 +484,12 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
     if (opt.lanes == 3) {
       const scalar_t* r = ref_sigma_t.data_ptr<scalar_t>();
       const int64_t n = ref_sigma_t.numel() / 3;
+      const auto f = scalar_t(sigma_t_floor);
       bool same = true;
-      for (int64_t i = 0; i < n; ++i) same &= (r[i] == r[n + i]) & (r[i] == r[2 * n + i]);
+      for (int64_t i = 0; i < n; ++i) {
+        const scalar_t a = core::tmax(r[i], f);
+        same &= (a == core::tmax(r[n + i], f)) & (a == core::tmax(r[2 * n + i], f));
+      }
       TORCH_CHECK(same, "sampling_sigma_t: lanes=3 (one walk for all channels) needs equal channels");
     }
   });
@@ -535,8 +539,11 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
 std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const SceneOptions& opt) {
-  check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor) {
+  TORCH_CHECK(std::isfinite(sigma_t_floor) && sigma_t_floor >= 0, "sigma_t_floor: expected a finite value >= 0, got ",
+              sigma_t_floor);
+  TORCH_CHECK(albedo_floor >= 0 && albedo_floor <= 1, "albedo_floor: expected a value in [0, 1], got ", albedo_floor);
+  check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt, sigma_t_floor);
   int64_t expected = 1;
   for (int64_t s : image_shape(opt, sigma_t.size(2), sigma_t.size(3))) expected *= s;
   TORCH_CHECK(grad_output.device().is_cpu() && grad_output.scalar_type() == sigma_t.scalar_type(),
@@ -556,7 +563,9 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     for (int64_t i = 0; i < go.numel(); ++i) finite &= std::isfinite(g[i]);
     TORCH_CHECK(finite, "grad_output: expected finite values");
     SceneStorage store;
-    const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    S.medium.ref_sigma_t.floor = T(sigma_t_floor);  // the sampling medium max(ref, floor), read without a copy
+    S.medium.ref_albedo.floor = T(albedo_floor);
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
     dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
@@ -640,7 +649,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
     const TraceOptions& opt) {
   return scene_backward_cpu(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo, need_sigma_t, need_albedo,
-                            slab_scene(opt));
+                            slab_scene(opt), 0.0, 0.0);
 }
 
 }  // namespace volpath

@@ -376,19 +376,21 @@ class MaterialMixture(torch.nn.Module):
     def free_weights(self):
         """Weights of the optimised voxels: (N, D, H, W), or (N, S) with a support."""
         logits = self.logits
-        free = ~self.fixed_mask
+        constrained = len(self.fixed) > 0  # without fixed fractions the where()s below are identities: skipped,
+        free = ~self.fixed_mask if constrained else None  # with their (N, ...) temporaries (same numbers)
         if self.parameterization == "sigmoid":
             u = torch.sigmoid(logits)
         else:
             # exp(l − max over the free inks): stable, and the largest free term is 1, so Σ_free u >= 1.
-            masked = logits.detach().masked_fill(self.fixed_mask, -math.inf)
+            masked = logits.detach().masked_fill(self.fixed_mask, -math.inf) if constrained else logits.detach()
             shift = masked.amax(0, keepdim=True)
             shift = torch.where(torch.isfinite(shift), shift, torch.zeros_like(shift))
             u = torch.exp(logits - shift)
-        u_free = torch.where(free, u, torch.zeros_like(u))
+        u_free = torch.where(free, u, torch.zeros_like(u)) if constrained else u
         total_free = u_free.sum(0, keepdim=True)
         safe = torch.where(total_free > 0, total_free, torch.ones_like(total_free))
-        return torch.where(free, u_free * (self.free_share / safe), self.fixed_value)
+        weights = u_free * (self.free_share / safe)
+        return torch.where(free, weights, self.fixed_value) if constrained else weights
 
     def forward(self):
         """Optical properties of the current mixture by eq. 9.

@@ -705,9 +705,9 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
     ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
 
     # ---- results: continuous, quantised, exports
-    weights = model.weights().detach()
-    optimized = evaluate()
+    optimized = evaluate()  # before the (N, D, H, W) weights exist: the two are not held together
     _save_texels(target, folder, "optimized", optimized)
+    weights = model.weights().detach()
     indices, final_img = _quantize_and_render(target, weights, inks, cfg, cfg.eval_spp, eval_seed, quant_seed,
                                               fixed)
     final = {"image": final_img.numpy(), **score(final_img)}
