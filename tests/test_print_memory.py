@@ -198,3 +198,19 @@ def test_unconstrained_mixture_equals_the_constrained_path(parameterization):
         (sigma_t.sum() * 0.01 + (albedo ** 2).sum()).backward()
         outs.append((m.weights().detach(), m.logits.grad))
     assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
+
+
+@pytest.mark.parametrize("grey", [True, False])
+def test_naive_extrusion_matches_in_blocks(grey, monkeypatch):
+    """The naive extrusion's table matching in blocks of texels picks the same mixtures as over all texels."""
+    from torch_appearance.pipelines import print_optimization as po
+    rng = np.random.default_rng(6)
+    target = rng.uniform(0.05, 0.9, size=(5, 7, 3)).astype(np.float32)
+    if grey:
+        target[:] = target[..., :1]
+    cfg = po.PrintConfig(thickness_mm=0.3, dpi=150.0, table_steps=2, inks=["cyan", "black", "white"])
+    inks = InkSet.from_names(cfg.inks)
+    whole, _ = po.naive_extrusion(target, inks, cfg, table_spp=2)
+    monkeypatch.setattr(po, "_MATCH_BLOCK", 4)
+    blocks, _ = po.naive_extrusion(target, inks, cfg, table_spp=2)
+    assert torch.equal(whole, blocks) and torch.unique(whole.flatten(1), dim=1).shape[1] > 2  # several mixtures
