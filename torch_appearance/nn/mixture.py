@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..fabrication.inks import Ink, InkSet
+from ..render.checks import all_finite
 
 __all__ = ["MaterialMixture", "FixedFraction", "mix_inks"]
 
@@ -58,7 +59,7 @@ def _check_weights(name, weights, n_inks):
         raise ValueError(f"{name}: expected shape (N={n_inks}, D, H, W) with D, H, W >= 1, "
                          f"got {tuple(weights.shape)}")
     w = weights.detach()
-    if not bool(torch.isfinite(w).all()):
+    if not all_finite(w):  # in chunks: no |w| and bool copies of the volume
         raise ValueError(f"{name}: expected finite values, got {int((~torch.isfinite(w)).sum())} NaN/Inf entries")
     if bool((w < 0).any()):
         raise ValueError(f"{name}: expected weights >= 0, got minimum {float(w.min()):g}")
