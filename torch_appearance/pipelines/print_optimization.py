@@ -688,6 +688,9 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         optimizer.zero_grad(set_to_none=True)
         surrogate.backward()
         optimizer.step()
+        # the full (3, D, H, W) grids of this iteration (1.4 GB for Spot at 40 mm) are not kept alive through the
+        # evaluations, the quantisation and the next iteration's mixture
+        del sigma_t, albedo, image, surrogate
         row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
         if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
             row.update(score(evaluate()))
