@@ -18,9 +18,11 @@ struct Channels {
   const uint8_t* index = nullptr;  // or: palette entry of each voxel
   const T* palette = nullptr;      // (3, P) channel-planar palette
   int64_t voxels = 0, entries = 0;  // N, P
+  bool plain = true;               // dense and not floored: read as is (the common, fast path)
   Channels() = default;
   TA_HD Channels(const T* dense) : data(dense) {}  // NOLINT(google-explicit-constructor): a plain grid pointer
   TA_HD T operator[](int64_t i) const {
+    if (plain) return data[i];
     if (index == nullptr) return tmax(data[i], floor);
     const int64_t c = i / voxels;
     return palette[c * entries + index[i - c * voxels]];

@@ -571,6 +571,8 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
     S.medium.ref_sigma_t.floor = T(sigma_t_floor);  // the sampling medium max(ref, floor), read without a copy
     S.medium.ref_albedo.floor = T(albedo_floor);
+    S.medium.ref_sigma_t.plain = !(sigma_t_floor > 0);
+    S.medium.ref_albedo.plain = !(albedo_floor > 0);
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
     dispatch_scene(opt.lanes, opt.boundary.kind, opt.boundary.ior > 0, [&](auto lanes_c, auto bound_c, auto diel_c) {
@@ -625,6 +627,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
     st.index = al.index = idx;
     st.voxels = al.voxels = D * H * W;
     st.entries = al.entries = P;
+    st.plain = al.plain = false;
     st.palette = sigma_t_table.data_ptr<T>();
     al.palette = albedo_table.data_ptr<T>();
     S.medium.sigma_t = S.medium.ref_sigma_t = st;
