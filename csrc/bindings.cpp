@@ -104,8 +104,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "General-scene radiance ((H, W, 3) image, (N, 3) texels, ...) and ForwardCounts.");
   m.def("scene_backward", &ta::volpath::scene_backward_cpu, py::arg("grad_output"), py::arg("sigma_t"),
         py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
-        py::arg("need_albedo"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
+        py::arg("need_albedo"), py::arg("options"), py::arg("sigma_t_floor") = 0.0, py::arg("albedo_floor") = 0.0,
+        py::call_guard<py::gil_scoped_release>(),
         "General-scene path replay: (grad_sigma_t, grad_albedo, scatter events).");
+  m.def("scene_forward_indexed", &ta::volpath::scene_forward_indexed_cpu, py::arg("index"),
+        py::arg("sigma_t_table"), py::arg("albedo_table"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
+        "General-scene radiance of a palette medium (uint8 index volume, (3, P) tables) and ForwardCounts.");
   m.def("_set_tape_capacity", &ta::volpath::set_tape_capacity, py::arg("segments"),
         "Test-only: initial per-thread tape capacity of the replay (0: every path replays twice); returns the old.");
 }

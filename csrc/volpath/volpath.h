@@ -115,10 +115,19 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
                                                            const torch::Tensor& ref_albedo, bool ratio,
                                                            const SceneOptions& opt);
 
+// sigma_t_floor, albedo_floor: the replay samples max(ref, floor) (read on the fly: no floored copy of the grids).
 std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const SceneOptions& opt);
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor);
+
+// Forward only, of a palette medium: index (D, H, W) uint8 entries of the (3, P) tables sigma_t_table and
+// albedo_table (a quantised print: one byte per voxel instead of 2 × 3 values). Equals scene_forward_cpu of the
+// dense grids table[:, index] (paths sampled from the medium itself, no ratio weights).
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::Tensor& index,
+                                                                   const torch::Tensor& sigma_t_table,
+                                                                   const torch::Tensor& albedo_table,
+                                                                   const SceneOptions& opt);
 
 // Test-only: the initial per-thread tape capacity of the replay (segments; collisions get half). 0 makes every path
 // take the two-pass fallback, so tests can compare both replays. Returns the previous value.

@@ -67,7 +67,12 @@ void check_float_tensor(const torch::Tensor& x, const char* name, std::vector<in
   for (size_t i = 0; i < shape.size(); ++i)
     TORCH_CHECK(shape[i] < 0 || x.size(i) == shape[i], name, ": expected size ", shape[i], " in dimension ", i,
                 ", got ", x.sizes());
-  TORCH_CHECK(torch::isfinite(x).all().item<bool>(), name, ": expected finite values");
+  // in chunks: torch::isfinite of a float tensor allocates |x| and a bool tensor of its size (a float32 copy of a
+  // 364 M-corner printer-resolution SDF is 1.5 GB)
+  const auto flat = x.reshape(-1);
+  for (int64_t a = 0; a < flat.numel(); a += int64_t(1) << 22)
+    TORCH_CHECK(torch::isfinite(flat.slice(0, a, std::min(flat.numel(), a + (int64_t(1) << 22)))).all().item<bool>(),
+                name, ": expected finite values");
 }
 
 void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
@@ -93,9 +98,10 @@ void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
               "ior: expected >= 1 (or <= 0 for index matched), got ", b.ior);
   if (b.kind == 1) {
     check_float_tensor(b.sdf, "sdf", {D + 1, H + 1, W + 1});
-    const auto s = b.sdf.to(at::kDouble).contiguous();
+    const auto& s = b.sdf;  // only the six outer faces are converted (not a float64 copy of the whole grid)
     const auto outer = torch::cat({s.select(0, 0).flatten(), s.select(0, D).flatten(), s.select(1, 0).flatten(),
-                                   s.select(1, H).flatten(), s.select(2, 0).flatten(), s.select(2, W).flatten()});
+                                   s.select(1, H).flatten(), s.select(2, 0).flatten(), s.select(2, W).flatten()})
+                           .to(at::kDouble);
     TORCH_CHECK((outer > 0).all().item<bool>(),
                 "sdf: expected > 0 on the grid's outer corners (the object must lie strictly inside the grid)");
   }
@@ -180,21 +186,17 @@ void copy3(const std::vector<double>& v, T out[3]) {
   for (int k = 0; k < 3; ++k) out[k] = T(v[k]);
 }
 
+// The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
 template <typename T>
-Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-                    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store) {
+Scene<T> make_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W, at::ScalarType dtype,
+                    SceneStorage& store) {
   Scene<T> S;
   auto& M = S.medium;
-  M.D = sigma_t.size(1);
-  M.H = sigma_t.size(2);
-  M.W = sigma_t.size(3);
+  M.D = D;
+  M.H = H;
+  M.W = W;
   copy3(o.voxel_size, M.voxel);
   copy3(o.origin, M.origin);
-  M.sigma_t = sigma_t.data_ptr<T>();
-  M.albedo = albedo.data_ptr<T>();
-  M.ref_sigma_t = ref_sigma_t.data_ptr<T>();
-  M.ref_albedo = ref_albedo.data_ptr<T>();
-  const auto dtype = sigma_t.scalar_type();
   if (o.boundary.kind == 1) {
     store.sdf = o.boundary.sdf.to(dtype).contiguous();
     const T* s = store.sdf.data_ptr<T>();
@@ -258,6 +260,17 @@ Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const t
   S.seed = uint64_t(o.seed);
   S.max_depth = o.max_depth;
   S.rr_depth = o.rr_depth;
+  return S;
+}
+
+template <typename T>
+Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store) {
+  Scene<T> S = make_scene<T>(o, sigma_t.size(1), sigma_t.size(2), sigma_t.size(3), sigma_t.scalar_type(), store);
+  S.medium.sigma_t = sigma_t.data_ptr<T>();
+  S.medium.albedo = albedo.data_ptr<T>();
+  S.medium.ref_sigma_t = ref_sigma_t.data_ptr<T>();
+  S.medium.ref_albedo = ref_albedo.data_ptr<T>();
   return S;
 }
 
@@ -469,7 +482,7 @@ void dispatch_scene(int64_t lanes, bool hero, int boundary, bool dielectric, con
 }
 
 void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const torch::Tensor& ref_sigma_t,
-               const torch::Tensor& ref_albedo, const SceneOptions& opt) {
+               const torch::Tensor& ref_albedo, const SceneOptions& opt, double sigma_t_floor = 0) {
   check_grid(sigma_t, "sigma_t", sigma_t);
   check_grid(albedo, "albedo", sigma_t);
   check_grid(ref_sigma_t, "sampling_sigma_t", sigma_t);
@@ -484,18 +497,22 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
     if (opt.lanes == 3 && !opt.hero) {
       const scalar_t* r = ref_sigma_t.data_ptr<scalar_t>();
       const int64_t n = ref_sigma_t.numel() / 3;
+      const auto f = scalar_t(sigma_t_floor);
       bool same = true;
-      for (int64_t i = 0; i < n; ++i) same &= (r[i] == r[n + i]) & (r[i] == r[2 * n + i]);
+      for (int64_t i = 0; i < n; ++i) {
+        const scalar_t a = core::tmax(r[i], f);
+        same &= (a == core::tmax(r[n + i], f)) & (a == core::tmax(r[2 * n + i], f));
+      }
       TORCH_CHECK(same, "sampling_sigma_t: lanes=3 (one walk for all channels) needs equal channels");
     }
   });
 }
 
-std::vector<int64_t> image_shape(const SceneOptions& o, const torch::Tensor& sigma_t) {
+std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
   switch (o.sensor.kind) {
     case core::kFaceTexels:
-      if (o.sensor.face == core::kFaceBoth) return {2, sigma_t.size(2), sigma_t.size(3), 3};
-      return {sigma_t.size(2), sigma_t.size(3), 3};
+      if (o.sensor.face == core::kFaceBoth) return {2, H, W, 3};
+      return {H, W, 3};
     case core::kSurfaceTexels: return {o.sensor.points.size(0), 3};
     default: return {o.sensor.rows, o.sensor.cols, 3};
   }
@@ -513,8 +530,8 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
                                                            const torch::Tensor& ref_albedo, bool ratio,
                                                            const SceneOptions& opt) {
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
-  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t), sigma_t.options())
-                                : torch::empty(image_shape(opt, sigma_t), sigma_t.options());
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options())
+                                : torch::empty(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options());
   ForwardCounts counts;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
@@ -537,10 +554,13 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
 std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const SceneOptions& opt) {
-  check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor) {
+  TORCH_CHECK(std::isfinite(sigma_t_floor) && sigma_t_floor >= 0, "sigma_t_floor: expected a finite value >= 0, got ",
+              sigma_t_floor);
+  TORCH_CHECK(albedo_floor >= 0 && albedo_floor <= 1, "albedo_floor: expected a value in [0, 1], got ", albedo_floor);
+  check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt, sigma_t_floor);
   int64_t expected = 1;
-  for (int64_t s : image_shape(opt, sigma_t)) expected *= s;
+  for (int64_t s : image_shape(opt, sigma_t.size(2), sigma_t.size(3))) expected *= s;
   TORCH_CHECK(grad_output.device().is_cpu() && grad_output.scalar_type() == sigma_t.scalar_type(),
               "grad_output: expected a CPU tensor of dtype ", sigma_t.scalar_type());
   TORCH_CHECK(grad_output.numel() == expected, "grad_output: expected ", expected, " elements, got ",
@@ -558,7 +578,11 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     for (int64_t i = 0; i < go.numel(); ++i) finite &= std::isfinite(g[i]);
     TORCH_CHECK(finite, "grad_output: expected finite values");
     SceneStorage store;
-    const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    S.medium.ref_sigma_t.floor = T(sigma_t_floor);  // the sampling medium max(ref, floor), read without a copy
+    S.medium.ref_albedo.floor = T(albedo_floor);
+    S.medium.ref_sigma_t.plain = !(sigma_t_floor > 0);
+    S.medium.ref_albedo.plain = !(albedo_floor > 0);
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
     dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
@@ -572,6 +596,66 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     });
   });
   return {gs, ga, events};
+}
+
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::Tensor& index,
+                                                                   const torch::Tensor& sigma_t_table,
+                                                                   const torch::Tensor& albedo_table,
+                                                                   const SceneOptions& opt) {
+  TORCH_CHECK(index.defined() && index.device().is_cpu() && index.scalar_type() == at::kByte && index.dim() == 3 &&
+                  index.is_contiguous(),
+              "index: expected a contiguous CPU uint8 tensor of shape (D, H, W)");
+  for (const auto* t : {&sigma_t_table, &albedo_table}) {
+    const char* name = t == &sigma_t_table ? "sigma_t_table" : "albedo_table";
+    TORCH_CHECK(t->defined() && t->device().is_cpu(), name, ": expected a CPU tensor");
+    TORCH_CHECK(t->scalar_type() == at::kFloat || t->scalar_type() == at::kDouble, name,
+                ": expected dtype float32 or float64, got ", t->scalar_type());
+    TORCH_CHECK(t->dim() == 2 && t->size(0) == 3 && t->size(1) >= 1 && t->size(1) <= 256 && t->is_contiguous(), name,
+                ": expected a contiguous (3, P) palette with 1 <= P <= 256, got ", t->sizes());
+  }
+  TORCH_CHECK(albedo_table.sizes() == sigma_t_table.sizes() && albedo_table.scalar_type() == sigma_t_table.scalar_type(),
+              "albedo_table: expected the shape and dtype of sigma_t_table");
+  const int64_t D = index.size(0), H = index.size(1), W = index.size(2), P = sigma_t_table.size(1);
+  check_scene(opt, D, H, W);
+  const uint8_t* idx = index.data_ptr<uint8_t>();
+  uint8_t top = 0;
+  for (int64_t i = 0; i < index.numel(); ++i) top = std::max(top, idx[i]);
+  TORCH_CHECK(int64_t(top) < P, "index: expected entries < P = ", P, " (the palette size), got ", int(top));
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, H, W), sigma_t_table.options())
+                                : torch::empty(image_shape(opt, H, W), sigma_t_table.options());
+  ForwardCounts counts;
+  AT_DISPATCH_FLOATING_TYPES(sigma_t_table.scalar_type(), "volpath_forward_indexed", [&] {
+    using T = scalar_t;
+    check_values<T>(sigma_t_table, "sigma_t_table", 0, std::numeric_limits<T>::max());
+    check_values<T>(albedo_table, "albedo_table", 0, 1);
+    if (opt.lanes == 3) {
+      const T* r = sigma_t_table.data_ptr<T>();
+      bool same = true;
+      for (int64_t k = 0; k < P; ++k) same &= (r[k] == r[P + k]) & (r[k] == r[2 * P + k]);
+      TORCH_CHECK(same, "sigma_t_table: lanes=3 (one walk for all channels) needs equal channels");
+    }
+    SceneStorage store;
+    Scene<T> S = make_scene<T>(opt, D, H, W, sigma_t_table.scalar_type(), store);
+    core::Channels<T> st, al;
+    st.index = al.index = idx;
+    st.voxels = al.voxels = D * H * W;
+    st.entries = al.entries = P;
+    st.plain = al.plain = false;
+    st.palette = sigma_t_table.data_ptr<T>();
+    al.palette = albedo_table.data_ptr<T>();
+    S.medium.sigma_t = S.medium.ref_sigma_t = st;
+    S.medium.albedo = S.medium.ref_albedo = al;
+    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
+                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
+      constexpr int L = decltype(lanes_c)::value;
+      constexpr bool HERO = decltype(hero_c)::value;
+      constexpr int B = decltype(bound_c)::value;
+      constexpr bool DIEL = decltype(diel_c)::value;
+      counts = forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
+                                                                                      opt.part_world));
+    });
+  });
+  return {out, counts};
 }
 
 std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
@@ -588,7 +672,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
     const TraceOptions& opt) {
   return scene_backward_cpu(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo, need_sigma_t, need_albedo,
-                            slab_scene(opt));
+                            slab_scene(opt), 0.0, 0.0);
 }
 
 }  // namespace volpath

@@ -25,11 +25,12 @@ def sampling_lanes(ref_sigma_t):
     return 3 if torch.equal(r[0], r[1]) and torch.equal(r[0], r[2]) else 1
 
 
-def walk_options(job, ref_sigma_t, seed, grid_shape, dtype):
+def walk_options(job, ref_sigma_t, seed, grid_shape, dtype, lanes=None):
     """The C++ ``SceneOptions`` of ``job`` for a walk that samples ``ref_sigma_t``: three lanes in one walk for an
     achromatic density; for a chromatic one, one walk per channel, or with ``job.chromatic == "hero"`` one
-    hero-channel walk with spectral MIS (``options.hero = 1``)."""
-    lanes = sampling_lanes(ref_sigma_t)
+    hero-channel walk with spectral MIS (``options.hero = 1``). ``lanes``: :func:`sampling_lanes` of the sampling
+    density when the caller knows it (e.g. of a grid the tracer floors as it reads)."""
+    lanes = sampling_lanes(ref_sigma_t) if lanes is None else lanes
     hero = lanes == 1 and getattr(job, "chromatic", "per_channel") == "hero"
     options = job.scene_options(3 if hero else lanes, seed, grid_shape, dtype)
     options.hero = int(hero)
@@ -104,13 +105,16 @@ class VolumePathTrace(torch.autograd.Function):
             return None, None, None, None, None, None
         sigma_t, albedo, samp_s, samp_a = ctx.saved_tensors
         job = ctx.job
-        ref_s, ref_a, _ = reference_medium(sigma_t, albedo, samp_s, samp_a,
-                                           sigma_t_floor=job.sigma_t_floor(sigma_t.shape),
-                                           albedo_floor=job.settings.albedo_floor)
-        options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype)
+        # the sampling medium: explicit references as given, else the parameters floored on the fly in C++
+        # (max(σ_t, floor), max(α, floor): the same numbers as clamp_min, without two copies of the grids)
+        ref_s, floor_s = _floored(sigma_t, samp_s, job.sigma_t_floor(sigma_t.shape))
+        ref_a, floor_a = _floored(albedo, samp_a, job.settings.albedo_floor)
+        options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
+                               lanes=_floored_lanes(ref_s, floor_s))
         start = time.perf_counter()
         grad_s, grad_a, events = _C.scene_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),
-                                                   albedo.detach(), ref_s, ref_a, need_s, need_a, options)
+                                                   albedo.detach(), ref_s, ref_a, need_s, need_a, options,
+                                                   floor_s, floor_a)
         if ctx.stats is not None:
             ctx.stats["backward_s"] = time.perf_counter() - start
             ctx.stats["backward_scatter_events"] = int(events)
@@ -120,3 +124,22 @@ class VolumePathTrace(torch.autograd.Function):
                 None,  # sampling_albedo
                 None,  # job
                 None)  # stats
+
+
+def _floored(x, sampling, floor):
+    """(reference grid, floor the tracer applies to it): an explicit sampling grid as is, else ``x`` with ``floor``."""
+    if sampling is not None:
+        return sampling.detach().contiguous(), 0.0
+    return x.detach().contiguous(), float(floor) if floor > 0 else 0.0
+
+
+def _floored_lanes(ref_sigma_t, floor, chunk=1 << 22):
+    """:func:`sampling_lanes` of ``ref_sigma_t.clamp_min(floor)``, a chunk of voxels at a time (no copy of the grid)."""
+    if floor == 0:
+        return sampling_lanes(ref_sigma_t)
+    r = ref_sigma_t.detach().reshape(3, -1)
+    for start in range(0, r.shape[1], chunk):
+        c = r[:, start:start + chunk].clamp_min(floor)
+        if not (torch.equal(c[0], c[1]) and torch.equal(c[0], c[2])):
+            return 1
+    return 3

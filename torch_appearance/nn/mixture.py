@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..fabrication.inks import Ink, InkSet
+from ..render.checks import all_finite
 
 __all__ = ["MaterialMixture", "FixedFraction", "mix_inks"]
 
@@ -58,7 +59,7 @@ def _check_weights(name, weights, n_inks):
         raise ValueError(f"{name}: expected shape (N={n_inks}, D, H, W) with D, H, W >= 1, "
                          f"got {tuple(weights.shape)}")
     w = weights.detach()
-    if not bool(torch.isfinite(w).all()):
+    if not all_finite(w):  # in chunks: no |w| and bool copies of the volume
         raise ValueError(f"{name}: expected finite values, got {int((~torch.isfinite(w)).sum())} NaN/Inf entries")
     if bool((w < 0).any()):
         raise ValueError(f"{name}: expected weights >= 0, got minimum {float(w.min()):g}")
@@ -346,9 +347,10 @@ class MaterialMixture(torch.nn.Module):
                              f"got {tuple(weights.shape)}")
         if isinstance(floor, bool) or not isinstance(floor, numbers.Real) or not 0.0 < floor < 0.5:
             raise ValueError(f"floor: expected a number in (0, 0.5), got {floor!r}")
-        w = weights.detach().to(torch.float64).reshape(self.n_inks, -1)
-        if self.support_index is not None:
-            w = w[:, self.support_index.cpu()]
+        w = weights.detach().reshape(self.n_inks, -1)
+        if self.support_index is not None:  # select first, then float64: no float64 copy of the whole grid
+            w = w[:, self.support_index.to(w.device)]
+        w = w.to(torch.float64)
         w = w.clamp(floor, 1.0 - floor)
         logits = torch.log(w) - torch.log1p(-w) if self.parameterization == "sigmoid" else torch.log(w)
         self.logits.copy_(logits.view(self.logits.shape).to(self.logits.dtype))
@@ -375,19 +377,21 @@ class MaterialMixture(torch.nn.Module):
     def free_weights(self):
         """Weights of the optimised voxels: (N, D, H, W), or (N, S) with a support."""
         logits = self.logits
-        free = ~self.fixed_mask
+        constrained = len(self.fixed) > 0  # without fixed fractions the where()s below are identities: skipped,
+        free = ~self.fixed_mask if constrained else None  # with their (N, ...) temporaries (same numbers)
         if self.parameterization == "sigmoid":
             u = torch.sigmoid(logits)
         else:
             # exp(l − max over the free inks): stable, and the largest free term is 1, so Σ_free u >= 1.
-            masked = logits.detach().masked_fill(self.fixed_mask, -math.inf)
+            masked = logits.detach().masked_fill(self.fixed_mask, -math.inf) if constrained else logits.detach()
             shift = masked.amax(0, keepdim=True)
             shift = torch.where(torch.isfinite(shift), shift, torch.zeros_like(shift))
             u = torch.exp(logits - shift)
-        u_free = torch.where(free, u, torch.zeros_like(u))
+        u_free = torch.where(free, u, torch.zeros_like(u)) if constrained else u
         total_free = u_free.sum(0, keepdim=True)
         safe = torch.where(total_free > 0, total_free, torch.ones_like(total_free))
-        return torch.where(free, u_free * (self.free_share / safe), self.fixed_value)
+        weights = u_free * (self.free_share / safe)
+        return torch.where(free, weights, self.fixed_value) if constrained else weights
 
     def forward(self):
         """Optical properties of the current mixture by eq. 9.

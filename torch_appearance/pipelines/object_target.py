@@ -19,9 +19,11 @@ from .. import io as ta_io
 from ..fabrication.export import VOID
 from ..fabrication.quantize import micro_grid_pitch
 from ..render import ConstantEnvironment, Scene, SDFBoundary, SurfaceTexels
-from ..render.volpath import render_scene
+from ..render.volpath import render_scene, render_scene_indexed
 
 __all__ = ["ObjectTarget", "fill_void_at_surface"]
+
+_CHUNK = 1 << 22  # micro-voxels per chunk of the quantised-volume passes (bounds their temporaries to ~100 MB)
 
 
 class ObjectTarget:
@@ -119,9 +121,11 @@ class ObjectTarget:
         texel (by voxel centre), other voxels ``core`` (N_inks,)."""
         d, h, w = self.shape
         shell = self.support.numpy()
-        out = np.broadcast_to(np.asarray(core, np.float64)[:, None], (len(core), d * h * w)).copy()
-        out[:, np.flatnonzero(shell)] = np.asarray(texel_weights, np.float64)[:, self.nearest_texel()]
-        return torch.tensor(out.reshape(len(core), d, h, w), dtype=torch.float32)
+        # float32 from the start (the float64 values rounded once, as before): 4 bytes per ink and voxel, not 12
+        out = np.empty((len(core), d * h * w), np.float32)
+        out[:] = np.asarray(core, np.float64).astype(np.float32)[:, None]
+        out[:, np.flatnonzero(shell)] = np.asarray(texel_weights, np.float64).astype(np.float32)[:, self.nearest_texel()]
+        return torch.from_numpy(out.reshape(len(core), d, h, w))
 
     # ------------------------------------------------------------------------------------------ masks
     def voxel_depth(self):
@@ -163,13 +167,15 @@ class ObjectTarget:
     # ------------------------------------------------------------------------------------------ quantisation
     def quantized_void(self, indices):
         """Mark the printer micro-voxels whose centres lie outside the object (SDF > 0, trilinear) as VOID."""
-        d, h, w = self.shape
         dz, hy, wx = indices.shape
         sdf = self.micro_sdf((dz, hy, wx))
-        centre = (sdf[:-1, :-1, :-1] + sdf[1:, 1:, 1:] + sdf[1:, :-1, :-1] + sdf[:-1, 1:, :-1] + sdf[:-1, :-1, 1:]
-                  + sdf[1:, 1:, :-1] + sdf[1:, :-1, 1:] + sdf[:-1, 1:, 1:]) / 8
         out = indices.copy()
-        out[centre.numpy() > 0] = VOID
+        step = max(1, _CHUNK // ((hy + 1) * (wx + 1)))
+        for z0 in range(0, dz, step):  # chunks of micro layers: temporaries of ~_CHUNK floats, not of the volume
+            s = sdf[z0:min(dz, z0 + step) + 1]
+            centre = (s[:-1, :-1, :-1] + s[1:, 1:, 1:] + s[1:, :-1, :-1] + s[:-1, 1:, :-1] + s[:-1, :-1, 1:]
+                      + s[1:, 1:, :-1] + s[1:, :-1, 1:] + s[:-1, 1:, 1:]) / 8
+            out[z0:z0 + centre.shape[0]][centre.numpy() > 0] = VOID
         return out
 
     def micro_sdf(self, micro_shape):
@@ -191,20 +197,37 @@ class ObjectTarget:
         dz, hy, wx = indices.shape
         sdf = self.micro_sdf((dz, hy, wx))
         filled = fill_void_at_surface(indices, sdf)
-        idx = torch.as_tensor(np.where(filled == VOID, 0, filled).astype(np.int64)).reshape(-1)
-        sigma_t = inks.sigma_t(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
-        albedo = inks.albedo(torch.float32).index_select(0, idx).t().reshape(3, dz, hy, wx).contiguous()
+        # an ink table lookup a chunk of micro layers at a time (no int64 index or transposed copy of the volume)
+        tables = [inks.sigma_t(torch.float32).t().contiguous(), inks.albedo(torch.float32).t().contiguous()]  # (3, N)
+        sigma_t, albedo = (torch.empty(3, dz, hy, wx, dtype=torch.float32) for _ in range(2))
+        step = max(1, _CHUNK // (hy * wx))
+        for z0 in range(0, dz, step):
+            idx = torch.from_numpy(filled[z0:z0 + step].astype(np.int64))
+            idx[idx == VOID] = 0
+            for out, table in zip((sigma_t, albedo), tables):
+                out[:, z0:z0 + step] = table[:, idx]
         edges = micro_grid_pitch(self.shape, self.obj.voxel_size, printer_dpi)
         return sigma_t, albedo, edges, sdf
 
     def render_quantized(self, indices, inks, printer_dpi, spp, seed, sensor=None):
         """(N, 3) texel colours (or the image of ``sensor``, e.g. a camera) of a printer-resolution index volume
-        (VOID outside), rendered with the object's boundary resampled to the micro grid."""
-        sigma_t, albedo, edges, sdf = self.quantized_medium(indices, inks, printer_dpi)
+        (VOID outside), rendered with the object's boundary resampled to the micro grid. The tracer reads the
+        uint8 volume and the ink table (:func:`~torch_appearance.render.render_scene_indexed`; VOID voxels cut by
+        the surface take a printed neighbour's ink, those wholly outside ink 0, as in :meth:`quantized_medium`): the same image as the dense σ_t/albedo of :meth:`quantized_medium` without
+        their 24 bytes per micro voxel."""
+        dz, hy, wx = indices.shape
+        sdf = self.micro_sdf((dz, hy, wx))
+        index = fill_void_at_surface(indices, sdf)  # see quantized_medium
+        step = max(1, _CHUNK // (hy * wx))
+        for z0 in range(0, dz, step):
+            chunk = index[z0:z0 + step]
+            chunk[chunk == VOID] = 0
+        edges = micro_grid_pitch(self.shape, self.obj.voxel_size, printer_dpi)
         scene = Scene(voxel_size=edges, origin=self.obj.origin, boundary=SDFBoundary(sdf, ior=self.ior),
                       sensor=self.scene.sensor if sensor is None else sensor, emitter=self.emitter, g=self.g)
         with torch.no_grad():
-            return distributed.render(render_scene, scene, sigma_t, albedo, spp=spp, seed=seed)
+            return distributed.render(render_scene_indexed, scene, torch.from_numpy(index),
+                                      inks.sigma_t(torch.float32), inks.albedo(torch.float32), spp=spp, seed=seed)
 
     def camera_views(self, n=3, size=256, fov_y_deg=30.0, elevation_deg=20.0):
         """``n`` perspective cameras around the object (azimuths 360°/n apart, looking at its centre, z up), far
@@ -275,7 +298,7 @@ class ObjectTarget:
     def ink_usage_by_depth(self, weights, bins=None):
         """Mean ink fractions (N, B) of the shell voxels binned by depth below the surface; bin centres (B,) mm."""
         depth = self.obj.depth.numpy()[self.support.numpy()]
-        w = weights.detach().double().reshape(weights.shape[0], -1)[:, self.support.reshape(-1)].numpy()
+        w = weights.detach().reshape(weights.shape[0], -1)[:, self.support.reshape(-1)].double().numpy()
         h = self.obj.voxel_size
         edges = np.arange(0.0, depth.max() + h, h) if bins is None else bins
         which = np.clip(np.digitize(depth, edges) - 1, 0, len(edges) - 2)
@@ -312,26 +335,29 @@ def fill_void_at_surface(indices, corner_sdf, passes=4):
         raise ValueError(f"corner_sdf: expected shape {tuple(n + 1 for n in indices.shape)} for indices of shape "
                          f"{indices.shape}, got {tuple(sdf.shape)}")
     out = indices.copy()
-    void = out == VOID
-    if not void.any() or void.all():
-        return out
     dz, hy, wx = indices.shape
     corners = [sdf[a:a + dz, b:b + hy, c:c + wx].numpy() for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-    lowest = functools.reduce(np.minimum, corners)
-    todo = np.argwhere(void & (lowest <= 0))                                     # (M, 3) straddling VOID voxels
-    del lowest
+    step = max(1, _CHUNK // (hy * wx))
+    found = []                                         # straddling VOID voxels, a chunk of micro layers at a time
+    for z0 in range(0, dz, step):
+        lowest = functools.reduce(np.minimum, [c[z0:z0 + step] for c in corners])
+        hits = np.argwhere((out[z0:z0 + step] == VOID) & (lowest <= 0))
+        hits[:, 0] += z0
+        found.append(hits)
+    todo = np.concatenate(found) if found else np.zeros((0, 3), np.int64)         # (M, 3)
     if len(todo) == 0:
         return out
 
     def centre_sdf(p):                                                           # (M, 3) voxel indices -> (M,)
         return sum(c[tuple(p.T)].astype(np.float64) for c in corners) / 8
+
     shape = np.array(indices.shape)
     steps = np.array([(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)])
     for _ in range(passes):
         best = np.full(len(todo), np.inf)
         ink = np.full(len(todo), VOID, dtype=out.dtype)
-        for step in steps:
-            nb = todo + step
+        for offset in steps:
+            nb = todo + offset
             inside = ((nb >= 0) & (nb < shape)).all(1)
             nbi = np.where(inside[:, None], nb, 0)
             cand = out[tuple(nbi.T)]
@@ -343,6 +369,7 @@ def fill_void_at_surface(indices, corner_sdf, passes=4):
         todo = todo[~done]
         if len(todo) == 0:
             return out
-    printed = out[out != VOID]
-    out[tuple(todo.T)] = np.bincount(printed.astype(np.int64)).argmax()
+    counts = np.bincount(out.reshape(-1), minlength=256)[:VOID]              # printed inks (VOID = 255 excluded)
+    if counts.any():
+        out[tuple(todo.T)] = counts.argmax()
     return out

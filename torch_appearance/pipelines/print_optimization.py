@@ -42,6 +42,7 @@ __all__ = ["PrintConfig", "optimize_print", "build_target", "SlabTarget", "slab_
 
 LOG_FIELDS = ["iteration", "wall_s", "loss", "E1", "E2", "E3", "dE00_mean", "dE00_p95", "dE76_mean", "seed"]
 CHECKPOINT = "checkpoint.pt"
+_MATCH_BLOCK = 1 << 14  # texels per block of the naive extrusion's table matching
 
 
 @dataclass
@@ -291,11 +292,14 @@ def naive_extrusion(target_rgb, inks, cfg, table_spp=64):
     colours = homogeneous_table(inks, mixtures, cfg, spp=table_spp)
     table_lab = rgb_to_lab(torch.as_tensor(colours)).numpy()
     flat = lab.reshape(-1, 3)
-    if kind.startswith("black"):
-        d = np.abs(flat[:, None, 0] - table_lab[None, :, 0])
-    else:
-        d = np.linalg.norm(flat[:, None, :] - table_lab[None, :, :], axis=2)
-    choice = d.argmin(1)
+    choice = np.empty(len(flat), np.int64)
+    for a in range(0, len(flat), _MATCH_BLOCK):  # texels × table distances a block of texels at a time (Spot at
+        f = flat[a:a + _MATCH_BLOCK]            # 40 mm: 375 k texels × 210 mixtures × 3 is 1.9 GB per temporary)
+        if kind.startswith("black"):
+            d = np.abs(f[:, None, 0] - table_lab[None, :, 0])
+        else:
+            d = np.linalg.norm(f[:, None, :] - table_lab[None, :, :], axis=2)
+        choice[a:a + len(f)] = d.argmin(1)
     h, w = target_rgb.shape[:2]
     weights = mixtures[choice].reshape(h, w, -1).transpose(2, 0, 1)
     weights = np.broadcast_to(weights[:, None], (len(names), cfg.depth, h, w))
@@ -684,6 +688,9 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
         optimizer.zero_grad(set_to_none=True)
         surrogate.backward()
         optimizer.step()
+        # the full (3, D, H, W) grids of this iteration (1.4 GB for Spot at 40 mm) are not kept alive through the
+        # evaluations, the quantisation and the next iteration's mixture
+        del sigma_t, albedo, image, surrogate
         row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
         if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
             row.update(score(evaluate()))
@@ -705,9 +712,9 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
     ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
 
     # ---- results: continuous, quantised, exports
-    weights = model.weights().detach()
-    optimized = evaluate()
+    optimized = evaluate()  # before the (N, D, H, W) weights exist: the two are not held together
     _save_texels(target, folder, "optimized", optimized)
+    weights = model.weights().detach()
     indices, final_img = _quantize_and_render(target, weights, inks, cfg, cfg.eval_spp, eval_seed, quant_seed,
                                               fixed)
     final = {"image": final_img.numpy(), **score(final_img)}
@@ -715,7 +722,7 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
     if target.kind == "slab" and target.faces == 2:
         final["bottom"] = _score(final_img[1], target.target[1])
     ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), _npz_bytes(
-        weights=weights.numpy().astype(np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
+        weights=np.asarray(weights.numpy(), np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
     save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
     export_slices(indices, inks, os.path.join(folder, "slices"))
     _plots(folder, rows, baseline, weights, inks, cfg, target, final, remap)

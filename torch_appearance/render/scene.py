@@ -19,7 +19,7 @@ from typing import Optional, Tuple
 import torch
 
 from .boundary import BoxBoundary, Dielectric, IndexMatched, SDFBoundary
-from .checks import check_int, check_real, check_seed, check_vector3
+from .checks import all_finite, check_int, check_real, check_seed, check_vector3
 from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
 from .phase import HenyeyGreenstein
 from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels, TexelSensor
@@ -343,7 +343,7 @@ def check_grid(name, x, *, like=None, lo=0.0, hi=math.inf):
         if x.dtype != like.dtype:
             raise ValueError(f"{name}: expected dtype {like.dtype} (that of sigma_t), got {x.dtype}")
     xd = x.detach()
-    if not bool(torch.isfinite(xd).all()):
+    if not all_finite(xd):  # in chunks: no |x| and bool copies of the grid
         raise ValueError(f"{name}: expected finite values, got {int((~torch.isfinite(xd)).sum())} NaN/Inf entries")
     lo_v, hi_v = float(xd.min()), float(xd.max())
     if lo_v < lo or hi_v > hi:

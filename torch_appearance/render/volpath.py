@@ -1,10 +1,14 @@
 """The tracer's entry points, differentiable by path replay: ``render_texels`` (a voxel slab's face texels) and
 ``render_scene`` (any :class:`Scene`: box or SDF boundary, surface texels or cameras, any emitter)."""
 
+import math
+
+import torch
+
 from .checks import check_seed, check_spp
 from .scene import Scene, SlabScene, _TraceJob, check_chromatic, check_grid, check_medium, derive_seed_grad
 
-__all__ = ["render_texels", "render_scene"]
+__all__ = ["render_texels", "render_scene", "render_scene_indexed"]
 
 
 def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0,
@@ -195,3 +199,67 @@ def partitioned(job, partition):
     if not (world >= 1 and 0 <= rank < world):
         raise ValueError(f"partition: expected 0 <= rank < world, got rank {rank} of world {world}")
     return job if world == 1 else _Partitioned(job, rank, world)
+
+
+def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, seed=0, partition=None):
+    """Render a palette medium (a quantised print): forward only, not differentiable.
+
+    Voxel v holds palette entry ``index[v]``, i.e. the medium is ``sigma_t = sigma_t_table[index].permute(3, 0, 1,
+    2)`` (and the same for albedo), but the tracer reads the one-byte index and the table instead of two dense
+    (3, D, H, W) grids: 1 byte per voxel instead of 24 (float32), e.g. 0.36 GB instead of 8.7 GB for the 364 M
+    printer voxels of a 40 mm object at 600 × 300 × 940 DPI. The image equals :func:`render_scene` of those dense
+    grids with the same ``spp``, ``seed`` and ``partition``, bitwise.
+
+    Args:
+        scene: a :class:`torch_appearance.render.Scene` for a (D, H, W) grid.
+        index: (D, H, W) uint8 tensor or ndarray of palette entries (< P).
+        sigma_t_table: (P, 3) extinction coefficient of each entry in mm⁻¹, >= 0, float32 or float64.
+        albedo_table: (P, 3) single-scattering albedo in [0, 1], the same dtype. The image has this dtype.
+        spp, seed, partition: as for :func:`render_scene`.
+
+    Returns:
+        The image, shaped as :func:`render_scene`'s.
+    """
+    import numpy as np
+
+    from .._ext import _C
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
+    if isinstance(index, np.ndarray):
+        index = torch.from_numpy(np.ascontiguousarray(index))
+    if not isinstance(index, torch.Tensor) or index.dtype != torch.uint8 or index.dim() != 3 or min(index.shape) < 1:
+        raise TypeError(f"index: expected a (D, H, W) uint8 tensor or ndarray, got "
+                        f"{getattr(index, 'dtype', type(index).__name__)} {tuple(getattr(index, 'shape', ()))}")
+    tables = []
+    for name, table, hi in (("sigma_t_table", sigma_t_table, math.inf), ("albedo_table", albedo_table, 1.0)):
+        if not isinstance(table, torch.Tensor) or table.dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"{name}: expected a float32 or float64 tensor of shape (P, 3), got "
+                            f"{getattr(table, 'dtype', type(table).__name__)}")
+        if table.dim() != 2 or table.shape[1] != 3 or not 1 <= table.shape[0] <= 256:
+            raise ValueError(f"{name}: expected shape (P, 3) with 1 <= P <= 256, got {tuple(table.shape)}")
+        t = table.detach().cpu()
+        if not bool((torch.isfinite(t) & (t >= 0) & (t <= hi)).all()):
+            raise ValueError(f"{name}: expected finite values in [0, {hi}], got {t.tolist()}")
+        tables.append(t)
+    if tables[0].shape != tables[1].shape or tables[0].dtype != tables[1].dtype:
+        raise ValueError(f"albedo_table: expected the shape and dtype of sigma_t_table "
+                         f"{tuple(tables[0].shape)} {tables[0].dtype}, got {tuple(tables[1].shape)} {tables[1].dtype}")
+    index = index.contiguous()
+    top = int(index.max())
+    if top >= tables[0].shape[0]:
+        raise ValueError(f"index: expected entries < P = {tables[0].shape[0]} (the tables' rows), got {top}")
+    scene.check_grid_shape(tuple(index.shape))
+    spp = check_spp(spp)
+    seed = check_seed("seed", seed)
+    # one walk for all channels when every entry in use is grey in σ_t (what sampling_lanes sees on dense grids)
+    used = torch.zeros(tables[0].shape[0], dtype=torch.bool)
+    flat = index.view(-1)
+    for start in range(0, flat.numel(), 1 << 24):
+        used |= torch.bincount(flat[start:start + (1 << 24)], minlength=len(used)).bool()
+    st = tables[0][used]
+    lanes = 3 if torch.equal(st[:, 0], st[:, 1]) and torch.equal(st[:, 0], st[:, 2]) else 1
+    job = partitioned(_TraceJob(scene, spp, seed, seed), partition)
+    options = job.scene_options(lanes, seed, tuple(index.shape), tables[0].dtype)
+    image, _ = _C.scene_forward_indexed(index, tables[0].t().contiguous(), tables[1].t().contiguous(), options)
+    return image
