@@ -134,6 +134,16 @@ def test_autograd_through_reparam_render_matches_finite_differences_for_every_ge
         fd, fd_se = parameter_gradient_fd(m, spec, H, W, PX, spp=16384, seed=99)
         assert float(fd.abs().max()) > 0.2, spec               # the boundaries do move through the pixels
         assert_z(mean[k] - fd, (se[k] ** 2 + fd_se ** 2).sqrt(), 0.0, what=f"reparameterised dI/d{spec}")
+    # without the control variate the divergence term is not cancelled by the baseline: this checks div V
+    runs = torch.stack([parameter_gradient(m, GEOMETRY, H, W, PX, spp=64, seed=100 + s, baseline=False)
+                        for s in range(32)])
+    mean, se = runs.mean(0), runs.std(0) / 32 ** 0.5
+    for k, spec in enumerate(GEOMETRY):
+        fd, fd_se = parameter_gradient_fd(m, spec, H, W, PX, spp=16384, seed=99)
+        err = (se[k] ** 2 + fd_se ** 2).sqrt()
+        assert_z(mean[k] - fd, err, 0.0, what=f"dI/d{spec}, no baseline")
+        assert_z((mean[k] - fd).mean(dim=(0, 1)), (err ** 2).sum(dim=(0, 1)).sqrt() / (H * W), 0.0,
+                 what=f"image mean of dI/d{spec}, no baseline")
 
 
 def test_naive_autograd_misses_the_boundary_term_of_every_geometry_parameter():
