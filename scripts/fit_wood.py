@@ -54,6 +54,18 @@ def parse_args(argv=None):
                    help="stage-3 downsampling factors of the photo, coarse first (default: %(default)s)")
     p.add_argument("--photometric-spp", type=int, default=d.photometric_spp,
                    help="stage-3 filter samples per pixel and step (default: %(default)s)")
+    p.add_argument("--photometric-weight", type=float, default=d.photometric_weight,
+                   help="stage-3 weight of the CIELAB term, mean ΔE²/100 (default: %(default)s)")
+    p.add_argument("--photometric-anchor", type=float, default=d.photometric_anchor,
+                   help="stage-3 weight of the stage-1 phase loss kept as an anchor, 0 = colour only "
+                        "(default: %(default)s)")
+    p.add_argument("--photometric-lr", type=float, default=d.photometric_lr,
+                   help="stage-3 geometry step, ring widths per step (default: %(default)s)")
+    p.add_argument("--photometric-color-lr", type=float, default=d.photometric_color_lr,
+                   help="stage-3 colour-map step, 0 = frozen (default: %(default)s)")
+    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=d.photometric_estimator,
+                   help="stage-3 gradients: reparameterised (boundary term included) or naive fixed-sample autograd, "
+                        "for comparison (default: %(default)s)")
     p.add_argument("--max-size", type=int, default=None, help="downscale photos larger than this many pixels")
     p.add_argument("--device", default=d.device, help="torch device for the fit: cpu or cuda (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -74,7 +86,10 @@ def main(argv=None):
                         device=args.device, max_size=args.max_size, seed=args.seed, preview=not args.no_preview,
                         coarse_to_fine=args.coarse_to_fine, color_bins=args.color_bins,
                         photometric=args.photometric, photometric_epochs=args.photometric_epochs,
-                        photometric_levels=tuple(args.photometric_levels), photometric_spp=args.photometric_spp)
+                        photometric_levels=tuple(args.photometric_levels), photometric_spp=args.photometric_spp,
+                        photometric_weight=args.photometric_weight, photometric_anchor=args.photometric_anchor,
+                        photometric_lr=args.photometric_lr, photometric_color_lr=args.photometric_color_lr,
+                        photometric_estimator=args.photometric_estimator)
     try:
         fit_wood(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

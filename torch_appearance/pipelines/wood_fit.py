@@ -574,11 +574,16 @@ def _figures(folder, rows, rgb, fit_rgb, err):
 
     s1 = [r for r in rows if r["stage"] == 1]
     s2 = [r for r in rows if r["stage"] == 2]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    s3 = [r for r in rows if r["stage"] == 3]
+    fig, ax = plt.subplots(1, 3 if s3 else 2, figsize=(15 if s3 else 10, 3.6))
     ax[0].plot([r["wall_s"] for r in s1], [r["phase_loss"] for r in s1])
     ax[0].set(xlabel="wall-clock time [s]", ylabel="cyclic phase loss [rad²]", yscale="log", title="stage 1: geometry")
     ax[1].plot([r["wall_s"] for r in s2], [r["color_loss"] for r in s2], color="C1")
     ax[1].set(xlabel="wall-clock time [s]", ylabel="colour MSE (linear RGB)", yscale="log", title="stage 2: colour map")
+    if s3:
+        ax[2].plot([r["wall_s"] for r in s3], [r["photometric_loss"] for r in s3], color="C2")
+        ax[2].set(xlabel="wall-clock time [s]", ylabel="weighted ΔE²/100 + phase anchor + prior", yscale="log",
+                  title="stage 3: photometric (reparameterised)")
     fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "convergence.png"), dpi=110)
 
