@@ -147,7 +147,7 @@ def evaluate_seed(seed, args, log):
            "ring_scale_true_mm": prm["ring_scale"], "ring_width_true_mm": width_true}
     cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=ps, epochs=args.epochs,
                         color_epochs=args.color_epochs, preview=False, seed=0, photometric=args.photometric,
-                        photometric_weight=args.photometric_weight)
+                        photometric_weight=args.photometric_weight, photometric_estimator=args.photometric_estimator)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -274,6 +274,9 @@ def main(argv=None):
                    help="run the fit's stage 3 (photometric, reparameterised render) and report before/after")
     p.add_argument("--photometric-weight", type=float, default=_DEFAULTS.photometric_weight,
                    help="weight of the CIELAB term in stage 3 (default: %(default)s)")
+    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
+                   help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
+                        "default: %(default)s)")
     p.add_argument("--out", default="results/wood_synthetic", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:
