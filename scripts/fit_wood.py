@@ -4,9 +4,10 @@
 Curved Gabor filtering finds the growth rings and their phase, the board's location in the log is estimated from
 the traced rings, then a WoodModel (tree axis, ring scale, radial distortion, colour map) is fitted with a cyclic
 phase loss (stage 1) and a colour loss (stage 2); ``--photometric`` adds stage 3, geometry and colour map
-refined against the photo's colours through the reparameterised render. Writes a run folder: fit.png, phase.npy, fit_phase.npy,
-params.json, log.csv, convergence.png, orientation/magnitude/phase images, ring_overlay.png, board_estimate.json,
-model.json + model.pt, fit_vs_photo.png, phase_error.png, cube_preview.png, summary.json.
+refined against the photo's colours through the reparameterised render. Writes a run folder: fit.png, phase.npy,
+fit_phase.npy, params.json, log.csv, convergence.png, orientation/magnitude/phase images, ring_overlay.png,
+board_estimate.json, model.json + model.pt, fit_vs_photo.png, phase_error.png, cube_preview.png, summary.json (with
+--photometric also fit_before_photometric.png and model_before_photometric.json + .pt).
 
 Examples:
     python scripts/fit_wood.py board.png --pixel-size-mm 0.1 --out results/board

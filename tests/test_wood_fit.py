@@ -123,10 +123,11 @@ def _banded_board():
 
 @pytest.mark.parametrize("estimator", ["reparam", "naive"])
 def test_photometric_stage_recovers_a_shifted_board_only_with_boundary_gradients(estimator):
-    """Stage 3 alone (no phase anchor, no prior, colour map frozen) against a Gaussian-filtered photo of a known board, started with
-    the board shifted by 0.25 mm (~0.3 ring widths): through the reparameterised render the rings move back onto the
-    truth (phase RMS vs the true 2π·frac(G) from > 1 rad to < 0.3 rad); naive autograd of the same samples misses
-    the boundary term, which is all the geometry gradient there is on this banded board, so it does not move."""
+    """Stage 3 alone (no phase anchor, no prior, colour map frozen) against a Gaussian-filtered photo of a known
+    board, started with the board shifted by 0.25 mm (~0.3 ring widths): through the reparameterised render the
+    rings move back onto the truth (phase RMS vs the true 2π·frac(G) from > 1 rad to < 0.3 rad); naive autograd of
+    the same samples misses the boundary term, which is all the geometry gradient there is on this banded board, so
+    it does not move."""
     import copy
 
     from torch_appearance.nn.wood_reparam import pixel_samples, reparam_render

@@ -96,7 +96,8 @@ class WoodFitConfig:
             raise ValueError(f"photometric_levels: expected a non-empty sequence of ints >= 1 (downsampling factors, "
                              f"coarse first), got {levels!r}")
         if self.photometric_estimator not in ("reparam", "naive"):
-            raise ValueError(f"photometric_estimator: expected 'reparam' or 'naive', got {self.photometric_estimator!r}")
+            raise ValueError(f"photometric_estimator: expected 'reparam' or 'naive', "
+                             f"got {self.photometric_estimator!r}")
         for name in ("photometric_weight", "photometric_anchor"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
@@ -646,7 +647,7 @@ def photometric_stage(model, target_rgb, target_phase, h, w, cfg, rows=None, sta
     learning rates are in ring widths per step (``cfg.photometric_lr``, see ``_phase_normalised_groups``), the colour
     map's ``cfg.photometric_color_lr`` (clamped to [0, 1]). Pixel (y, x) of the photo is the board point
     (x·p, y·p) as in :meth:`WoodModel.render_board`; a level-f pixel averages f×f photo pixels and is centred on
-    the mean of their positions.
+    the mean of their positions. Levels coarser than 4×4 pixels are skipped (with their share of the steps).
 
     Args:
         model: the fitted WoodModel (modified in place).
