@@ -127,7 +127,7 @@ def evaluate_face(data, face, out, args, log):
     panels = {"photo": rgb, "label": label}
     cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=args.pixel_size_mm, epochs=args.epochs,
                         color_epochs=args.color_epochs, preview=False, seed=0,
-                        photometric=args.photometric)
+                        photometric=args.photometric, photometric_estimator=args.photometric_estimator)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -242,6 +242,9 @@ def main(argv=None):
     p.add_argument("--photometric", action="store_true",
                    help="run the fit's stage 3 (photometric refinement through the reparameterised render) and "
                         "report each face before and after it")
+    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
+                   help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
+                        "default: %(default)s)")
     p.add_argument("--out", default="results/wood_faces", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:
@@ -287,6 +290,7 @@ def main(argv=None):
                      {"data": os.path.abspath(args.data), "pixel_size_mm": args.pixel_size_mm,
                       "pixel_size_assumed": True, "epochs": args.epochs, "color_epochs": args.color_epochs,
                       "tolerance_px": args.tolerance_px, "photometric": args.photometric,
+                      "photometric_estimator": args.photometric_estimator,
                       "label": "arl-unet (U-Net output, Otsu + thinning)",
                       "faces": rows})
     ta_io.atomic_write_bytes(os.path.join(args.out, "faces.md"),
