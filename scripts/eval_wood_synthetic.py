@@ -147,7 +147,8 @@ def evaluate_seed(seed, args, log):
            "ring_scale_true_mm": prm["ring_scale"], "ring_width_true_mm": width_true}
     cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=ps, epochs=args.epochs,
                         color_epochs=args.color_epochs, preview=False, seed=0, photometric=args.photometric,
-                        photometric_weight=args.photometric_weight, photometric_estimator=args.photometric_estimator)
+                        photometric_weight=args.photometric_weight, photometric_estimator=args.photometric_estimator,
+                        photometric_anchor=args.photometric_anchor)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -277,6 +278,8 @@ def main(argv=None):
     p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
                    help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
                         "default: %(default)s)")
+    p.add_argument("--photometric-anchor", type=float, default=_DEFAULTS.photometric_anchor,
+                   help="stage-3 weight of the phase loss kept as an anchor, 0 = colour only (default: %(default)s)")
     p.add_argument("--out", default="results/wood_synthetic", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:
