@@ -339,6 +339,11 @@ def reparam_render(model, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0
     the gradient of the expected filtered image's loss for a loss linear in the image (and a consistent one for
     nonlinear losses, as spp grows). Forward values equal :func:`render_filtered` on the same samples.
 
+    Limitation: the distortion textures are bilinear, so ∇G, and with it V, jumps across texel edges; div V by
+    autograd has no delta there, which leaves a bias proportional to the jump of ∂m/∂(r, z) across the edge (not
+    seen at the precision of the tests and of ``scripts/wood_gradients.py``: max |z| < 3 for a distortion texel,
+    and distortion fits are smooth).
+
     Args:
         model: a :class:`~torch_appearance.nn.WoodModel` (any distortion; the board must not contain the pith).
         height, width, pixel_mm: image rows, columns and pixel pitch (mm); pixel (y, x) is centred on
