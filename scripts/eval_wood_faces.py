@@ -21,7 +21,10 @@ ASSUMPTION; it scales the reported ring widths (mm) and the depth of the fitted 
 
 Outputs (atomic writes): ``OUT/faces.json`` (settings + one row per face), ``OUT/faces.md`` (the markdown table),
 ``OUT/faces.png`` (montage; columns = faces, rows = photo, fit, |phase error|, our boundaries in red + arl
-skeleton in green over the photo) and one fit_wood run folder per face.
+skeleton in green over the photo) and one fit_wood run folder per face. ``--photometric`` runs the fit's stage 3
+(geometry + colour map against the photo's colours through the reparameterised render) and adds a before/after
+table (phase RMS vs the photo's phase, SSIM, latewood contrast = 5-95 % luminance spread of the fit / of the photo)
+and a "fit before stage 3" row to the montage.
 
 Examples:
     python scripts/eval_wood_faces.py                                   # all 12 faces, default fit settings
@@ -64,9 +67,21 @@ FIELDS = [  # (key, header, format)
     ("arl_sensitivity", "arl sens", "{:.2f}"),
     ("arl_precision", "arl prec", "{:.2f}"),
     ("arl_f1", "arl F1", "{:.2f}"),
+    ("contrast_ratio", "contrast fit/photo", "{:.2f}"),
     ("detect_s", "detect s", "{:.1f}"),
     ("board_estimate_s", "board s", "{:.2f}"),
     ("fit_s", "fit s", "{:.1f}"),
+]
+PHOTOMETRIC_FIELDS = [  # with --photometric: the same face before and after stage 3
+    ("face", "face", "{}"),
+    ("status", "status", "{}"),
+    ("phase_rms_before", "phase RMS before", "{:.3f}"),
+    ("phase_rms_after", "phase RMS after", "{:.3f}"),
+    ("ssim_before", "SSIM before", "{:.3f}"),
+    ("ssim_after", "SSIM after", "{:.3f}"),
+    ("contrast_before", "contrast before", "{:.2f}"),
+    ("contrast_after", "contrast after", "{:.2f}"),
+    ("stage3_s", "stage 3 s", "{:.1f}"),
 ]
 
 
@@ -111,7 +126,8 @@ def evaluate_face(data, face, out, args, log):
            "arl_label_pixels": int(len(label))}
     panels = {"photo": rgb, "label": label}
     cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=args.pixel_size_mm, epochs=args.epochs,
-                        color_epochs=args.color_epochs, preview=False, seed=0)
+                        color_epochs=args.color_epochs, preview=False, seed=0,
+                        photometric=args.photometric, photometric_estimator=args.photometric_estimator)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -136,7 +152,15 @@ def evaluate_face(data, face, out, args, log):
         boundaries=len(lines), arl_sensitivity=fm["sensitivity"], arl_precision=fm["precision"], arl_f1=fm["f1"],
         arl_mean_error_px=fm["mean_error_px"], detect_s=t["gabor_s"] + t["tracing_s"],
         board_estimate_s=t["board_estimate_s"], fit_s=t["stage1_s"] + t["stage2_s"], wall_s=wall,
-        fit_ok=summary["fit_ok"])
+        fit_ok=summary["fit_ok"], contrast_ratio=summary["latewood_contrast"]["ratio"])
+    ph = summary.get("photometric")
+    if ph is not None:
+        row.update(phase_rms_before=ph["before"]["phase_rms"], phase_rms_after=ph["after"]["phase_rms"],
+                   ssim_before=ph["before"]["ssim"], ssim_after=ph["after"]["ssim"],
+                   contrast_before=ph["before"]["latewood_contrast"]["ratio"],
+                   contrast_after=ph["after"]["latewood_contrast"]["ratio"], stage3_s=ph["seconds"])
+        row["fit_s"] += ph["seconds"]
+        panels["fit_before"] = ta_io.read_png(os.path.join(folder, "fit_before_photometric.png"))
     phase = np.load(os.path.join(folder, "phase.npy"))
     fit_phase = np.load(os.path.join(folder, "fit_phase.npy"))
     panels.update(fit=ta_io.read_png(os.path.join(folder, "fit.png")),
@@ -153,27 +177,35 @@ def montage(rows, panels, path):
     import matplotlib.pyplot as plt
 
     n = len(rows)
-    fig, axes = plt.subplots(4, n, figsize=(2.3 * n + 0.6, 9.6), squeeze=False)
-    titles = ["photo", "fit", "|phase error| (0..π)", "ours (red) vs arl (green)"]
+    before = any("fit_before" in p for p in panels)
+    k = 5 if before else 4
+    fig, axes = plt.subplots(k, n, figsize=(2.3 * n + 0.6, 2.4 * k), squeeze=False)
+    titles = ["photo"] + (["fit before stage 3", "fit after stage 3"] if before else ["fit"]) + [
+        "|phase error| (0..π)", "ours (red) vs arl (green)"]
+    o = 1 if before else 0
     for j, (row, p) in enumerate(zip(rows, panels)):
         srgb = np.clip(p["photo"], 0, 1) ** (1 / 2.2)
         axes[0, j].imshow(srgb)
         axes[0, j].set_title(row["face"], fontsize=9)
         if "fit" in p:
-            axes[1, j].imshow(np.clip(p["fit"], 0, 1) ** (1 / 2.2))
-            axes[2, j].imshow(p["err"], cmap="magma", vmin=0, vmax=math.pi)
-            axes[2, j].set_title(f"mean {row['mean_abs_wrapped_phase_error']:.2f} rad", fontsize=8)
-            axes[3, j].set_title(f"F1 {row['arl_f1']:.2f}", fontsize=8)
+            if before:
+                axes[1, j].imshow(np.clip(p["fit_before"], 0, 1) ** (1 / 2.2))
+                axes[1, j].set_title(f"SSIM {row['ssim_before']:.2f}, φ RMS {row['phase_rms_before']:.2f}", fontsize=8)
+                axes[2, j].set_title(f"SSIM {row['ssim_after']:.2f}, φ RMS {row['phase_rms_after']:.2f}", fontsize=8)
+            axes[1 + o, j].imshow(np.clip(p["fit"], 0, 1) ** (1 / 2.2))
+            axes[2 + o, j].imshow(p["err"], cmap="magma", vmin=0, vmax=math.pi)
+            axes[2 + o, j].set_title(f"mean {row['mean_abs_wrapped_phase_error']:.2f} rad", fontsize=8)
+            axes[3 + o, j].set_title(f"F1 {row['arl_f1']:.2f}", fontsize=8)
         else:
-            for i in (1, 2):
+            for i in range(1, 3 + o):
                 axes[i, j].text(0.5, 0.5, "refused", ha="center", va="center", transform=axes[i, j].transAxes)
-        axes[3, j].imshow(srgb * 0.7)
+        axes[3 + o, j].imshow(srgb * 0.7)
         lab = p["label"]
-        axes[3, j].plot(lab[:, 0], lab[:, 1], ",", color="lime")
+        axes[3 + o, j].plot(lab[:, 0], lab[:, 1], ",", color="lime")
         for line in p.get("lines", []):
-            axes[3, j].plot(line[:, 0], line[:, 1], "-", color="red", lw=0.7)
+            axes[3 + o, j].plot(line[:, 0], line[:, 1], "-", color="red", lw=0.7)
         h, w = srgb.shape[:2]
-        for i in range(4):
+        for i in range(k):
             axes[i, j].set(xlim=(-0.5, w - 0.5), ylim=(h - 0.5, -0.5))
             axes[i, j].set_xticks([])
             axes[i, j].set_yticks([])
@@ -207,6 +239,12 @@ def main(argv=None):
                                                                                      "(default: %(default)s)")
     p.add_argument("--tolerance-px", type=float, default=3.0, help="boundary F-measure tolerance in px "
                                                                    "(default: %(default)s)")
+    p.add_argument("--photometric", action="store_true",
+                   help="run the fit's stage 3 (photometric refinement through the reparameterised render) and "
+                        "report each face before and after it")
+    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
+                   help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
+                        "default: %(default)s)")
     p.add_argument("--out", default="results/wood_faces", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:
@@ -241,6 +279,8 @@ def main(argv=None):
         panels.append(pan)
 
     table = ta_io.markdown_table(rows, FIELDS)
+    if args.photometric:
+        table += "\n\nStage 3 (photometric), before → after:\n\n" + ta_io.markdown_table(rows, PHOTOMETRIC_FIELDS)
     settings = (f"pixel size {args.pixel_size_mm:g} mm (assumed), epochs {args.epochs} + colour "
                 f"{args.color_epochs}, F-measure tolerance {args.tolerance_px:g} px vs Otsu-thresholded, thinned "
                 f"arl-unet map (weak label)")
@@ -249,7 +289,9 @@ def main(argv=None):
     ta_io.write_json(os.path.join(args.out, "faces.json"),
                      {"data": os.path.abspath(args.data), "pixel_size_mm": args.pixel_size_mm,
                       "pixel_size_assumed": True, "epochs": args.epochs, "color_epochs": args.color_epochs,
-                      "tolerance_px": args.tolerance_px, "label": "arl-unet (U-Net output, Otsu + thinning)",
+                      "tolerance_px": args.tolerance_px, "photometric": args.photometric,
+                      "photometric_estimator": args.photometric_estimator,
+                      "label": "arl-unet (U-Net output, Otsu + thinning)",
                       "faces": rows})
     ta_io.atomic_write_bytes(os.path.join(args.out, "faces.md"),
                              f"# Wood fit on Mokume cube faces\n\n{settings}\n\n{table}\n".encode())

@@ -55,6 +55,18 @@ _DEFAULTS = WoodFitConfig(photo="")
 BAND = 0.05  # relative ring-scale tolerance of the summary and the plot
 GOOD_PHASE_RMS = 0.3  # rad
 
+PHOTOMETRIC_FIELDS = [  # with --photometric: the same fit before and after stage 3
+    ("seed", "seed", "{}"),
+    ("phase_rms_vs_true_before", "phase RMS vs true before", "{:.3f}"),
+    ("phase_rms_vs_true", "after", "{:.3f}"),
+    ("direction_correct_before", "growth dir ok before", "{:.1%}"),
+    ("direction_correct", "after", "{:.1%}"),
+    ("ssim_before", "SSIM before", "{:.3f}"),
+    ("ssim_fit_vs_photo", "after", "{:.3f}"),
+    ("contrast_before", "contrast before", "{:.2f}"),
+    ("contrast_after", "after", "{:.2f}"),
+    ("stage3_s", "stage 3 s", "{:.1f}"),
+]
 FIELDS = [  # (key, header, format)
     ("seed", "seed", "{}"),
     ("status", "status", "{}"),
@@ -134,7 +146,9 @@ def evaluate_seed(seed, args, log):
            "tilt_deg": prm["tilt_deg"], "in_plane_deg": prm["in_plane_deg"], "distortion_mm": prm["distortion_mm"],
            "ring_scale_true_mm": prm["ring_scale"], "ring_width_true_mm": width_true}
     cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=ps, epochs=args.epochs,
-                        color_epochs=args.color_epochs, preview=False, seed=0)
+                        color_epochs=args.color_epochs, preview=False, seed=0, photometric=args.photometric,
+                        photometric_weight=args.photometric_weight, photometric_estimator=args.photometric_estimator,
+                        photometric_anchor=args.photometric_anchor)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -165,6 +179,16 @@ def evaluate_seed(seed, args, log):
                fit_phase_rms_final=summary["final_phase_rms"], ssim_fit_vs_photo=summary["ssim_fit_vs_photo"],
                timings_s=summary["timings_s"], wall_s=wall, fit_ok=summary["fit_ok"],
                scale_reliable=summary["ring_scale_reliable"])
+    if summary.get("photometric") is not None:   # the same fit before stage 3
+        before = WoodModel.load(os.path.join(folder, "model_before_photometric"))
+        with torch.no_grad():
+            out_b = before.render_board(n, n, ps)
+        row.update(phase_rms_vs_true_before=phase_rms_vs_true(out_b["phase"].numpy(), board["G"].astype(np.float64))[0],
+                   direction_correct_before=direction_correct(out_b["G"].numpy(), board["G"]),
+                   ssim_before=summary["photometric"]["before"]["ssim"],
+                   contrast_before=summary["photometric"]["before"]["latewood_contrast"]["ratio"],
+                   contrast_after=summary["photometric"]["after"]["latewood_contrast"]["ratio"],
+                   stage3_s=summary["photometric"]["seconds"])
     return row
 
 
@@ -247,6 +271,15 @@ def main(argv=None):
                                                                                      "(default: %(default)s)")
     p.add_argument("--pith-inside", action="store_true",
                    help="boards cut 1.5-4 mm from the pith (pith and closed oval rings in the photo)")
+    p.add_argument("--photometric", action="store_true",
+                   help="run the fit's stage 3 (photometric, reparameterised render) and report before/after")
+    p.add_argument("--photometric-weight", type=float, default=_DEFAULTS.photometric_weight,
+                   help="weight of the CIELAB term in stage 3 (default: %(default)s)")
+    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
+                   help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
+                        "default: %(default)s)")
+    p.add_argument("--photometric-anchor", type=float, default=_DEFAULTS.photometric_anchor,
+                   help="stage-3 weight of the phase loss kept as an anchor, 0 = colour only (default: %(default)s)")
     p.add_argument("--out", default="results/wood_synthetic", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:
@@ -272,6 +305,8 @@ def main(argv=None):
 
     summ = summarise(rows)
     table = ta_io.markdown_table(rows, FIELDS)
+    if args.photometric:
+        table += "\n\nStage 3 (photometric), before → after:\n\n" + ta_io.markdown_table(rows, PHOTOMETRIC_FIELDS)
     line = summary_line(summ)
     settings = (f"{'pith-inside ' if args.pith_inside else ''}boards "
                 f"{args.size}×{args.size} px at {args.pixel_size_mm:g} mm, epochs {args.epochs} + colour "

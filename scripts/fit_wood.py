@@ -3,13 +3,16 @@
 
 Curved Gabor filtering finds the growth rings and their phase, the board's location in the log is estimated from
 the traced rings, then a WoodModel (tree axis, ring scale, radial distortion, colour map) is fitted with a cyclic
-phase loss (stage 1) and a colour loss (stage 2). Writes a run folder: fit.png, phase.npy, fit_phase.npy,
-params.json, log.csv, convergence.png, orientation/magnitude/phase images, ring_overlay.png, board_estimate.json,
-model.json + model.pt, fit_vs_photo.png, phase_error.png, cube_preview.png, summary.json.
+phase loss (stage 1) and a colour loss (stage 2); ``--photometric`` adds stage 3, geometry and colour map
+refined against the photo's colours through the reparameterised render. Writes a run folder: fit.png, phase.npy,
+fit_phase.npy, params.json, log.csv, convergence.png, orientation/magnitude/phase images, ring_overlay.png,
+board_estimate.json, model.json + model.pt, fit_vs_photo.png, phase_error.png, cube_preview.png, summary.json (with
+--photometric also fit_before_photometric.png and model_before_photometric.json + .pt).
 
 Examples:
     python scripts/fit_wood.py board.png --pixel-size-mm 0.1 --out results/board
     python scripts/fit_wood.py board.jpg --dpi 600 --epochs 300 --out results/board600
+    python scripts/fit_wood.py board.png --photometric --out results/board_photo
 """
 import argparse
 import os
@@ -43,6 +46,27 @@ def parse_args(argv=None):
                    help="stage-1 distortion levels, coarse first (1: full texture from the start; default: %(default)s)")
     p.add_argument("--color-bins", type=int, default=d.color_bins,
                    help="lateness samples of the colour map (default: %(default)s)")
+    p.add_argument("--photometric", action="store_true",
+                   help="stage 3: refine geometry and colour map against the photo's colours (CIELAB L2) through the "
+                        "reparameterised render (correct ring-boundary gradients), coarse to fine")
+    p.add_argument("--photometric-epochs", type=int, default=d.photometric_epochs,
+                   help="stage-3 Adam steps over all levels (default: %(default)s)")
+    p.add_argument("--photometric-levels", type=int, nargs="+", default=list(d.photometric_levels), metavar="F",
+                   help="stage-3 downsampling factors of the photo, coarse first (default: %(default)s)")
+    p.add_argument("--photometric-spp", type=int, default=d.photometric_spp,
+                   help="stage-3 filter samples per pixel and step (default: %(default)s)")
+    p.add_argument("--photometric-weight", type=float, default=d.photometric_weight,
+                   help="stage-3 weight of the CIELAB term, mean ΔE²/100 (default: %(default)s)")
+    p.add_argument("--photometric-anchor", type=float, default=d.photometric_anchor,
+                   help="stage-3 weight of the stage-1 phase loss kept as an anchor, 0 = colour only "
+                        "(default: %(default)s)")
+    p.add_argument("--photometric-lr", type=float, default=d.photometric_lr,
+                   help="stage-3 geometry step, ring widths per step (default: %(default)s)")
+    p.add_argument("--photometric-color-lr", type=float, default=d.photometric_color_lr,
+                   help="stage-3 colour-map step, 0 = frozen (default: %(default)s)")
+    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=d.photometric_estimator,
+                   help="stage-3 gradients: reparameterised (boundary term included) or naive fixed-sample autograd, "
+                        "for comparison (default: %(default)s)")
     p.add_argument("--max-size", type=int, default=None, help="downscale photos larger than this many pixels")
     p.add_argument("--device", default=d.device, help="torch device for the fit: cpu or cuda (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -61,7 +85,12 @@ def main(argv=None):
     cfg = WoodFitConfig(photo=args.photo, out=args.out, pixel_size_mm=pixel, epochs=args.epochs, lr=args.lr,
                         color_epochs=args.color_epochs, p=args.p, q=args.q, distortion=args.distortion,
                         device=args.device, max_size=args.max_size, seed=args.seed, preview=not args.no_preview,
-                        coarse_to_fine=args.coarse_to_fine, color_bins=args.color_bins)
+                        coarse_to_fine=args.coarse_to_fine, color_bins=args.color_bins,
+                        photometric=args.photometric, photometric_epochs=args.photometric_epochs,
+                        photometric_levels=tuple(args.photometric_levels), photometric_spp=args.photometric_spp,
+                        photometric_weight=args.photometric_weight, photometric_anchor=args.photometric_anchor,
+                        photometric_lr=args.photometric_lr, photometric_color_lr=args.photometric_color_lr,
+                        photometric_estimator=args.photometric_estimator)
     try:
         fit_wood(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:

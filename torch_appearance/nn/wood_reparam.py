@@ -49,7 +49,8 @@ import torch
 from ..render.checks import check_int, check_real, check_seed
 
 __all__ = ["CylinderView", "pixel_samples", "render_filtered", "ring_scale_gradient", "ring_scale_gradient_fd",
-           "compare_ring_scale_gradients", "ESTIMATORS"]
+           "compare_ring_scale_gradients", "ESTIMATORS", "reparam_render", "parse_parameter", "parameter_gradient",
+           "parameter_gradient_fd", "compare_parameter_gradients"]
 
 ESTIMATORS = ("reparam", "naive")
 
@@ -320,6 +321,303 @@ def compare_ring_scale_gradients(model, height, width, pixel_mm, *, spp=16, seed
         stats[name] = {"max_abs_z": float(z.abs().max()), "z_threshold": z_thr,
                        "fraction_blocks_rejected": float((z.abs() > z_thr).double().mean()),
                        "relative_l1_error": float((mean - fd).abs().sum() / fd.abs().sum()),
+                       "blocks": [hb, wb], "z": z}
+    result["stats"] = stats
+    return result
+
+
+# --------------------------------------------------------------------------------------------------------------
+# General reparameterised render: the boundary term of EVERY parameter by autograd
+# --------------------------------------------------------------------------------------------------------------
+class _Field(torch.nn.Module):
+    """``model``'s growth field G (N,) or colour (N, 3) at board points (N, 2), as a module call (for
+    torch.func.functional_call with live or detached parameters). The colour's ring index is ⌊G⌋ of the detached G;
+    its lateness G − ⌊G⌋ is live."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, points, what):
+        m = self.model
+        G = m._field(m.board_to_tree(points))[0]
+        if what == "G":
+            return G
+        floor_g = torch.floor(G.detach())
+        return m._colour(floor_g.long(), G - floor_g)
+
+
+def _param_dicts(model, parameters):
+    live = {"model." + k: v for k, v in model.named_parameters()}
+    if parameters is not None:
+        if not isinstance(parameters, dict):
+            raise TypeError(f"parameters: expected a dict name -> tensor, got {type(parameters).__name__}")
+        for k, v in parameters.items():
+            if "model." + k not in live:
+                raise ValueError(f"parameters: expected names of {sorted(n[6:] for n in live)}, got {k!r}")
+            if not isinstance(v, torch.Tensor) or tuple(v.shape) != tuple(live["model." + k].shape):
+                raise ValueError(f"parameters: {k!r} expected a tensor of shape {tuple(live['model.' + k].shape)}, "
+                                 f"got {getattr(v, 'shape', type(v).__name__)}")
+            live["model." + k] = v
+    return live, {k: v.detach() for k, v in live.items()}
+
+
+def _reparam_pixels(model, pts, centres, spp, sigma_mm, estimator, baseline, parameters):
+    """Per-pixel values (P, 3) of the estimator from samples (P·spp, 2) drawn around ``centres`` (pixel-major)."""
+    wrapper = _Field(model)
+    live, det = _param_dicts(model, parameters)
+
+    def call(prm, p, what):
+        return torch.func.functional_call(wrapper, prm, (p, what))
+
+    pts = pts.to(model.dtype)
+    if estimator == "naive":
+        return call(live, pts, "rgb").reshape(-1, spp, 3).mean(1)
+    with torch.enable_grad():
+        x = pts.detach().clone().requires_grad_(True)
+        g_det = call(det, x, "G")                                      # G(x; sg θ), live in x only
+        (grad,) = torch.autograd.grad(g_det.sum(), x, create_graph=True)
+        n2 = (grad * grad).sum(-1, keepdim=True)
+        if bool((n2.detach() <= 0).any()):
+            raise ValueError("model: ∇G = 0 at a sample (the pith is on the board); the warp is undefined there")
+        g_live = call(live, x, "G")                                    # G(x; θ)
+        # Δ = −(G(x; θ) − G(x; sg θ)) ∇G/|∇G|²: zero for every x, ∂Δ/∂θ = V (the boundary velocity)
+        delta = -(g_live - g_det)[:, None] * (grad / n2)
+        div = sum(torch.autograd.grad(delta[:, a].sum(), x, create_graph=True)[0][:, a] for a in range(2))
+        xw = x + delta
+        log_f = -((xw - centres.to(xw.dtype)) ** 2).sum(-1) / (2 * sigma_mm ** 2)
+        weight = torch.exp(log_f - log_f.detach()) * (1 + div)         # value 1, ∂/∂θ = ∇log f·V + div V
+        c = call(live, xw, "rgb")                                      # lateness constant along the warp
+        if baseline and spp > 1:
+            cd = c.detach().reshape(-1, spp, 3)
+            b = ((cd.sum(1, keepdim=True) - cd) / (spp - 1)).reshape(-1, 3)
+            value = c * weight[:, None] - b * (weight[:, None] - 1)
+        else:
+            value = c * weight[:, None]
+    return value.reshape(-1, spp, 3).mean(1)
+
+
+def reparam_render(model, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0.5, estimator="reparam",
+                   baseline=True, parameters=None, samples=None):
+    """Gaussian-filtered Monte Carlo render of the board face whose autograd gradient includes the boundary term of
+    every parameter that moves the ring boundaries (ring scale, rotation, translation, m_r, m_t), plus the colour map.
+
+    Each filter sample x is warped by Δ(x; θ) = −(G(x; θ) − G(x; sg θ))·∇G/|∇G|² (sg: parameters detached), which is
+    0 in value and has ∂Δ/∂θ = V = −(∂G/∂θ)∇G/|∇G|² for every θ at once, so the lateness at the warped point does
+    not move with θ (the jump is carried along); the sample weight f_p(x + Δ)/sg[f_p(x + Δ)]·(1 + div_x Δ) (div by
+    autograd, create_graph) has value 1 and derivative ∇log f_p·V + div V (Loubet et al. 2019). With ``baseline``
+    the detached leave-one-out mean b of the pixel's other samples is subtracted, c·w − b·(w − 1): same value, same
+    expected gradient, much lower variance. ``loss.backward()`` through the image then gives an unbiased estimate of
+    the gradient of the expected filtered image's loss for a loss linear in the image (and a consistent one for
+    nonlinear losses, as spp grows). Forward values equal :func:`render_filtered` on the same samples.
+
+    Limitation: the distortion textures are bilinear, so ∇G, and with it V, jumps across texel edges; div V by
+    autograd has no delta there, which leaves a bias proportional to the jump of ∂m/∂(r, z) across the edge (not
+    seen at the precision of the tests and of ``scripts/wood_gradients.py``: max |z| < 3 for a distortion texel,
+    and distortion fits are smooth).
+
+    Args:
+        model: a :class:`~torch_appearance.nn.WoodModel` (any distortion; the board must not contain the pith).
+        height, width, pixel_mm: image rows, columns and pixel pitch (mm); pixel (y, x) is centred on
+            ((x + ½)·p, (y + ½)·p) on the board, see :func:`pixel_samples`.
+        spp: filter samples per pixel (>= 2 for the baseline); seed: their seed; sigma_px: Gaussian filter σ (px).
+        estimator: ``"reparam"`` or ``"naive"`` (the samples' colours at fixed positions: biased, smooth part only).
+        baseline: subtract the leave-one-out control variate (reparam only).
+        parameters: optional dict name → tensor replacing model parameters (e.g. a distortion texture built from a
+            coarse-to-fine pyramid), with the model's shapes; gradients flow into these tensors.
+        samples: optional (points (H·W·spp, 2), centres (H·W·spp, 2)) mm to use instead of drawing them.
+
+    Returns:
+        (H, W, 3) image in the model's dtype (linear RGB), differentiable w.r.t. the (live) parameters.
+
+    Raises:
+        ValueError / TypeError: bad sizes, estimator or parameters; the pith on the board (∇G = 0 at a sample).
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+    height, width, pixel_mm, spp, seed, sigma_px = _check(height, width, pixel_mm, spp, seed, sigma_px)
+    if samples is None:
+        samples = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px, dtype=model.dtype)
+    pts, centres = samples
+    if tuple(pts.shape) != (height * width * spp, 2) or tuple(centres.shape) != tuple(pts.shape):
+        raise ValueError(f"samples: expected two tensors of shape {(height * width * spp, 2)}, "
+                         f"got {tuple(pts.shape)} and {tuple(centres.shape)}")
+    out = _reparam_pixels(model, pts, centres, spp, sigma_px * pixel_mm, estimator, baseline, parameters)
+    return out.reshape(height, width, 3)
+
+
+def parse_parameter(model, spec):
+    """A parameter spec → (parameter name, index tuple, scale): ``"ring_scale"`` (d/ds_r in mm: log_ring_scale with
+    the chain rule factor 1/s_r), ``"rotation[0]"``, ``"translation[2]"``, ``"m_r[3,5]"``, ``"m_t[i,j]"``,
+    ``"color_map[r,k,c]"``. Raises ValueError naming the spec."""
+    import re
+
+    if not isinstance(spec, str):
+        raise TypeError(f"param: expected a str such as 'ring_scale', 'rotation[0]' or 'm_r[3,5]', got "
+                        f"{type(spec).__name__}")
+    if spec == "ring_scale":
+        return "log_ring_scale", (), 1.0 / float(model.ring_scale.detach())
+    m = re.fullmatch(r"(rotation|translation|m_r|m_t|color_map)\[([0-9, ]+)\]", spec.strip())
+    if m is None:
+        raise ValueError(f"param: expected 'ring_scale', 'rotation[i]', 'translation[i]', 'm_r[i,j]', 'm_t[i,j]' or "
+                         f"'color_map[r,k,c]', got {spec!r}")
+    name, idx = m.group(1), tuple(int(t) for t in m.group(2).split(",") if t.strip())
+    param = getattr(model, name)
+    if param is None:
+        raise ValueError(f"param: the model has no {name} ({spec!r})")
+    shape = tuple(param.shape)
+    if name in ("m_r", "m_t"):
+        shape = shape[-2:]
+        full = (0, 0) + idx
+    else:
+        full = idx
+    if len(idx) != len(shape) or any(not 0 <= i < n for i, n in zip(idx, shape)):
+        raise ValueError(f"param: index {list(idx)} out of range for {name} of shape {list(shape)} ({spec!r})")
+    return name, full, 1.0
+
+
+def parameter_gradient(model, param, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0.5,
+                       estimator="reparam", baseline=True, block=1, blocks_per_pass=None):
+    """dI/dθ for scalar parameters θ (``param``: one spec or a list, see :func:`parse_parameter`) by autograd
+    through :func:`reparam_render`: Jacobian columns of the image (or of its ``block``×``block`` block means) from
+    one batched backward pass per group of blocks (each pixel depends on its own samples only), all listed
+    parameters at once. The samples are those of :func:`pixel_samples` (``seed``), the image cropped to whole blocks.
+
+    Returns:
+        (H/b, W/b, 3) float64 gradient image (colour units per unit of θ: per mm, per rad, ...) for one spec, or
+        (K, H/b, W/b, 3) for a list of K specs.
+    """
+    single = isinstance(param, str)
+    specs = [param] if single else list(param)
+    if not specs:
+        raise ValueError("param: expected at least one parameter spec, got an empty list")
+    parsed = [parse_parameter(model, p) for p in specs]
+    block = check_int("block", block, lo=1)
+    hb, wb = height // block, width // block
+    if hb < 1 or wb < 1:
+        raise ValueError(f"block: expected at most min(height, width) = {min(height, width)}, got {block}")
+    if blocks_per_pass is None:
+        blocks_per_pass = max(1, 64 // (block * block))
+    blocks_per_pass = check_int("blocks_per_pass", blocks_per_pass, lo=1)
+    pts, centres = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px, dtype=model.dtype)
+
+    def by_block(t):   # (H·W·spp, 2) pixel-major → (hb·wb, b·b·spp, 2), samples of each block together
+        t = t.reshape(height, width, spp, 2)[:hb * block, :wb * block]
+        return t.reshape(hb, block, wb, block, spp, 2).permute(0, 2, 1, 3, 4, 5).reshape(hb * wb, -1, 2)
+
+    pts, centres = by_block(pts), by_block(centres)
+    sigma = sigma_px * pixel_mm
+    names = list(dict.fromkeys(name for name, _, _ in parsed))
+    targets = [getattr(model, name) for name in names]
+    was = [t.requires_grad for t in targets]
+    for t in targets:
+        t.requires_grad_(True)
+    n_blocks = hb * wb
+    out = torch.empty(len(specs), n_blocks, 3, dtype=torch.float64)
+    try:
+        for i in range(0, n_blocks, blocks_per_pass):
+            j = min(i + blocks_per_pass, n_blocks)
+            vals = _reparam_pixels(model, pts[i:j].reshape(-1, 2), centres[i:j].reshape(-1, 2), spp, sigma,
+                                   estimator, baseline, None)
+            vals = vals.reshape(j - i, block * block, 3).mean(1)
+            eye = torch.eye(vals.numel(), dtype=vals.dtype).reshape(-1, *vals.shape)
+            grads = torch.autograd.grad(vals, targets, grad_outputs=eye, is_grads_batched=True, allow_unused=True)
+            grads = dict(zip(names, grads))
+            for k, (name, index, scale) in enumerate(parsed):
+                g = grads[name]
+                out[k, i:j] = 0.0 if g is None else g[(slice(None),) + index].reshape(j - i, 3).double() * scale
+    finally:
+        for t, w in zip(targets, was):
+            t.requires_grad_(w)
+    out = out.reshape(len(specs), hb, wb, 3)
+    return out[0] if single else out
+
+
+def _perturbed(model, name, index, step):
+    m = copy.deepcopy(model)
+    with torch.no_grad():
+        getattr(m, name)[index] += step
+    return m
+
+
+def parameter_gradient_fd(model, param, height, width, pixel_mm, *, spp=4096, seed=0, sigma_px=0.5, h=None):
+    """Central finite differences of the filtered image in one scalar parameter, common samples.
+
+    ``h``: step in the parameter's units (relative for ``ring_scale``); default moves the ring boundaries by about
+    0.02 ring widths: ring_scale 0.002 (relative), translation / m_r / m_t 0.02·s_r mm, rotation 0.002 rad, colour
+    0.01. Returns (mean (H, W, 3), standard error (H, W, 3)) float64; the standard error has a floor of one
+    boundary crossing per pixel, (colour-map span)/(2h)/spp: where crossings are rarer than 1/spp the sample
+    spread sees none and would claim a precision the difference quotient does not have.
+    """
+    name, index, _ = parse_parameter(model, param)
+    spp = check_int("spp", spp, lo=2)
+    with torch.no_grad():
+        cmap = model.color_map.detach().double().reshape(-1, 3)
+        span = cmap.max(0).values - cmap.min(0).values             # bounds every colour jump, per channel
+    if name == "log_ring_scale":
+        h = 0.002 if h is None else h
+        mean, se = ring_scale_gradient_fd(model, height, width, pixel_mm, spp=spp, seed=seed, sigma_px=sigma_px,
+                                          h_rel=h)
+        step = h * float(model.ring_scale.detach())
+    else:
+        s_r = float(model.ring_scale.detach())
+        default = {"rotation": 0.002, "translation": 0.02 * s_r, "m_r": 0.02 * s_r, "m_t": 0.02 * s_r,
+                   "color_map": 0.01}[name]
+        h = default if h is None else check_real("h", h, lo=0.0, lo_open=True)
+        pts, _ = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px)
+        up, down = _perturbed(model, name, index, h), _perturbed(model, name, index, -h)
+        with torch.no_grad():
+            d = (_colour(up, pts) - _colour(down, pts)) / (2 * h)
+        d = d.reshape(height, width, spp, 3)
+        mean, se = d.mean(2), d.std(2) / math.sqrt(spp)
+        step = h
+    if name != "color_map":
+        # where boundary crossings are too rare to be drawn (pixels the boundaries barely reach) the sample spread
+        # misses them: floor the standard error at one unobserved crossing, span/(2h)/spp
+        se = torch.sqrt(se ** 2 + (span / (2 * step) / spp) ** 2)
+    return mean, se
+
+
+def compare_parameter_gradients(model, param, height, width, pixel_mm, *, spp=16, seeds=32, fd_spp=4096, h=None,
+                                block=4, sigma_px=0.5, family_alpha=1e-3, progress=None):
+    """:func:`compare_ring_scale_gradients` for any scalar parameter (``param``, see :func:`parse_parameter`): the
+    autograd gradient through :func:`reparam_render` (``reparam``) and through the fixed samples (``naive``) against
+    central finite differences, z-tests per pixel block. Same statistics as :func:`compare_ring_scale_gradients`, but
+    the images ``fd``, ``fd_se``, ``reparam``, ``reparam_se``, ``naive``, ``naive_se`` are block means (H/b, W/b, 3)
+    (the autograd Jacobian is taken per block, which is what the z-tests need); ``fd_pixels`` is the per-pixel FD."""
+    from scipy.stats import norm
+
+    block = check_int("block", block, lo=1)
+    seeds = check_int("seeds", seeds, lo=2)
+    hb, wb = height // block, width // block
+    if hb < 1 or wb < 1:
+        raise ValueError(f"block: expected at most min(height, width) = {min(height, width)}, got {block}")
+    tick = progress if progress is not None else (lambda: None)
+    fd, fd_se = parameter_gradient_fd(model, param, height, width, pixel_mm, spp=fd_spp, seed=10 ** 6,
+                                      sigma_px=sigma_px, h=h)
+    tick()
+    result = {"fd": fd, "fd_se": fd_se}
+    z_thr = float(norm.isf(family_alpha / (2 * hb * wb * 3)))
+
+    def blocks(x):
+        return x[:hb * block, :wb * block].reshape(hb, block, wb, block, 3).mean(dim=(1, 3))
+
+    fd_b, fd_b_se = blocks(fd), blocks(fd_se ** 2).sqrt() / block
+    result["fd"], result["fd_se"], result["fd_pixels"] = fd_b, fd_b_se, fd
+    stats = {}
+    for name in ESTIMATORS:
+        runs = []
+        for k in range(seeds):
+            runs.append(parameter_gradient(model, param, height, width, pixel_mm, spp=spp, seed=k, sigma_px=sigma_px,
+                                           estimator=name, block=block))
+            tick()
+        runs = torch.stack(runs)
+        b_mean, b_se = runs.mean(0), runs.std(0) / math.sqrt(seeds)
+        result[name], result[name + "_se"] = b_mean, b_se
+        z = (b_mean - fd_b) / (b_se ** 2 + fd_b_se ** 2).sqrt().clamp_min(1e-300)
+        stats[name] = {"max_abs_z": float(z.abs().max()), "z_threshold": z_thr,
+                       "fraction_blocks_rejected": float((z.abs() > z_thr).double().mean()),
+                       "relative_l1_error": float((b_mean - fd_b).abs().sum() / fd_b.abs().sum().clamp_min(1e-300)),
                        "blocks": [hb, wb], "z": z}
     result["stats"] = stats
     return result

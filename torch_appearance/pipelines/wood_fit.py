@@ -9,6 +9,7 @@ levels, so no texel cell slips by a ring) → stage 2: colour map (32 lateness b
 folder.
 ``scripts/fit_wood.py`` is the command-line front end.
 """
+import copy
 import dataclasses
 import io as _io
 import math
@@ -24,9 +25,10 @@ from .. import io as ta_io
 from ..color import srgb_to_linear
 
 __all__ = ["WoodFitConfig", "fit_wood", "load_photo", "phase_loss", "wrap", "effective_ring_width",
-           "boundary_lateness", "model_boundaries", "LOG_FIELDS"]
+           "boundary_lateness", "model_boundaries", "LOG_FIELDS", "photometric_stage", "fit_metrics",
+           "latewood_contrast"]
 
-LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms"]
+LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms", "photometric_loss"]
 POOR_FIT_PHASE_RMS = 0.8  # rad; fits above it are flagged (summary["fit_ok"] = False) and warned about
 # Fewer distinct rings than this on the board leave the ring scale poorly determined (the number of rings between
 # the pith and the board trades against the axis distance); measured on synthetic boards (eval_wood_synthetic.py):
@@ -51,6 +53,18 @@ class WoodFitConfig:
     smoothness: float = 1.0  # weight of the distortion prior (squared texel-to-texel change, in ring widths)
     color_bins: int = 32  # lateness samples of the colour map (a thin latewood line needs a few of its own)
     coarse_to_fine: int = 3  # stage-1 distortion levels (1: the full texture from the start, as before)
+    # stage 3 (photometric): geometry + colour map against the photo's colours (CIELAB L2) through the
+    # reparameterised render (correct boundary gradients), coarse to fine over photometric_levels (downsampling
+    # factors of the photo), photometric_epochs Adam steps in all, split evenly over the levels
+    photometric: bool = False
+    photometric_epochs: int = 120
+    photometric_lr: float = 0.005  # geometry, in ring widths per step (as lr)
+    photometric_color_lr: float = 0.01  # colour map, linear RGB per step (0: frozen)
+    photometric_spp: int = 4
+    photometric_levels: tuple = (4, 2)
+    photometric_weight: float = 10.0  # multiplies the CIELAB term (mean ΔE² / 100)
+    photometric_anchor: float = 1.0  # weight of the stage-1 cyclic phase loss kept in stage 3 (0: colour only)
+    photometric_estimator: str = "reparam"  # "naive": fixed-sample autograd, no boundary term (for comparison)
     device: str = "cpu"
     max_size: Optional[int] = None
     seed: int = 0
@@ -60,7 +74,7 @@ class WoodFitConfig:
         if not (isinstance(self.pixel_size_mm, (int, float)) and math.isfinite(self.pixel_size_mm)
                 and self.pixel_size_mm > 0):
             raise ValueError(f"pixel_size_mm: expected a finite value > 0, got {self.pixel_size_mm!r}")
-        for name in ("epochs", "color_epochs"):
+        for name in ("epochs", "color_epochs", "photometric_epochs"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name}: expected an int >= 0, got {v!r}")
@@ -72,7 +86,26 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 2:
                 raise ValueError(f"{name}: expected an int >= 2, got {v!r}")
-        for name in ("lr", "color_lr"):
+        if not isinstance(self.photometric, bool):
+            raise TypeError(f"photometric: expected a bool, got {type(self.photometric).__name__}")
+        if not isinstance(self.photometric_spp, int) or self.photometric_spp < 2:
+            raise ValueError(f"photometric_spp: expected an int >= 2, got {self.photometric_spp!r}")
+        levels = self.photometric_levels
+        if (not isinstance(levels, (tuple, list)) or not levels
+                or any(isinstance(f, bool) or not isinstance(f, int) or f < 1 for f in levels)):
+            raise ValueError(f"photometric_levels: expected a non-empty sequence of ints >= 1 (downsampling factors, "
+                             f"coarse first), got {levels!r}")
+        if self.photometric_estimator not in ("reparam", "naive"):
+            raise ValueError(f"photometric_estimator: expected 'reparam' or 'naive', "
+                             f"got {self.photometric_estimator!r}")
+        for name in ("photometric_weight", "photometric_anchor"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite value >= 0, got {v!r}")
+        if not (isinstance(self.photometric_color_lr, (int, float)) and self.photometric_color_lr >= 0):
+            raise ValueError(f"photometric_color_lr: expected >= 0 (0: colour map frozen in stage 3), got "
+                             f"{self.photometric_color_lr!r}")
+        for name in ("lr", "color_lr", "photometric_lr"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v > 0):
                 raise ValueError(f"{name}: expected > 0, got {v!r}")
@@ -195,7 +228,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     ``log.csv`` (stage, epoch, wall_s, phase_loss, color_loss, phase_rms), ``convergence.png``; also
     ``orientation.png``, ``magnitude.png``, ``phase.png``, ``ring_overlay.png``, ``board_estimate.json``,
     ``model.json`` + ``model.pt`` (WoodModel.save), ``fit_vs_photo.png``, ``phase_error.png``, ``cube_preview.png``,
-    ``summary.json``.
+    ``summary.json``; with ``cfg.photometric`` also ``fit_before_photometric.png`` and
+    ``model_before_photometric.json`` + ``.pt`` (the fit after stages 1-2), and ``summary["photometric"]``.
 
     Returns:
         the summary dict.
@@ -268,7 +302,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     start = time.perf_counter()
     try:
         from tqdm import tqdm
-        bar = tqdm(total=cfg.epochs + cfg.color_epochs, disable=not progress, desc="fit_wood", unit="ep")
+        bar = tqdm(total=cfg.epochs + cfg.color_epochs + (cfg.photometric_epochs if cfg.photometric else 0),
+                   disable=not progress, desc="fit_wood", unit="ep")
     except ImportError:  # pragma: no cover
         bar = None
     for epoch in range(cfg.epochs + 1):
@@ -320,9 +355,24 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         if bar is not None:
             bar.update(1)
             bar.set_postfix(color_loss=f"{loss.item():.5f}")
+    timings["stage2_s"] = time.perf_counter() - t1
+
+    # ---- stage 3 (optional): photometric refinement through the reparameterised render
+    photometric = None
+    if cfg.photometric:
+        before = fit_metrics(model, h, w, cfg.pixel_size_mm, rgb, photo_phase)
+        _save_png(os.path.join(folder, "fit_before_photometric.png"), before.pop("fit_rgb"))
+        copy.deepcopy(model).cpu().save(os.path.join(folder, "model_before_photometric"))
+        t2 = time.perf_counter()
+        photometric_stage(model, target_rgb, target_phase, h, w, cfg, rows, start, bar, phase_weight=weight)
+        timings["stage3_s"] = time.perf_counter() - t2
+        after = fit_metrics(model, h, w, cfg.pixel_size_mm, rgb, photo_phase)
+        after.pop("fit_rgb")
+        photometric = {"before": before, "after": after, "seconds": timings["stage3_s"],
+                       "epochs": cfg.photometric_epochs, "levels": list(cfg.photometric_levels),
+                       "spp": cfg.photometric_spp}
     if bar is not None:
         bar.close()
-    timings["stage2_s"] = time.perf_counter() - t1
     ta_io.write_csv(os.path.join(folder, "log.csv"), rows, LOG_FIELDS)
 
     # ---- outputs
@@ -333,6 +383,7 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     visible_rings = int(math.floor(float(g_fit.max())) - math.ceil(float(g_fit.min())) + 1)
     fit_phase = out["phase"].cpu().numpy().astype(np.float32)
     err = np.angle(np.exp(1j * (photo_phase - fit_phase)))
+    final_rms = float(np.sqrt((err.astype(np.float64) ** 2).mean()))
     _save_png(os.path.join(folder, "fit.png"), fit_rgb)
     np.save(os.path.join(folder, "fit_phase.npy"), fit_phase)
     model.cpu().save(os.path.join(folder, "model"))
@@ -354,11 +405,15 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         "photo": os.path.abspath(cfg.photo), "image_hw": [h, w], "rings_traced": len(rings),
         "ring_scale_mm": float(model.ring_scale),
         "mean_ring_width_mm": ring_width, "boundary_lateness": boundary, "initial_phase_rms": rows[0]["phase_rms"],
-        "final_phase_rms": rows[cfg.epochs]["phase_rms"], "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),
+        "stage1_phase_rms": rows[cfg.epochs]["phase_rms"], "final_phase_rms": final_rms,
+        "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),
         "fraction_initial_error_below_half_pi": info.get("fraction_below_half_pi"),
         "ssim_fit_vs_photo": ssim, "timings_s": timings, "epochs": cfg.epochs, "color_epochs": cfg.color_epochs,
         # a wrapped-phase RMS near π/√3 ≈ 1.8 rad is chance level; above ~0.8 rad the rings are not followed
-        "fit_ok": bool(rows[cfg.epochs]["phase_rms"] < POOR_FIT_PHASE_RMS),
+        "fit_ok": bool(final_rms < POOR_FIT_PHASE_RMS),
+        # stage 3: phase RMS, SSIM and latewood contrast before and after (None without --photometric)
+        "photometric": photometric,
+        "latewood_contrast": latewood_contrast(fit_rgb, rgb),
         # ring boundaries (integer G) crossing the board; below MIN_RINGS_FOR_SCALE the scale is a rough guess
         "visible_rings": visible_rings,
         "ring_scale_reliable": bool(visible_rings >= MIN_RINGS_FOR_SCALE),
@@ -377,7 +432,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
             f"board itself is still fitted")
     log(f"fit_wood: {len(rings)} rings, s_r {summary['ring_scale_mm']:.3f} mm, phase RMS "
         f"{summary['initial_phase_rms']:.3f} -> {summary['final_phase_rms']:.3f} rad, SSIM {ssim:.3f}; Gabor "
-        f"{timings['gabor_s']:.1f} s, fit {timings['stage1_s'] + timings['stage2_s']:.1f} s -> {folder}")
+        f"{timings['gabor_s']:.1f} s, fit {timings['stage1_s'] + timings['stage2_s'] + timings.get('stage3_s', 0):.1f}"
+        f" s -> {folder}")
     return summary
 
 
@@ -519,11 +575,16 @@ def _figures(folder, rows, rgb, fit_rgb, err):
 
     s1 = [r for r in rows if r["stage"] == 1]
     s2 = [r for r in rows if r["stage"] == 2]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    s3 = [r for r in rows if r["stage"] == 3]
+    fig, ax = plt.subplots(1, 3 if s3 else 2, figsize=(15 if s3 else 10, 3.6))
     ax[0].plot([r["wall_s"] for r in s1], [r["phase_loss"] for r in s1])
     ax[0].set(xlabel="wall-clock time [s]", ylabel="cyclic phase loss [rad²]", yscale="log", title="stage 1: geometry")
     ax[1].plot([r["wall_s"] for r in s2], [r["color_loss"] for r in s2], color="C1")
     ax[1].set(xlabel="wall-clock time [s]", ylabel="colour MSE (linear RGB)", yscale="log", title="stage 2: colour map")
+    if s3:
+        ax[2].plot([r["wall_s"] for r in s3], [r["photometric_loss"] for r in s3], color="C2")
+        ax[2].set(xlabel="wall-clock time [s]", ylabel="weighted ΔE²/100 + phase anchor + prior", yscale="log",
+                  title="stage 3: photometric (reparameterised)")
     fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "convergence.png"), dpi=110)
 
@@ -540,3 +601,123 @@ def _figures(folder, rows, rgb, fit_rgb, err):
     fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "fit_vs_photo.png"), dpi=110)
     _save_gray(os.path.join(folder, "phase_error.png"), np.abs(err), 0, math.pi, cmap="magma")
+
+
+def latewood_contrast(fit_rgb, photo_rgb):
+    """Latewood contrast of a fitted texture against the photo: the 5–95 % spread of luminance (linear Y, Rec. 709
+    weights) of each, and their ratio fit/photo (1: the fit keeps the photo's early/late contrast; < 1: washed out).
+
+    Args:
+        fit_rgb, photo_rgb: (H, W, 3) linear RGB arrays.
+
+    Returns:
+        dict ``fit_spread``, ``photo_spread``, ``ratio``.
+    """
+    y = np.array([0.2126, 0.7152, 0.0722])
+    spread = [float(np.subtract(*np.percentile(np.asarray(x, np.float64) @ y, [95, 5]))) for x in (fit_rgb, photo_rgb)]
+    return {"fit_spread": spread[0], "photo_spread": spread[1], "ratio": spread[0] / max(spread[1], 1e-12)}
+
+
+def fit_metrics(model, h, w, pixel_size_mm, photo_rgb, photo_phase):
+    """Phase RMS against the photo's (sign-resolved) Gabor phase (rad, unweighted), SSIM of the fit vs the photo and
+    the latewood contrast (:func:`latewood_contrast`) of the model rendered at the photo's size; also ``fit_rgb``
+    (H, W, 3) linear RGB."""
+    from ..metrics import ssim_2d
+
+    with torch.no_grad():
+        out = model.render_board(h, w, pixel_size_mm)
+    fit_rgb = out["image"].clamp(0, 1).cpu().numpy()
+    err = np.angle(np.exp(1j * (np.asarray(photo_phase, np.float64) - out["phase"].cpu().numpy())))
+    return {"phase_rms": float(np.sqrt((err ** 2).mean())), "ssim": float(ssim_2d(fit_rgb, photo_rgb)),
+            "latewood_contrast": latewood_contrast(fit_rgb, photo_rgb), "fit_rgb": fit_rgb}
+
+
+def photometric_stage(model, target_rgb, target_phase, h, w, cfg, rows=None, start=None, bar=None, phase_weight=None):
+    """Stage 3: refine the geometry (rotation, translation, ring scale, distortion) and the colour map jointly
+    against the photo's colours, through :func:`torch_appearance.nn.wood_reparam.reparam_render` so that the moving
+    ring boundaries get their (reparameterised, unbiased) gradient.
+
+    Loss: mean squared CIELAB difference (kornia, D65; the linear render is sRGB-encoded first) / 100 between a
+    Gaussian-filtered render (σ = ½ pixel, ``cfg.photometric_spp`` fresh samples per pixel and step) and the photo
+    area-averaged to the level's resolution, times ``cfg.photometric_weight``, plus ``cfg.smoothness`` × the
+    distortion prior and ``cfg.photometric_anchor`` × the stage-1 cyclic phase loss against ``target_phase``
+    (weights ``phase_weight``, (H, W), default 1), which keeps the rings on the photo's Gabor phase where the colours
+    alone are ambiguous. Coarse to fine over
+    ``cfg.photometric_levels`` (downsampling factors), ``cfg.photometric_epochs`` Adam steps in all; the geometry's
+    learning rates are in ring widths per step (``cfg.photometric_lr``, see ``_phase_normalised_groups``), the colour
+    map's ``cfg.photometric_color_lr`` (clamped to [0, 1]). Pixel (y, x) of the photo is the board point
+    (x·p, y·p) as in :meth:`WoodModel.render_board`; a level-f pixel averages f×f photo pixels and is centred on
+    the mean of their positions. Levels coarser than 4×4 pixels are skipped (with their share of the steps).
+
+    Args:
+        model: the fitted WoodModel (modified in place).
+        target_rgb: (H, W, 3) photo, linear RGB tensor. target_phase: (H, W) its Gabor phase (rad).
+        h, w: photo size; cfg: :class:`WoodFitConfig`; rows: log rows to append to (stage 3); start: the fit's
+            start time (perf_counter); bar: tqdm bar or None.
+
+    Returns:
+        the list of stage-3 log rows.
+    """
+    import kornia
+    import torch.nn.functional as F
+
+    from ..color import linear_to_srgb
+    from ..nn.wood_reparam import pixel_samples, reparam_render
+
+    rows = [] if rows is None else rows
+    start = time.perf_counter() if start is None else start
+    if phase_weight is None:
+        phase_weight = torch.ones_like(target_phase)
+    for p in model.parameters():
+        p.requires_grad_(True)
+    step_cfg = dataclasses.replace(cfg, lr=cfg.photometric_lr)
+    groups = _phase_normalised_groups(model, h, w, step_cfg)
+    if cfg.photometric_color_lr > 0:
+        groups.append({"params": [model.color_map], "lr": cfg.photometric_color_lr, "name": "color_map"})
+    optimizer = torch.optim.Adam(groups)
+    p_mm = cfg.pixel_size_mm
+    levels = list(cfg.photometric_levels)
+    counts = [cfg.photometric_epochs // len(levels) + (i < cfg.photometric_epochs % len(levels))
+              for i in range(len(levels))]
+    photo = target_rgb.permute(2, 0, 1)[None].to(model.dtype)
+    step = 0
+    own = []
+    for f, n_steps in zip(levels, counts):
+        hc, wc = h // f, w // f
+        if hc < 4 or wc < 4:
+            continue
+        target = F.avg_pool2d(photo[..., :hc * f, :wc * f], f) if f > 1 else photo
+        target_lab = kornia.color.rgb_to_lab(linear_to_srgb(target.clamp(0, 1)))
+        px = p_mm * f
+        for _ in range(n_steps):
+            pts, centres = pixel_samples(hc, wc, px, cfg.photometric_spp, cfg.seed * 100003 + step, 0.5,
+                                         dtype=model.dtype)
+            shift = torch.full((2,), -0.5 * p_mm, dtype=model.dtype)  # coarse centre = mean of the photo pixels
+            image = reparam_render(model, hc, wc, px, spp=cfg.photometric_spp, samples=(pts + shift, centres + shift),
+                                   estimator=cfg.photometric_estimator)
+            lab = kornia.color.rgb_to_lab(linear_to_srgb(image.clamp(1e-6, 1)).permute(2, 0, 1)[None])
+            loss = cfg.photometric_weight * ((lab - target_lab) ** 2).mean() / 100.0
+            if cfg.photometric_anchor > 0:
+                loss = loss + cfg.photometric_anchor * phase_loss(model.render_board(h, w, p_mm)["phase"],
+                                                                  target_phase, phase_weight)
+            if cfg.smoothness > 0 and model.m_r is not None:
+                loss = loss + cfg.smoothness * distortion_prior(model)
+            row = {"stage": 3, "epoch": step, "wall_s": time.perf_counter() - start, "photometric_loss": loss.item()}
+            rows.append(row)
+            own.append(row)
+            optimizer.zero_grad(set_to_none=True)
+            if torch.isfinite(loss):
+                loss.backward()
+                optimizer.step()
+            with torch.no_grad():
+                model.color_map.clamp_(0, 1)
+            step += 1
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(photometric_loss=f"{loss.item():.4f}", level=f)
+    with torch.no_grad():
+        out = model.render_board(h, w, p_mm)
+        rms = float(torch.sqrt((wrap(target_phase - out["phase"]) ** 2).mean()))
+    if own:
+        own[-1]["phase_rms"] = rms
+    return own
