@@ -213,8 +213,8 @@ class ObjectTarget:
         """(N, 3) texel colours (or the image of ``sensor``, e.g. a camera) of a printer-resolution index volume
         (VOID outside), rendered with the object's boundary resampled to the micro grid. The tracer reads the
         uint8 volume and the ink table (:func:`~torch_appearance.render.render_scene_indexed`; VOID voxels cut by
-        the surface take a printed neighbour's ink, those wholly outside ink 0, as in :meth:`quantized_medium`): the same image as the dense σ_t/albedo of :meth:`quantized_medium` without
-        their 24 bytes per micro voxel."""
+        the surface take a printed neighbour's ink, those wholly outside ink 0, as in :meth:`quantized_medium`):
+        the same image as the dense σ_t/albedo of :meth:`quantized_medium` without their 24 bytes per micro voxel."""
         dz, hy, wx = indices.shape
         sdf = self.micro_sdf((dz, hy, wx))
         index = fill_void_at_surface(indices, sdf)  # see quantized_medium
