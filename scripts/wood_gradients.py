@@ -13,7 +13,7 @@ image (common samples, high sample count): z-tests with a Bonferroni threshold, 
 --param takes parameter specs: ring_scale (d/ds_r, per mm), rotation[i] (per rad), translation[i] (per mm),
 m_r[row,col] (per mm of that distortion texel), color_map[ring,bin,channel]; several may be given.
 
-With --cylinder-radius-mm R the face is bent into the lamp shade's curved surface instead (ring_scale only): a
+With --cylinder-radius-mm R the face is bent into the lamp shade's curved surface instead: a
 cylinder of radius R (axis along the image columns' direction, through the image centre) seen from the side,
 Lambert-shaded from the camera on a black background; the warp follows the rings on the curved surface and vanishes
 at its silhouette.
@@ -44,8 +44,8 @@ from tqdm import tqdm
 
 from torch_appearance import io as ta_io
 from torch_appearance.nn import WoodModel
-from torch_appearance.nn.wood_reparam import (CylinderView, compare_parameter_gradients, compare_ring_scale_gradients,
-                                              parse_parameter, render_filtered)
+from torch_appearance.nn.wood_reparam import (CylinderView, compare_parameter_gradients, parse_parameter,
+                                              render_filtered)
 
 
 def demo_model():
@@ -84,7 +84,7 @@ def parse_args(argv=None):
     p.add_argument("--block", type=int, default=4, help="pixel block of the z-tests (default: %(default)s)")
     p.add_argument("--cylinder-radius-mm", type=float, default=None, metavar="R",
                    help="render the curved surface of a cylinder of radius R mm (axis through the image centre, "
-                        "along the columns) instead of the flat face; --param ring_scale only")
+                        "along the columns) instead of the flat face")
     p.add_argument("--quiet", action="store_true")
     return p.parse_args(argv)
 
@@ -140,24 +140,16 @@ def main(argv=None):
         h, w = args.size
         surface = None
         if args.cylinder_radius_mm is not None:
-            if list(args.param) != ["ring_scale"]:
-                raise ValueError(f"--param: the cylinder (--cylinder-radius-mm) takes ring_scale only, got "
-                                 f"{list(args.param)}")
             surface = CylinderView(args.cylinder_radius_mm, 0.5 * w * args.pixel_mm)
         os.makedirs(args.out, exist_ok=True)
         results, seconds = {}, {}
         with tqdm(total=len(args.param) * (1 + 2 * args.seeds), desc="wood_gradients", disable=args.quiet) as bar:
             for spec in args.param:
                 t0 = time.perf_counter()
-                if surface is not None:
-                    results[spec] = compare_ring_scale_gradients(
-                        model, h, w, args.pixel_mm, spp=args.spp, seeds=args.seeds, fd_spp=args.fd_spp,
-                        h_rel=0.002 if args.fd_h is None else args.fd_h, block=args.block,
-                        progress=lambda: bar.update(1), surface=surface)
-                else:
-                    results[spec] = compare_parameter_gradients(model, spec, h, w, args.pixel_mm, spp=args.spp,
-                                                                seeds=args.seeds, fd_spp=args.fd_spp, h=args.fd_h,
-                                                                block=args.block, progress=lambda: bar.update(1))
+                results[spec] = compare_parameter_gradients(model, spec, h, w, args.pixel_mm, spp=args.spp,
+                                                            seeds=args.seeds, fd_spp=args.fd_spp, h=args.fd_h,
+                                                            block=args.block, progress=lambda: bar.update(1),
+                                                            surface=surface)
                 seconds[spec] = round(time.perf_counter() - t0, 1)
         render = render_filtered(model, h, w, args.pixel_mm, spp=64, surface=surface)
     except (ValueError, TypeError) as error:

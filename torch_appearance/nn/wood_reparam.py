@@ -99,7 +99,9 @@ class CylinderView:
         r = self.radius
         dx = pts[:, 0] - self.axis
         hit = dx.abs() < r
-        depth = torch.sqrt((r * r - dx * dx).clamp_min(0.0))                  # differentiable in x where hit
+        inner = r * r - dx * dx
+        # differentiable in x where hit; no 0·∞ = NaN in the gradients of the samples that miss
+        depth = torch.where(hit, torch.sqrt(torch.where(hit, inner, torch.ones_like(inner))), torch.zeros_like(dx))
         q = torch.stack([pts[:, 0], pts[:, 1], depth - r], -1)
         return q, torch.where(hit, depth / r, torch.zeros_like(depth)), hit
 
@@ -334,17 +336,20 @@ class _Field(torch.nn.Module):
     torch.func.functional_call with live or detached parameters). The colour's ring index is ⌊G⌋ of the detached G;
     its lateness G − ⌊G⌋ is live."""
 
-    def __init__(self, model):
+    def __init__(self, model, surface=None):
         super().__init__()
         self.model = model
+        self.surface = surface
 
     def forward(self, points, what):
         m = self.model
-        G = m._field(m.board_to_tree(points))[0]
+        q, shade, hit = _surface_points(self.surface, points)
+        G = m._field(m.board_to_tree(q))[0]
         if what == "G":
-            return G
+            return G if hit is None else torch.where(hit, G, torch.zeros_like(G))
         floor_g = torch.floor(G.detach())
-        return m._colour(floor_g.long(), G - floor_g)
+        rgb = m._colour(floor_g.long(), G - floor_g)
+        return rgb if shade is None else rgb * shade.to(rgb.dtype)[:, None]
 
 
 def _param_dicts(model, parameters):
@@ -362,9 +367,9 @@ def _param_dicts(model, parameters):
     return live, {k: v.detach() for k, v in live.items()}
 
 
-def _reparam_pixels(model, pts, centres, spp, sigma_mm, estimator, baseline, parameters):
+def _reparam_pixels(model, pts, centres, spp, sigma_mm, estimator, baseline, parameters, surface=None):
     """Per-pixel values (P, 3) of the estimator from samples (P·spp, 2) drawn around ``centres`` (pixel-major)."""
-    wrapper = _Field(model)
+    wrapper = _Field(model, surface)
     live, det = _param_dicts(model, parameters)
 
     def call(prm, p, what):
@@ -378,11 +383,15 @@ def _reparam_pixels(model, pts, centres, spp, sigma_mm, estimator, baseline, par
         g_det = call(det, x, "G")                                      # G(x; sg θ), live in x only
         (grad,) = torch.autograd.grad(g_det.sum(), x, create_graph=True)
         n2 = (grad * grad).sum(-1, keepdim=True)
-        if bool((n2.detach() <= 0).any()):
+        # samples that miss a curved surface do not move (V = 0; the shade is 0 at its silhouette)
+        hit = (torch.ones_like(n2, dtype=torch.bool) if surface is None
+               else (surface(x.detach())[2][:, None] & torch.isfinite(n2.detach())))
+        if bool((hit & ~(n2.detach() > 0)).any()):
             raise ValueError("model: ∇G = 0 at a sample (the pith is on the board); the warp is undefined there")
         g_live = call(live, x, "G")                                    # G(x; θ)
         # Δ = −(G(x; θ) − G(x; sg θ)) ∇G/|∇G|²: zero for every x, ∂Δ/∂θ = V (the boundary velocity)
-        delta = -(g_live - g_det)[:, None] * (grad / n2)
+        direction = torch.where(hit, grad, torch.zeros_like(grad)) / torch.where(hit, n2, torch.ones_like(n2))
+        delta = -(g_live - g_det)[:, None] * direction
         div = sum(torch.autograd.grad(delta[:, a].sum(), x, create_graph=True)[0][:, a] for a in range(2))
         xw = x + delta
         log_f = -((xw - centres.to(xw.dtype)) ** 2).sum(-1) / (2 * sigma_mm ** 2)
@@ -398,8 +407,8 @@ def _reparam_pixels(model, pts, centres, spp, sigma_mm, estimator, baseline, par
 
 
 def reparam_render(model, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0.5, estimator="reparam",
-                   baseline=True, parameters=None, samples=None):
-    """Gaussian-filtered Monte Carlo render of the board face whose autograd gradient includes the boundary term of
+                   baseline=True, parameters=None, samples=None, surface=None):
+    """Gaussian-filtered Monte Carlo render of the board face (or a curved ``surface``) whose autograd gradient includes the boundary term of
     every parameter that moves the ring boundaries (ring scale, rotation, translation, m_r, m_t), plus the colour map.
 
     Each filter sample x is warped by Δ(x; θ) = −(G(x; θ) − G(x; sg θ))·∇G/|∇G|² (sg: parameters detached), which is
@@ -426,6 +435,8 @@ def reparam_render(model, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0
         parameters: optional dict name → tensor replacing model parameters (e.g. a distortion texture built from a
             coarse-to-fine pyramid), with the model's shapes; gradients flow into these tensors.
         samples: optional (points (H·W·spp, 2), centres (H·W·spp, 2)) mm to use instead of drawing them.
+        surface: None (the flat face) or a curved view such as :class:`CylinderView`: the warp follows G∘S and the
+            shade is evaluated at the warped point, so its own change along the warp is included.
 
     Returns:
         (H, W, 3) image in the model's dtype (linear RGB), differentiable w.r.t. the (live) parameters.
@@ -442,7 +453,7 @@ def reparam_render(model, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0
     if tuple(pts.shape) != (height * width * spp, 2) or tuple(centres.shape) != tuple(pts.shape):
         raise ValueError(f"samples: expected two tensors of shape {(height * width * spp, 2)}, "
                          f"got {tuple(pts.shape)} and {tuple(centres.shape)}")
-    out = _reparam_pixels(model, pts, centres, spp, sigma_px * pixel_mm, estimator, baseline, parameters)
+    out = _reparam_pixels(model, pts, centres, spp, sigma_px * pixel_mm, estimator, baseline, parameters, surface)
     return out.reshape(height, width, 3)
 
 
@@ -477,7 +488,7 @@ def parse_parameter(model, spec):
 
 
 def parameter_gradient(model, param, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0.5,
-                       estimator="reparam", baseline=True, block=1, blocks_per_pass=None):
+                       estimator="reparam", baseline=True, block=1, blocks_per_pass=None, surface=None):
     """dI/dθ for scalar parameters θ (``param``: one spec or a list, see :func:`parse_parameter`) by autograd
     through :func:`reparam_render`: Jacobian columns of the image (or of its ``block``×``block`` block means) from
     one batched backward pass per group of blocks (each pixel depends on its own samples only), all listed
@@ -518,7 +529,7 @@ def parameter_gradient(model, param, height, width, pixel_mm, *, spp=16, seed=0,
         for i in range(0, n_blocks, blocks_per_pass):
             j = min(i + blocks_per_pass, n_blocks)
             vals = _reparam_pixels(model, pts[i:j].reshape(-1, 2), centres[i:j].reshape(-1, 2), spp, sigma,
-                                   estimator, baseline, None)
+                                   estimator, baseline, None, surface)
             vals = vals.reshape(j - i, block * block, 3).mean(1)
             eye = torch.eye(vals.numel(), dtype=vals.dtype).reshape(-1, *vals.shape)
             grads = torch.autograd.grad(vals, targets, grad_outputs=eye, is_grads_batched=True, allow_unused=True)
@@ -540,7 +551,8 @@ def _perturbed(model, name, index, step):
     return m
 
 
-def parameter_gradient_fd(model, param, height, width, pixel_mm, *, spp=4096, seed=0, sigma_px=0.5, h=None):
+def parameter_gradient_fd(model, param, height, width, pixel_mm, *, spp=4096, seed=0, sigma_px=0.5, h=None,
+                          surface=None):
     """Central finite differences of the filtered image in one scalar parameter, common samples.
 
     ``h``: step in the parameter's units (relative for ``ring_scale``); default moves the ring boundaries by about
@@ -557,7 +569,7 @@ def parameter_gradient_fd(model, param, height, width, pixel_mm, *, spp=4096, se
     if name == "log_ring_scale":
         h = 0.002 if h is None else h
         mean, se = ring_scale_gradient_fd(model, height, width, pixel_mm, spp=spp, seed=seed, sigma_px=sigma_px,
-                                          h_rel=h)
+                                          h_rel=h, surface=surface)
         step = h * float(model.ring_scale.detach())
     else:
         s_r = float(model.ring_scale.detach())
@@ -567,7 +579,7 @@ def parameter_gradient_fd(model, param, height, width, pixel_mm, *, spp=4096, se
         pts, _ = pixel_samples(height, width, pixel_mm, spp, seed, sigma_px)
         up, down = _perturbed(model, name, index, h), _perturbed(model, name, index, -h)
         with torch.no_grad():
-            d = (_colour(up, pts) - _colour(down, pts)) / (2 * h)
+            d = (_colour(up, pts, surface) - _colour(down, pts, surface)) / (2 * h)
         d = d.reshape(height, width, spp, 3)
         mean, se = d.mean(2), d.std(2) / math.sqrt(spp)
         step = h
@@ -579,7 +591,7 @@ def parameter_gradient_fd(model, param, height, width, pixel_mm, *, spp=4096, se
 
 
 def compare_parameter_gradients(model, param, height, width, pixel_mm, *, spp=16, seeds=32, fd_spp=4096, h=None,
-                                block=4, sigma_px=0.5, family_alpha=1e-3, progress=None):
+                                block=4, sigma_px=0.5, family_alpha=1e-3, progress=None, surface=None):
     """:func:`compare_ring_scale_gradients` for any scalar parameter (``param``, see :func:`parse_parameter`): the
     autograd gradient through :func:`reparam_render` (``reparam``) and through the fixed samples (``naive``) against
     central finite differences, z-tests per pixel block. Same statistics as :func:`compare_ring_scale_gradients`, but
@@ -594,7 +606,7 @@ def compare_parameter_gradients(model, param, height, width, pixel_mm, *, spp=16
         raise ValueError(f"block: expected at most min(height, width) = {min(height, width)}, got {block}")
     tick = progress if progress is not None else (lambda: None)
     fd, fd_se = parameter_gradient_fd(model, param, height, width, pixel_mm, spp=fd_spp, seed=10 ** 6,
-                                      sigma_px=sigma_px, h=h)
+                                      sigma_px=sigma_px, h=h, surface=surface)
     tick()
     result = {"fd": fd, "fd_se": fd_se}
     z_thr = float(norm.isf(family_alpha / (2 * hb * wb * 3)))
@@ -609,7 +621,7 @@ def compare_parameter_gradients(model, param, height, width, pixel_mm, *, spp=16
         runs = []
         for k in range(seeds):
             runs.append(parameter_gradient(model, param, height, width, pixel_mm, spp=spp, seed=k, sigma_px=sigma_px,
-                                           estimator=name, block=block))
+                                           estimator=name, block=block, surface=surface))
             tick()
         runs = torch.stack(runs)
         b_mean, b_se = runs.mean(0), runs.std(0) / math.sqrt(seeds)
