@@ -37,3 +37,25 @@ def assert_z(estimate, stderr, expected, *, n_tests=None, family_alpha=1e-3, wha
         f"estimate {float(estimate.flatten()[worst]):.6g} ± {float(stderr.flatten()[worst]):.3g}, "
         f"expected {float(expected.flatten()[worst]):.6g}")
     return float(z.max())
+
+
+@pytest.fixture
+def walk_kernel():
+    """``walk_kernel(mode)`` selects the slab walk for the rest of a test: 0 the scalar walk, 1 the AVX2 walk of
+    eight lanes (csrc/volpath/slab_simd.h), -1 automatic (the default); restored afterwards."""
+    from torch_appearance._ext import _C
+    before = _C._set_simd(-1)
+    _C._set_simd(-1)
+
+    def select(mode):
+        _C._set_simd(mode)
+
+    yield select
+    _C._set_simd(-1 if before else 0)
+
+
+def avx2_walk_available():
+    """Whether the AVX2 slab walk can run here (the CPU has AVX2 and TA_SIMD is not 0); leaves it automatic."""
+    from torch_appearance._ext import _C
+    _C._set_simd(-1)
+    return bool(_C._set_simd(-1))

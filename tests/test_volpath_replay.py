@@ -4,6 +4,7 @@ The single walk records each path's events in a per-thread tape and deposits the
 a path that does not fit the tape is walked twice (the two-pass replay). Both must give bitwise the same gradients
 (same expressions, operands and order). ``_C._set_tape_capacity(0)`` sends every path through the two-pass replay,
 a small capacity mixes both, so each comparison below checks the tape deposit against an independent code path.
+All of it is the scalar walk's (the AVX2 slab walk is tested against it in test_volpath_simd.py).
 """
 import math
 
@@ -13,6 +14,11 @@ import torch
 import torch_appearance as ta
 from torch_appearance._ext import _C
 from torch_appearance.render import DiscLight, OrthographicCamera, Scene, SDFBoundary
+
+
+@pytest.fixture(autouse=True)
+def _scalar_walk(walk_kernel):
+    walk_kernel(0)
 
 
 @pytest.fixture

@@ -7,10 +7,14 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstddef>
+#include <cstdlib>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "core/integrator.h"
+#include "volpath/slab_simd.h"
 
 namespace ta {
 namespace volpath {
@@ -303,12 +307,130 @@ int64_t num_chunks(int64_t n) {
   return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), blocks));
 }
 
+// ---- the AVX2 slab walk (slab_simd.h): eight paths per thread at once where the scene allows it
+using TapeSegmentF1 = core::TapeSegment<float, 1>;
+using TapeCollisionF1 = core::TapeCollision<float, 1>;
+static_assert(sizeof(simd::TapeSegmentF) == sizeof(TapeSegmentF1) &&
+                  offsetof(simd::TapeSegmentF, len) == offsetof(TapeSegmentF1, len),
+              "the AVX2 walk's tape segments must match core::TapeSegment<float, 1>");
+static_assert(sizeof(simd::TapeCollisionF) == sizeof(TapeCollisionF1) &&
+                  offsetof(simd::TapeCollisionF, seg_end) == offsetof(TapeCollisionF1, seg_end) &&
+                  offsetof(simd::TapeCollisionF, sref) == offsetof(TapeCollisionF1, sref) &&
+                  offsetof(simd::TapeCollisionF, fs) == offsetof(TapeCollisionF1, fs) &&
+                  offsetof(simd::TapeCollisionF, fa) == offsetof(TapeCollisionF1, fa),
+              "the AVX2 walk's tape collisions must match core::TapeCollision<float, 1>");
+
+bool cpu_has_avx2() {
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2");
+}
+
+// -1: not decided yet (the CPU and TA_SIMD decide at first use); 0 off; 1 on. set_simd (tests, benchmarks) overrides.
+std::atomic<int> g_simd{-1};
+
+bool simd_enabled() {
+  int v = g_simd.load();
+  if (v < 0) {
+    const char* env = std::getenv("TA_SIMD");
+    v = (env && env[0] == '0') ? 0 : (cpu_has_avx2() ? 1 : 0);
+    g_simd.store(v);
+  }
+  return v == 1;
+}
+
+constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the AVX2 walk
+constexpr int64_t kSimdSegments = int64_t(1) << 16;  // tape entries per lane (longer paths: scalar replay)
+
+// Whether the AVX2 slab walk serves this scene: float32 dense grids, box boundary, face texels, constant emitter.
+template <typename T, int LANES, int B, bool HERO>
+bool simd_serves(const Scene<T>& S) {
+  if constexpr (!std::is_same_v<T, float> || LANES != 1 || B != core::kBoxBoundary || HERO) {
+    return false;
+  } else {
+    const auto& M = S.medium;
+    return simd_enabled() && S.sensor.kind == core::kFaceTexels && S.emitter.kind == core::kConstant &&
+           M.sigma_t.index == nullptr && M.albedo.index == nullptr && M.ref_sigma_t.index == nullptr &&
+           M.ref_albedo.index == nullptr && M.sigma_t.plain && M.albedo.plain && 3 * M.voxels() < (int64_t(1) << 31);
+  }
+}
+
+simd::SlabWalkScene simd_scene(const Scene<float>& S) {
+  simd::SlabWalkScene W;
+  const auto& M = S.medium;
+  W.sigma_t = M.sigma_t.data;
+  W.albedo = M.albedo.data;
+  W.ref_sigma_t = M.ref_sigma_t.data;
+  W.ref_albedo = M.ref_albedo.data;
+  W.ref_sigma_t_floor = M.ref_sigma_t.plain ? 0.0f : M.ref_sigma_t.floor;
+  W.ref_albedo_floor = M.ref_albedo.plain ? 0.0f : M.ref_albedo.floor;
+  W.D = int32_t(M.D);
+  W.H = int32_t(M.H);
+  W.W = int32_t(M.W);
+  for (int a = 0; a < 3; ++a) W.voxel[a] = M.voxel[a];
+  W.g = S.g;
+  W.ior = S.ior;
+  W.face = S.sensor.face;
+  W.seed = S.seed;
+  W.max_depth = S.max_depth;
+  W.rr_depth = S.rr_depth;
+  W.spp = S.spp;
+  return W;
+}
+
+// Forward of one chunk with the AVX2 walk: per batch of elements, every path's value, then the per-element sums in
+// sample order (as the scalar kernel adds them, so the image does not depend on the order the lanes finish in).
+template <bool DIEL, bool RATIO>
+ForwardCounts simd_forward_chunk(const Scene<float>& S, float* out, int64_t c, int64_t nchunks, const Share& share) {
+  simd::SlabWalkScene W = simd_scene(S);
+  W.dielectric = DIEL;
+  struct Ctx {
+    std::vector<float> values;
+    int64_t ev = 0, cut = 0;
+  } ctx;
+  std::vector<int64_t> elems;
+  elems.reserve(kSimdBatch);
+  ForwardCounts counts;
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
+    ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
+    simd::slab_walks_avx2(W, elems.data(), nullptr, n, RATIO, false, 0, 0,
+                          [](void* p, const simd::WalkOut& o) {
+                            auto* x = static_cast<Ctx*>(p);
+                            x->values[size_t(o.item)] = o.value;
+                            x->ev += o.scatter_events;
+                            x->cut += o.truncated;
+                          },
+                          &ctx);
+    for (int64_t k = 0; k < n; ++k) {
+      double acc[3] = {0, 0, 0};
+      for (int64_t s = 0; s < S.spp; ++s)
+        for (int ch = 0; ch < 3; ++ch) acc[ch] += double(ctx.values[size_t((k * S.spp + s) * 3 + ch)]);
+      for (int ch = 0; ch < 3; ++ch)
+        out[elems[k] * 3 + ch] = float(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp));
+    }
+    elems.clear();
+  };
+  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+    elems.push_back(t);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  counts.scatter_events = ctx.ev;
+  counts.truncated_paths = ctx.cut;
+  return counts;
+}
+
 template <typename T, int LANES, int B, bool DIEL, bool RATIO, bool HERO>
 ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
   const int64_t nchunks = num_chunks(share.count);
   const bool constant = S.emitter.kind == core::kConstant;
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
+  if (simd_serves<T, LANES, B, HERO>(S)) {
+    if constexpr (std::is_same_v<T, float>)
+      for_each_chunk(nchunks, [&](int64_t c) { counts[c] = simd_forward_chunk<DIEL, RATIO>(S, out, c, nchunks, share); });
+  } else {
   for_each_chunk(nchunks, [&](int64_t c) {
     int64_t ev = 0, cut = 0;
     for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
@@ -346,6 +468,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
     });
     counts[c] = {ev, cut};
   });
+  }
   ForwardCounts total;
   for (const auto& k : counts) {
     total.scatter_events += k.scatter_events;
@@ -409,6 +532,75 @@ inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* 
   return r1.scatter_events + r2.scatter_events;
 }
 
+// Gradient replay of one chunk with the AVX2 walk: the lanes record their paths' tapes, and each path is deposited
+// (deposit_tape, as the scalar replay) when it ends; a path longer than its lane's tape is replayed by the scalar
+// code from the start (walk and deposit), so every deposit belongs to the walk that produced its weight.
+template <bool DIEL>
+int64_t simd_backward_chunk(const Scene<float>& S, const float* grad_out, const Adjoint<float>& A,
+                            TapeStore<float, 1>& store, int64_t c, int64_t nchunks, const Share& share) {
+  simd::SlabWalkScene W = simd_scene(S);
+  W.dielectric = DIEL;
+  const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
+  struct Ctx {
+    const Scene<float>* S;
+    const float* grad_out;
+    const Adjoint<float>* A;
+    TapeStore<float, 1>* store;
+    const int64_t* elems;
+    int64_t ev = 0;
+  } ctx{&S, grad_out, &A, &store, nullptr};
+  std::vector<int64_t> elems;
+  std::vector<uint8_t> live;
+  elems.reserve(kSimdBatch);
+  live.reserve(kSimdBatch);
+  const bool constant = S.emitter.kind == core::kConstant;
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    ctx.elems = elems.data();
+    simd::slab_walks_avx2(
+        W, elems.data(), live.data(), int64_t(elems.size()), true, true, seg_cap, seg_cap / 2,
+        [](void* p, const simd::WalkOut& o) {
+          auto* x = static_cast<Ctx*>(p);
+          const Scene<float>& S = *x->S;
+          const int64_t spp = S.spp;
+          const int ch = int(o.item % 3);
+          const int64_t s = (o.item / 3) % spp, t = x->elems[o.item / (3 * spp)];
+          const float* g = x->grad_out + t * 3;
+          x->ev += o.scatter_events;
+          if (o.overflow) {  // too long for the lane's tape: the scalar replay walks it again and deposits
+            x->ev += replay<float, 1, core::kBoxBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store);
+            return;
+          }
+          if (!o.escaped) return;
+          const float adj[1] = {g[ch] * S.emitter.radiance[ch] / float(spp)};
+          if (adj[0] == 0.0f) return;
+          core::Tape<float, 1> tape;
+          tape.segs = reinterpret_cast<core::TapeSegment<float, 1>*>(const_cast<simd::TapeSegmentF*>(o.segs));
+          tape.cols = reinterpret_cast<core::TapeCollision<float, 1>*>(const_cast<simd::TapeCollisionF*>(o.cols));
+          tape.nseg = o.nseg;
+          tape.ncol = o.ncol;
+          const float value[1] = {o.value}, prod[1] = {o.prod_nonzero};
+          const int zeros[1] = {o.zeros};
+          core::deposit_tape<float, 1>(tape, value, prod, zeros, ch, adj, *x->A, S.medium.voxels());
+        },
+        &ctx);
+    elems.clear();
+    live.clear();
+  };
+  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+    const float* g = grad_out + t * 3;
+    uint8_t bitsv = 0;
+    for (int ch = 0; ch < 3; ++ch)
+      if (g[ch] != 0.0f && !(constant && S.emitter.radiance[ch] == 0.0f)) bitsv |= uint8_t(1 << ch);
+    if (!bitsv) return;
+    elems.push_back(t);
+    live.push_back(bitsv);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  return ctx.ev;
+}
+
 template <typename T, int LANES, int B, bool DIEL, bool HERO>
 int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share) {
   const int64_t nchunks = num_chunks(share.count);
@@ -429,6 +621,12 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     }
     int64_t ev = 0;
     TapeStore<T, LANES> store;
+    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
+      if (simd_serves<T, LANES, B, HERO>(S)) {
+        events[c] = simd_backward_chunk<DIEL>(S, grad_out, A, store, c, nchunks, share);
+        return;
+      }
+    }
     for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
       const T* g = grad_out + t * 3;
       bool live[3], any = false;  // channels whose paths can carry a derivative
@@ -519,6 +717,14 @@ std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
 }
 
 }  // namespace
+
+int64_t set_simd(int64_t mode) {
+  TORCH_CHECK(mode >= -1 && mode <= 1, "mode: expected -1 (automatic), 0 (off) or 1 (on), got ", mode);
+  TORCH_CHECK(mode != 1 || cpu_has_avx2(), "mode: this CPU has no AVX2");
+  const int before = simd_enabled() ? 1 : 0;
+  g_simd.store(int(mode));
+  return before;
+}
 
 int64_t set_tape_capacity(int64_t segments) {
   TORCH_CHECK(segments >= 0, "segments: expected >= 0, got ", segments);

@@ -1,0 +1,76 @@
+// The slab walk eight paths at a time (AVX2): the hot loop of print optimisation on slabs (box boundary, face texels,
+// one walk per colour channel, constant environment) as a wavefront of eight independent walks, one per SIMD lane.
+// A lane whose path ends takes the next path of its batch, so the lanes stay busy while paths differ in length.
+//
+// Same estimator, same random numbers (Philox4x32-10 keyed as in core/rng.h, counter (element, sample, channel,
+// event)) and the same event order as core::trace_path<float, 1, kBoxBoundary, ...>; what differs is the last bits of
+// log, sin and cos (polynomials here, libm there), so a path may part from its scalar twin after many events, never
+// in distribution. Selected at run time where the CPU has AVX2 (and TA_SIMD is not 0); otherwise the scalar walk runs.
+//
+// This header is plain C++ (no torch, no std::): the AVX2 translation unit includes nothing that could be
+// instantiated there and linked into scalar code.
+#pragma once
+
+#include <stdint.h>
+
+namespace ta {
+namespace simd {
+
+// One channel-planar (3, D, H, W) float32 grid pair and the reference (sampling) pair read as max(ref, floor).
+struct SlabWalkScene {
+  const float* sigma_t = nullptr;
+  const float* albedo = nullptr;
+  const float* ref_sigma_t = nullptr;
+  const float* ref_albedo = nullptr;
+  float ref_sigma_t_floor = 0, ref_albedo_floor = 0;
+  int32_t D = 0, H = 0, W = 0;  // 3·D·H·W < 2^31
+  float voxel[3] = {1, 1, 1};   // x, y, z edges (mm)
+  float g = 0;                  // Henyey–Greenstein
+  float ior = 1;                // with dielectric
+  bool dielectric = false;
+  int face = 0;                 // 0 top, 1 bottom, 2 both
+  uint64_t seed = 0;
+  int64_t max_depth = 1, rr_depth = 0;
+  int64_t spp = 1;
+};
+
+// Layout-compatible with core::TapeSegment<float, 1> and core::TapeCollision<float, 1> (checked where both are seen).
+struct TapeSegmentF {
+  int64_t v;
+  float len;
+};
+struct TapeCollisionF {
+  int64_t v;
+  int64_t seg_end;
+  float sref, inv_psq, fs, fa;
+};
+
+// A finished path. `item` = (k·spp + sample)·3 + channel for the k-th element of the batch.
+struct WalkOut {
+  int64_t item;
+  float value;         // V / L_e (0 unless escaped)
+  float prod_nonzero;  // product of the non-zero factors (RATIO)
+  int32_t zeros;       // exactly-zero factors (RATIO)
+  bool escaped, truncated;
+  int64_t scatter_events;
+  // RECORD: the path's tape (valid during the callback), overflow when it did not fit
+  const TapeSegmentF* segs;
+  const TapeCollisionF* cols;
+  int64_t nseg, ncol;
+  bool overflow;
+};
+
+typedef void (*WalkDone)(void* ctx, const WalkOut& out);
+
+// Whether this CPU runs the AVX2 walk (and TA_SIMD is not set to 0).
+bool slab_simd_available();
+
+// Walks every path of a batch: for each element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the
+// channels whose bit is set in live[k] (all three when live is null). `ratio`: weights f/p_ref (the replay);
+// `record`: tapes for the replay's deposit (needs ratio), `seg_cap`/`col_cap` entries per lane. Calls done() once per
+// path, in the order the paths end.
+void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                     bool record, int64_t seg_cap, int64_t col_cap, WalkDone done, void* ctx);
+
+}  // namespace simd
+}  // namespace ta

@@ -1,0 +1,130 @@
+"""The AVX2 slab walk (csrc/volpath/slab_simd_avx2.cpp) against the scalar walk (core/integrator.h).
+
+Both draw the same random numbers (Philox, counter (texel, sample, channel, event)) in the same event order and apply
+the same estimator; the AVX2 walk only computes log, sin, cos and a few quotients in a different way, to the last
+bit. So a path and its scalar twin take the same voxels and events, the images agree texel by texel (they are
+bitwise equal here), the event counts agree, and the gradients agree to float rounding. A wrong event order, a
+missed boundary case or a wrong weight would part the paths and show up as differences of order one.
+"""
+import pytest
+import torch
+
+import torch_appearance as ta
+from torch_appearance._ext import _C
+
+from conftest import avx2_walk_available
+
+pytestmark = pytest.mark.skipif(not avx2_walk_available(), reason="needs a CPU with AVX2 (or TA_SIMD is 0)")
+
+
+def _medium(shape, seed=3):
+    """A chromatic float32 medium with exact zeros (σ_t = 0: the floored reference; α = 0: zero-safe weights)."""
+    gen = torch.Generator().manual_seed(seed)
+    sigma_t = torch.rand((3, *shape), generator=gen, dtype=torch.float64) * 20 + 1
+    albedo = torch.rand((3, *shape), generator=gen, dtype=torch.float64) * 0.3 + 0.7
+    sigma_t[:, 0, 0, :2] = 0.0
+    albedo[:, -1, 1, 1:3] = 0.0
+    return sigma_t.float(), albedo.float()
+
+
+def _run(walk_kernel, mode, sigma_t, albedo, threads=2, **kwargs):
+    """(image, grad σ_t, grad albedo, stats) of render_texels with the walk `mode` (0 scalar, 1 AVX2)."""
+    walk_kernel(mode)
+    torch.set_num_threads(threads)
+    s = sigma_t.clone().requires_grad_()
+    a = albedo.clone().requires_grad_()
+    stats = {}
+    image = ta.render_texels(s, a, voxel_size=0.1, stats=stats, **kwargs)
+    weights = torch.linspace(-1.0, 2.0, image.numel()).reshape(image.shape)
+    (image * weights).sum().backward()
+    return image.detach(), s.grad, a.grad, stats
+
+
+def _assert_twins(simd, scalar, grad_rtol=1e-3, replay_events=True):
+    image_s, image_c = simd[0], scalar[0]
+    # texel by texel: equal up to float rounding of the weights (exp, log: a few ulp per event)
+    same = float(((image_s - image_c).abs() <= 1e-5 * image_c.abs().clamp_min(1e-3)).float().mean())
+    assert same >= 0.99, f"only {same:.3f} of the texel values are the scalar walk's"
+    assert float((image_s - image_c).abs().max()) < 0.05
+    for key in ("scatter_events", "truncated_paths"):
+        a, b = simd[3][key], scalar[3][key]
+        assert abs(a - b) <= 1e-3 * max(b, 1000), f"{key}: AVX2 {a} vs scalar {b}"
+    if replay_events:
+        a, b = simd[3]["backward_scatter_events"], scalar[3]["backward_scatter_events"]
+        assert abs(a - b) <= 1e-3 * b, f"backward_scatter_events: AVX2 {a} vs scalar {b}"
+    for k, name in ((1, "sigma_t"), (2, "albedo")):
+        g_s, g_c = simd[k], scalar[k]
+        assert bool(torch.isfinite(g_s).all())
+        rel = float((g_s - g_c).abs().sum() / g_c.abs().sum())
+        assert rel <= grad_rtol, f"grad {name}: relative L1 difference {rel:.3g}"
+
+
+@pytest.mark.parametrize("face,ior", [("top", 1.5), ("bottom", 1.3), ("both", None)])
+def test_avx2_walk_is_the_scalar_walk(walk_kernel, face, ior):
+    sigma_t, albedo = _medium((6, 11, 13))
+    kw = dict(face=face, ior=ior, g=0.3, spp=8, seed=5)
+    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
+    _assert_twins(simd, scalar)
+
+
+def test_avx2_walk_cut_by_depth_and_roulette(walk_kernel):
+    """max_depth cuts (counted, contributing 0) and Russian roulette from the first interaction on."""
+    sigma_t, albedo = _medium((8, 9, 9), seed=4)
+    kw = dict(face="top", ior=1.5, g=-0.2, spp=8, seed=9, max_depth=12, rr_depth=0)
+    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
+    assert scalar[3]["truncated_paths"] > 100  # the cut is exercised
+    _assert_twins(simd, scalar)
+
+
+def test_avx2_walk_with_explicit_sampling_medium(walk_kernel):
+    """Ratio weights f/p_ref ≠ 1 in the forward and the replay (a sampling medium unlike the parameters)."""
+    sigma_t, albedo = _medium((5, 8, 8), seed=6)
+    ref_s = (sigma_t * 0.7 + 2.0).detach()
+    ref_a = (albedo * 0.5 + 0.4).clamp(max=1.0).detach()
+    kw = dict(face="top", ior=1.5, g=0.5, spp=8, seed=2, sampling_sigma_t=ref_s, sampling_albedo=ref_a)
+    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
+    assert float(simd[0].std()) > 0
+    _assert_twins(simd, scalar)
+
+
+@pytest.mark.parametrize("capacity", [0, 4])
+def test_avx2_replay_of_paths_longer_than_the_lane_tape(walk_kernel, capacity):
+    """Paths that do not fit their lane's tape are replayed by the scalar code (walk and deposit)."""
+    sigma_t, albedo = _medium((6, 9, 10), seed=8)
+    kw = dict(face="both", ior=1.5, g=0.3, spp=4, seed=3)
+    old = _C._set_tape_capacity(capacity)
+    try:
+        short = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    finally:
+        _C._set_tape_capacity(old)
+    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
+    _assert_twins(short, scalar, replay_events=False)  # (the replayed paths are walked again: more events)
+    _assert_twins(simd, scalar)
+    if capacity == 0:  # every path was walked a second time by the scalar replay
+        assert short[3]["backward_scatter_events"] > 1.5 * simd[3]["backward_scatter_events"]
+
+
+def test_avx2_walk_does_not_depend_on_threads_or_partition(walk_kernel):
+    sigma_t, albedo = _medium((5, 10, 12), seed=1)
+    kw = dict(face="top", ior=1.5, g=0.3, spp=4, seed=7)
+    one = _run(walk_kernel, 1, sigma_t, albedo, threads=1, **kw)
+    two = _run(walk_kernel, 1, sigma_t, albedo, threads=2, **kw)
+    assert torch.equal(one[0], two[0])
+    walk_kernel(1)
+    with torch.no_grad():
+        parts = [ta.render_texels(sigma_t, albedo, voxel_size=0.1, partition=(r, 3), **kw) for r in range(3)]
+    assert torch.equal(sum(parts), one[0])
+
+
+def test_avx2_walk_serves_float32_slabs_only(walk_kernel):
+    """float64 grids keep the scalar walk: its images equal the scalar walk's bitwise with the AVX2 walk on."""
+    sigma_t, albedo = _medium((4, 6, 6))
+    kw = dict(face="top", ior=1.5, g=0.3, spp=4, seed=1)
+    on = _run(walk_kernel, 1, sigma_t.double(), albedo.double(), **kw)
+    off = _run(walk_kernel, 0, sigma_t.double(), albedo.double(), **kw)
+    for x, y in zip(on[:3], off[:3]):
+        assert torch.equal(x, y)
