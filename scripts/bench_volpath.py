@@ -36,6 +36,11 @@ taken as the per-channel row's corrected MSE / ref-mult (run per_channel first) 
 carry ``chromatic`` and ``efficiency_*_vs_per_channel`` (its efficiency over that of the per-channel row of the
 same scene and thread count: > 1 means the variant gives less error per second).
 
+Walks (``--walks scalar,avx2``): the float32 slab scenes with a chromatic medium (one walk per channel) run on the AVX2
+walk of eight paths per thread (csrc/volpath/slab_simd.h) where the CPU has AVX2, else on the scalar walk; both give the
+same paths. Each scene is run once per walk in the order given, rows carry ``walk``, and rows after the first carry
+``forward_speedup_vs_<first>``, ``backward_speedup_vs_<first>`` and ``efficiency_*_vs_<first>``.
+
 With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
 into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry
 points (``_C.volpath_forward``/``volpath_backward``, the forward on the parameters, the backward on the floored
@@ -45,7 +50,7 @@ reference as render_texels does), alternating old and new for every repetition, 
 One JSON line per scene and thread count is printed (and all of them written atomically to ``--out``),
 with the fields
 
-    scene, texels, grid_dhw, spp, threads, forward_s, backward_s (medians of the wall-clock times),
+    scene, walk, texels, grid_dhw, spp, threads, forward_s, backward_s (medians of the wall-clock times),
     backward_over_forward, forward_min_s, backward_min_s (the fastest repetitions: robust to a busy machine),
     scatter_events, events_per_s, backward_scatter_events, backward_events_per_s,
     image_rmse, grad_sigma_t_rmse, grad_albedo_rmse, ref_spp, efficiency_image, efficiency_grad_sigma_t,
@@ -62,6 +67,7 @@ Usage::
     python scripts/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
     python scripts/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
     python scripts/bench_volpath.py --scenes print-slab,ink-slab --chromatic per_channel,hero --threads 2
+    python scripts/bench_volpath.py --scenes print-slab --slab-size 760 --walks scalar,avx2 --threads 2 --spp 4
 """
 import argparse
 import io
@@ -87,6 +93,7 @@ except ModuleNotFoundError as error:  # running from a checkout that is not inst
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import torch_appearance
 from torch_appearance import io as ta_io
+from torch_appearance._ext import _C
 
 VOXEL_SIZE = 0.085  # mm
 TEXELS = 64  # per side
@@ -484,7 +491,8 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = [f"{r['scene']}{' (hero)' if r.get('hero') else ''}\n{r['threads']} thr, {r['spp']} spp" for r in rows]
+    labels = [f"{r['scene']}{' (hero)' if r.get('hero') else ''}{' ' + r['walk'] if r.get('walk') != 'auto' else ''}"
+              f"\n{r['threads']} thr, {r['spp']} spp" for r in rows]
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(rows)), 4.0))
     ax.bar(x - 0.2, [r["forward_s"] for r in rows], 0.4, label="forward")
@@ -533,6 +541,17 @@ def _chromatic_list(text):
     return names
 
 
+WALKS = {"auto": -1, "scalar": 0, "avx2": 1}
+
+
+def _walk_list(text):
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [n for n in names if n not in WALKS]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown walk(s) {unknown or text!r}; choose from {', '.join(WALKS)}")
+    return names
+
+
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -555,6 +574,10 @@ def parse_args(argv=None):
     parser.add_argument("--chromatic", type=_chromatic_list, default=["per_channel"],
                         help="comma-separated estimators for chromatic media, from per_channel,hero; run per_channel "
                              "first (default: %(default)s)")
+    parser.add_argument("--walks", type=_walk_list, default=["auto"],
+                        help="comma-separated slab walks to time, from auto,scalar,avx2 (avx2: eight paths per thread "
+                             "in SIMD lanes, float32 slabs on CPUs with AVX2; auto: avx2 where it serves); rows after "
+                             "the first carry speed-ups and error-per-second ratios against it (default: auto)")
     parser.add_argument("--baseline", metavar="REV", default=None,
                         help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)
@@ -566,6 +589,10 @@ def parse_args(argv=None):
         parser.error(f"--slab-size must be >= 1, got {args.slab_size}")
     if args.ref_mult < 0:
         parser.error(f"--ref-mult must be >= 0, got {args.ref_mult}")
+    if "avx2" in args.walks:
+        _C._set_simd(-1)
+        if not _C._set_simd(-1):
+            parser.error("--walks avx2: this CPU has no AVX2 (or TA_SIMD=0 is set)")
     return args
 
 
@@ -582,19 +609,35 @@ def main(argv=None):
             if chromatic != "per_channel" and base and args.ref_mult > 0:
                 ref_var = {k: base[0][f"{k}_rmse"] ** 2 / args.ref_mult
                            for k in ("image", "grad_sigma_t", "grad_albedo")}
-            row = bench_scene(name, threads, args, chromatic, ref_var)
-            if base and chromatic != "per_channel" and args.ref_mult > 0:
-                for k in ("image", "grad_sigma_t", "grad_albedo"):
-                    e0, e1 = base[0].get(f"efficiency_{k}"), row.get(f"efficiency_{k}")
-                    row[f"efficiency_{k}_vs_per_channel"] = round(e1 / e0, 4) if e0 and e1 else None
-            if name == "achromatic":
-                chromatic = [r for r in rows if r["scene"] == "ink-slab" and r["threads"] == row["threads"]
-                             and r["spp"] == row["spp"]]
-                if chromatic:
-                    row["forward_speedup_vs_ink_slab"] = round(chromatic[0]["forward_s"] / row["forward_s"], 3)
-                    row["backward_speedup_vs_ink_slab"] = round(chromatic[0]["backward_s"] / row["backward_s"], 3)
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+            first = None
+            for walk in args.walks:
+                _C._set_simd(WALKS[walk])
+                row = bench_scene(name, threads, args, chromatic, ref_var)
+                row["walk"] = walk
+                if base and chromatic != "per_channel" and args.ref_mult > 0:
+                    same_walk = [r for r in base if r["walk"] == walk] or base
+                    for k in ("image", "grad_sigma_t", "grad_albedo"):
+                        e0, e1 = same_walk[0].get(f"efficiency_{k}"), row.get(f"efficiency_{k}")
+                        row[f"efficiency_{k}_vs_per_channel"] = round(e1 / e0, 4) if e0 and e1 else None
+                if first is None:
+                    first = row
+                else:  # the same scene with the first walk: speed-up and error-per-second ratios
+                    row[f"forward_speedup_vs_{first['walk']}"] = round(first["forward_s"] / row["forward_s"], 3)
+                    row[f"backward_speedup_vs_{first['walk']}"] = round(first["backward_s"] / row["backward_s"], 3)
+                    for k in ("image", "grad_sigma_t", "grad_albedo"):
+                        e0, e1 = first.get(f"efficiency_{k}"), row.get(f"efficiency_{k}")
+                        if e0 and e1:
+                            row[f"efficiency_{k}_vs_{first['walk']}"] = round(e1 / e0, 4)
+                if name == "achromatic":
+                    chromatic_rows = [r for r in rows if r["scene"] == "ink-slab" and r["threads"] == row["threads"]
+                                      and r["spp"] == row["spp"] and r["walk"] == walk]
+                    if chromatic_rows:
+                        row["forward_speedup_vs_ink_slab"] = round(chromatic_rows[0]["forward_s"] / row["forward_s"], 3)
+                        row["backward_speedup_vs_ink_slab"] = round(chromatic_rows[0]["backward_s"] / row["backward_s"],
+                                                                    3)
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+            _C._set_simd(-1)
     comparisons = []
     if args.baseline is not None:
         old_so, sha = build_baseline(args.baseline)
