@@ -67,8 +67,8 @@ bool slab_simd_available();
 
 // Walks every path of a batch: for each element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the
 // channels whose bit is set in live[k] (all three when live is null). `ratio`: weights f/p_ref (the replay);
-// `record`: tapes for the replay's deposit (needs ratio), `seg_cap`/`col_cap` entries per lane. Calls done() once per
-// path, in the order the paths end.
+// `record`: tapes for the replay's deposit (implies ratio), `seg_cap`/`col_cap` entries per lane (a path with more
+// is reported with `overflow`). Calls done() once per path, in the order the paths end.
 void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
                      bool record, int64_t seg_cap, int64_t col_cap, WalkDone done, void* ctx);
 

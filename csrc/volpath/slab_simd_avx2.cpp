@@ -278,10 +278,12 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   TapeSegmentF* segs = nullptr;
   TapeCollisionF* cols = nullptr;
   int64_t nseg[8] = {0}, ncol[8] = {0};
-  bool over[8] = {false};
+  // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
+  // the caller: overflow when more than `cap` entries were counted)
+  const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
   if (RECORD) {
-    segs = static_cast<TapeSegmentF*>(malloc(sizeof(TapeSegmentF) * size_t(8 * (seg_cap > 0 ? seg_cap : 1))));
-    cols = static_cast<TapeCollisionF*>(malloc(sizeof(TapeCollisionF) * size_t(8 * (col_cap > 0 ? col_cap : 1))));
+    segs = static_cast<TapeSegmentF*>(malloc(sizeof(TapeSegmentF) * size_t(8 * seg_room)));
+    cols = static_cast<TapeCollisionF*>(malloc(sizeof(TapeCollisionF) * size_t(8 * col_room)));
   }
 
   // the next path of the batch: k (element), s (sample), c (channel)
@@ -310,11 +312,11 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     o.escaped = escaped;
     o.truncated = truncated;
     o.scatter_events = L.scatter[l];
-    o.segs = RECORD ? segs + l * seg_cap : nullptr;
-    o.cols = RECORD ? cols + l * col_cap : nullptr;
+    o.segs = RECORD ? segs + l * seg_room : nullptr;
+    o.cols = RECORD ? cols + l * col_room : nullptr;
     o.nseg = nseg[l];
     o.ncol = ncol[l];
-    o.overflow = over[l];
+    o.overflow = RECORD && (nseg[l] > seg_cap || ncol[l] > col_cap);
     done(ctx, o);
     L.state[l] = kIdle;
   };
@@ -340,7 +342,6 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       L.w[l] = L.wref[l] = L.prod[l] = 1.0f;
       L.zeros[l] = 0;
       nseg[l] = ncol[l] = 0;
-      over[l] = false;
       L.p[0][l] = (float(tx) + u[0]) * vs[0];
       L.p[1][l] = (float(tj) + u[1]) * vs[1];
       L.p[2][l] = face == 0 ? float(S.D) * vs[2] : 0.0f;
@@ -446,12 +447,11 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         alignas(32) int32_t vv[8];
         _mm256_store_ps(lens, len);
         _mm256_store_si256(reinterpret_cast<vi*>(vv), v);
-        int m = bits(vand(flying, gt(len, _mm256_setzero_ps())));
-        while (m) {
-          const int l = __builtin_ctz(m);
-          m &= m - 1;
-          if (nseg[l] < seg_cap) segs[l * seg_cap + nseg[l]++] = {int64_t(vv[l]), lens[l]};
-          else over[l] = true;
+        const int m = bits(vand(flying, gt(len, _mm256_setzero_ps())));
+        for (int l = 0; l < 8; ++l) {  // branch-free: every lane writes, only the recording lanes advance
+          const int64_t pos = nseg[l];
+          segs[l * seg_room + (pos < seg_room ? pos : seg_room - 1)] = {int64_t(vv[l]), lens[l]};
+          nseg[l] = pos + ((m >> l) & 1);
         }
       }
       col_sref = sel(hit, sref, col_sref);
@@ -517,17 +517,20 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       const vf inv_psq = _mm256_div_ps(fset(1.0f), psq);
       wref = sel(survive, _mm256_mul_ps(wref, _mm256_mul_ps(aref, inv_psq)), wref);
       _mm256_store_ps(L.wref, wref);
-      if (RATIO) {
+      if (RATIO || RECORD) {
         const vf alb = same_alb ? aref : gather(S.albedo, cv, survive);
         const vf fa = _mm256_mul_ps(alb, inv_psq);
-        const vf fs = _mm256_div_ps(col_sig, col_sref);
-        w = sel(survive, _mm256_mul_ps(w, _mm256_mul_ps(fs, fa)), w);
-        const vf zs = eq(fs, _mm256_setzero_ps()), za = eq(fa, _mm256_setzero_ps());
-        prod = sel(survive, _mm256_mul_ps(_mm256_mul_ps(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)), prod);
-        vi zeros = _mm256_load_si256(reinterpret_cast<const vi*>(L.zeros));  // a true mask is −1: subtracting adds 1
-        zeros = _mm256_sub_epi32(zeros, asi(vand(survive, zs)));
-        zeros = _mm256_sub_epi32(zeros, asi(vand(survive, za)));
-        _mm256_store_si256(reinterpret_cast<vi*>(L.zeros), zeros);
+        const vf fs = RATIO ? _mm256_div_ps(col_sig, col_sref) : fset(1.0f);
+        if (RATIO) {
+          w = sel(survive, _mm256_mul_ps(w, _mm256_mul_ps(fs, fa)), w);
+          const vf zs = eq(fs, _mm256_setzero_ps()), za = eq(fa, _mm256_setzero_ps());
+          prod = sel(survive, _mm256_mul_ps(_mm256_mul_ps(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)),
+                     prod);
+          vi zeros = _mm256_load_si256(reinterpret_cast<const vi*>(L.zeros));  // a true mask is −1: subtracting adds 1
+          zeros = _mm256_sub_epi32(zeros, asi(vand(survive, zs)));
+          zeros = _mm256_sub_epi32(zeros, asi(vand(survive, za)));
+          _mm256_store_si256(reinterpret_cast<vi*>(L.zeros), zeros);
+        }
         if (RECORD) {
           alignas(32) float a_sref[8], a_ipsq[8], a_fs[8], a_fa[8];
           alignas(32) int32_t vv[8];
@@ -536,13 +539,12 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
           _mm256_store_ps(a_fs, fs);
           _mm256_store_ps(a_fa, fa);
           _mm256_store_si256(reinterpret_cast<vi*>(vv), col_v);
-          int m = bits(survive);
-          while (m) {
-            const int l = __builtin_ctz(m);
-            m &= m - 1;
-            if (ncol[l] < col_cap) cols[l * col_cap + ncol[l]++] = {int64_t(vv[l]), nseg[l], a_sref[l], a_ipsq[l],
-                                                                   a_fs[l], a_fa[l]};
-            else over[l] = true;
+          const int m = bits(survive);
+          for (int l = 0; l < 8; ++l) {
+            const int64_t pos = ncol[l];
+            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {int64_t(vv[l]), nseg[l], a_sref[l],
+                                                                          a_ipsq[l], a_fs[l], a_fa[l]};
+            ncol[l] = pos + ((m >> l) & 1);
           }
         }
       }
