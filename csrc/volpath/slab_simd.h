@@ -62,10 +62,7 @@ struct WalkOut {
 
 typedef void (*WalkDone)(void* ctx, const WalkOut& out);
 
-// Whether this CPU runs the AVX2 walk (and TA_SIMD is not set to 0).
-bool slab_simd_available();
-
-// Walks every path of a batch: for each element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the
+// Walks every path of a batch (call only on a CPU with AVX2; volpath_cpu.cpp checks): for each element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the
 // channels whose bit is set in live[k] (all three when live is null). `ratio`: weights f/p_ref (the replay);
 // `record`: tapes for the replay's deposit (implies ratio), `seg_cap`/`col_cap` entries per lane (a path with more
 // is reported with `overflow`). Calls done() once per path, in the order the paths end.

@@ -10,6 +10,9 @@
 //   DDA     exact regular tracking through the voxels, one voxel per iteration of the wavefront loop;
 //   collide depth cut, continuation p_s = α̂ times roulette q on the reference weight, weights σ/σ̂ and α/(p_s q);
 //   box     internal reflection with probability F(|d_a|) (depth counted), else escape with weight w.
+#include "volpath/slab_simd.h"
+
+#if defined(__x86_64__) || defined(__i386__)
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC target("avx2")
 #elif defined(__clang__)
@@ -19,8 +22,6 @@
 #include <immintrin.h>
 #include <stdlib.h>
 #include <string.h>
-
-#include "volpath/slab_simd.h"
 
 namespace ta {
 namespace simd {
@@ -653,4 +654,17 @@ void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t
 
 #if defined(__clang__)
 #pragma clang attribute pop
+#endif
+
+#else  // not x86: no AVX2 walk (cpu_has_avx2() in volpath_cpu.cpp is false there, so this is never called)
+
+namespace ta {
+namespace simd {
+void slab_walks_avx2(const SlabWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, bool, int64_t, int64_t,
+                     WalkDone, void*) {
+  __builtin_trap();
+}
+}  // namespace simd
+}  // namespace ta
+
 #endif

@@ -321,8 +321,12 @@ static_assert(sizeof(simd::TapeCollisionF) == sizeof(TapeCollisionF1) &&
               "the AVX2 walk's tape collisions must match core::TapeCollision<float, 1>");
 
 bool cpu_has_avx2() {
+#if (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)
   __builtin_cpu_init();
   return __builtin_cpu_supports("avx2");
+#else
+  return false;
+#endif
 }
 
 // -1: not decided yet (the CPU and TA_SIMD decide at first use); 0 off; 1 on. set_simd (tests, benchmarks) overrides.
@@ -427,11 +431,14 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
   const bool constant = S.emitter.kind == core::kConstant;
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
-  if (simd_serves<T, LANES, B, HERO>(S)) {
-    if constexpr (std::is_same_v<T, float>)
-      for_each_chunk(nchunks, [&](int64_t c) { counts[c] = simd_forward_chunk<DIEL, RATIO>(S, out, c, nchunks, share); });
-  } else {
+  const bool simd = simd_serves<T, LANES, B, HERO>(S);
   for_each_chunk(nchunks, [&](int64_t c) {
+    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
+      if (simd) {
+        counts[c] = simd_forward_chunk<DIEL, RATIO>(S, out, c, nchunks, share);
+        return;
+      }
+    }
     int64_t ev = 0, cut = 0;
     for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
@@ -468,7 +475,6 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
     });
     counts[c] = {ev, cut};
   });
-  }
   ForwardCounts total;
   for (const auto& k : counts) {
     total.scatter_events += k.scatter_events;
@@ -609,6 +615,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
   std::vector<std::vector<T>> bufs_s(gs ? nchunks - 1 : 0), bufs_a(ga ? nchunks - 1 : 0);
   std::vector<int64_t> events(nchunks, 0);
   const bool constant = S.emitter.kind == core::kConstant;
+  const bool simd = simd_serves<T, LANES, B, HERO>(S);
   for_each_chunk(nchunks, [&](int64_t c) {
     Adjoint<T> A;
     if (gs) {
@@ -622,7 +629,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     int64_t ev = 0;
     TapeStore<T, LANES> store;
     if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
-      if (simd_serves<T, LANES, B, HERO>(S)) {
+      if (simd) {
         events[c] = simd_backward_chunk<DIEL>(S, grad_out, A, store, c, nchunks, share);
         return;
       }
