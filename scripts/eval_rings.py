@@ -6,7 +6,8 @@ matches. Both CSVs need an x_px column; when both also have y_px the distance is
 only x is compared (e.g. MtreeRing label tables: year,x_px,ring_width_mm, measured along one horizontal path).
 
 Labels may also be a CooRecorder .pos file (torch_appearance.rings.coorecorder: points in mm with a #DPI line,
-converted to pixels; the first point is the pith and is not a boundary unless --pos-keep-first). Disc-mode CSVs
+converted to pixels; points on the file's PithCoordinates are not boundaries, and without that header the first
+point is taken as the pith, unless --pos-keep-first). Disc-mode CSVs
 (detect_rings.py --pith) have a transect column: --transect K keeps only transect K of the detections (a .pos
 file measures one path); when both CSVs have a transect column, each transect is matched separately and the
 counts are pooled.
@@ -64,7 +65,7 @@ def read_labels(path, keep_first=False):
     """Labels as ``{column: array}``: a CSV (see :func:`read_points`) or a CooRecorder ``.pos`` file (pixels)."""
     if str(path).lower().endswith(".pos"):
         pos = read_pos(path)
-        b = pos.boundaries_px(first_is_pith=not keep_first)
+        b = pos.boundaries_px(first_is_pith=False if keep_first else None)
         return {"x_px": b[:, 0], "y_px": b[:, 1]}
     return read_points(path, "labels")
 
@@ -108,7 +109,8 @@ def main(argv=None):
     p.add_argument("--tolerance-px", type=float, default=3.0, help="match tolerance in pixels (default: %(default)s)")
     p.add_argument("--transect", type=int, default=None, help="use only this transect of a disc-mode CSV")
     p.add_argument("--pos-keep-first", action="store_true",
-                   help="with .pos labels: count the first point as a boundary (default: it is the pith)")
+                   help="with .pos labels: count every point as a boundary (default: points on the PithCoordinates "
+                        "header are not; without the header the first point is the pith)")
     args = p.parse_args(argv)
     try:
         r = evaluate(args.detected_csv, args.labels_csv, args.tolerance_px, args.transect, args.pos_keep_first)

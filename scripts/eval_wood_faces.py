@@ -72,6 +72,16 @@ FIELDS = [  # (key, header, format)
     ("board_estimate_s", "board s", "{:.2f}"),
     ("fit_s", "fit s", "{:.1f}"),
 ]
+CONTRAST_FIELDS = [  # with --contrast-match: the same face before and after the luminance remap of the colour map
+    ("face", "face", "{}"),
+    ("status", "status", "{}"),
+    ("cm_ssim_before", "SSIM before", "{:.3f}"),
+    ("cm_ssim_after", "SSIM after", "{:.3f}"),
+    ("cm_contrast_before", "contrast before", "{:.2f}"),
+    ("cm_contrast_after", "contrast after", "{:.2f}"),
+    ("cm_rmse_before", "colour RMSE before", "{:.4f}"),
+    ("cm_rmse_after", "colour RMSE after", "{:.4f}"),
+]
 PHOTOMETRIC_FIELDS = [  # with --photometric: the same face before and after stage 3
     ("face", "face", "{}"),
     ("status", "status", "{}"),
@@ -127,7 +137,8 @@ def evaluate_face(data, face, out, args, log):
     panels = {"photo": rgb, "label": label}
     cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=args.pixel_size_mm, epochs=args.epochs,
                         color_epochs=args.color_epochs, preview=False, seed=0,
-                        photometric=args.photometric, photometric_estimator=args.photometric_estimator)
+                        photometric=args.photometric, photometric_estimator=args.photometric_estimator,
+                        contrast_match=args.contrast_match)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -153,6 +164,12 @@ def evaluate_face(data, face, out, args, log):
         arl_mean_error_px=fm["mean_error_px"], detect_s=t["gabor_s"] + t["tracing_s"],
         board_estimate_s=t["board_estimate_s"], fit_s=t["stage1_s"] + t["stage2_s"], wall_s=wall,
         fit_ok=summary["fit_ok"], contrast_ratio=summary["latewood_contrast"]["ratio"])
+    cm = summary.get("contrast_match")
+    if cm is not None:
+        row.update(cm_ssim_before=cm["before"]["ssim"], cm_ssim_after=cm["after"]["ssim"],
+                   cm_contrast_before=cm["before"]["latewood_contrast"]["ratio"],
+                   cm_contrast_after=cm["after"]["latewood_contrast"]["ratio"],
+                   cm_rmse_before=cm["before"]["colour_rmse"], cm_rmse_after=cm["after"]["colour_rmse"])
     ph = summary.get("photometric")
     if ph is not None:
         row.update(phase_rms_before=ph["before"]["phase_rms"], phase_rms_after=ph["after"]["phase_rms"],
@@ -239,6 +256,9 @@ def main(argv=None):
                                                                                      "(default: %(default)s)")
     p.add_argument("--tolerance-px", type=float, default=3.0, help="boundary F-measure tolerance in px "
                                                                    "(default: %(default)s)")
+    p.add_argument("--contrast-match", action="store_true",
+                   help="run the fit with --contrast-match (luminance remap of the colour map after stage 2) and "
+                        "report each face before and after it")
     p.add_argument("--photometric", action="store_true",
                    help="run the fit's stage 3 (photometric refinement through the reparameterised render) and "
                         "report each face before and after it")
@@ -279,6 +299,8 @@ def main(argv=None):
         panels.append(pan)
 
     table = ta_io.markdown_table(rows, FIELDS)
+    if args.contrast_match:
+        table += "\n\nContrast match, before → after:\n\n" + ta_io.markdown_table(rows, CONTRAST_FIELDS)
     if args.photometric:
         table += "\n\nStage 3 (photometric), before → after:\n\n" + ta_io.markdown_table(rows, PHOTOMETRIC_FIELDS)
     settings = (f"pixel size {args.pixel_size_mm:g} mm (assumed), epochs {args.epochs} + colour "
@@ -290,6 +312,7 @@ def main(argv=None):
                      {"data": os.path.abspath(args.data), "pixel_size_mm": args.pixel_size_mm,
                       "pixel_size_assumed": True, "epochs": args.epochs, "color_epochs": args.color_epochs,
                       "tolerance_px": args.tolerance_px, "photometric": args.photometric,
+                      "contrast_match": args.contrast_match,
                       "photometric_estimator": args.photometric_estimator,
                       "label": "arl-unet (U-Net output, Otsu + thinning)",
                       "faces": rows})

@@ -46,6 +46,9 @@ def parse_args(argv=None):
                    help="stage-1 distortion levels, coarse first (1: full texture from the start; default: %(default)s)")
     p.add_argument("--color-bins", type=int, default=d.color_bins,
                    help="lateness samples of the colour map (default: %(default)s)")
+    p.add_argument("--contrast-match", action="store_true",
+                   help="after stage 2, remap the colour map's luminance so that the fit's luminance histogram is the "
+                        "photo's (keeps latewood contrast that per-bin means wash out where the phase is slightly off)")
     p.add_argument("--photometric", action="store_true",
                    help="stage 3: refine geometry and colour map against the photo's colours (CIELAB L2) through the "
                         "reparameterised render (correct ring-boundary gradients), coarse to fine")
@@ -86,6 +89,7 @@ def main(argv=None):
                         color_epochs=args.color_epochs, p=args.p, q=args.q, distortion=args.distortion,
                         device=args.device, max_size=args.max_size, seed=args.seed, preview=not args.no_preview,
                         coarse_to_fine=args.coarse_to_fine, color_bins=args.color_bins,
+                        contrast_match=args.contrast_match,
                         photometric=args.photometric, photometric_epochs=args.photometric_epochs,
                         photometric_levels=tuple(args.photometric_levels), photometric_spp=args.photometric_spp,
                         photometric_weight=args.photometric_weight, photometric_anchor=args.photometric_anchor,

@@ -297,3 +297,24 @@ def test_eval_rings_with_pos_labels(tmp_path):
     assert "labelled 6" in out, out
     rc, out, err = _run("eval_rings.py", det, POS)  # several transects but no --transect
     assert rc != 0 and "--transect" in err
+
+
+def test_read_pos_bark_first_with_pith_header(tmp_path):
+    """The layout public .pos readers expect: a preamble line with the path, header, the outermost boundary first
+    and the pith only in the header. Boundaries come out pith -> bark, all of them; a stray line after the first
+    point is still an error."""
+    text = ("C:\\\\dendro\\\\disc9_a.pos\n"
+            "#DENDRO (Cybis Dendro program compatible format) Coordinate file written as\n"
+            "#Imagefile disc9.jpg\n#DPI 254\n#All coordinates in millimeters (mm)\nSCALE 1\n"
+            "#C DATED 2019;\n#C PithCoordinates=10.000,20.000;\n#C licensedTo=Someone;\n\n"
+            "16.5,20.4\n14.6,20.4  14.8,20.9\n13.2,20.0#ZERO1\nD12.9,20.0#W#\n12.5,20.0\n11.0,20.0\n")
+    path = tmp_path / "disc9_a.pos"
+    path.write_text(text)
+    pos = read_pos(path)
+    assert pos.header["preamble"][0].endswith("disc9_a.pos")
+    expected_px = np.array([(11.0, 20.0), (12.5, 20.0), (13.2, 20.0), (14.6, 20.4), (16.5, 20.4)]) * 10.0
+    assert np.allclose(pos.boundaries_px(), expected_px)
+    assert len(pos.boundaries_px(first_is_pith=False)) == 5
+    path.write_text(text + "not a point\n")
+    with pytest.raises(ValueError, match="line 17"):
+        read_pos(path)

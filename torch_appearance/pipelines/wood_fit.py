@@ -53,6 +53,9 @@ class WoodFitConfig:
     smoothness: float = 1.0  # weight of the distortion prior (squared texel-to-texel change, in ring widths)
     color_bins: int = 32  # lateness samples of the colour map (a thin latewood line needs a few of its own)
     coarse_to_fine: int = 3  # stage-1 distortion levels (1: the full texture from the start, as before)
+    # after stage 2: remap the colour map's luminance so that the fit's luminance histogram is the photo's (the
+    # per-bin photo means blur latewood into earlywood wherever the fitted phase is off by a fraction of a ring)
+    contrast_match: bool = False
     # stage 3 (photometric): geometry + colour map against the photo's colours (CIELAB L2) through the
     # reparameterised render (correct boundary gradients), coarse to fine over photometric_levels (downsampling
     # factors of the photo), photometric_epochs Adam steps in all, split evenly over the levels
@@ -86,8 +89,9 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 2:
                 raise ValueError(f"{name}: expected an int >= 2, got {v!r}")
-        if not isinstance(self.photometric, bool):
-            raise TypeError(f"photometric: expected a bool, got {type(self.photometric).__name__}")
+        for name in ("photometric", "contrast_match"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name}: expected a bool, got {type(getattr(self, name)).__name__}")
         if not isinstance(self.photometric_spp, int) or self.photometric_spp < 2:
             raise ValueError(f"photometric_spp: expected an int >= 2, got {self.photometric_spp!r}")
         levels = self.photometric_levels
@@ -355,6 +359,14 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         if bar is not None:
             bar.update(1)
             bar.set_postfix(color_loss=f"{loss.item():.5f}")
+    contrast = None
+    if cfg.contrast_match:  # fit metrics before and after the remap go into the summary
+        before = fit_metrics(model, h, w, cfg.pixel_size_mm, rgb, photo_phase)
+        with torch.no_grad():
+            match_luminance_histogram(model, torch.as_tensor(before.pop("fit_rgb")), target_rgb)
+        after = fit_metrics(model, h, w, cfg.pixel_size_mm, rgb, photo_phase)
+        after.pop("fit_rgb")
+        contrast = {"before": before, "after": after}
     timings["stage2_s"] = time.perf_counter() - t1
 
     # ---- stage 3 (optional): photometric refinement through the reparameterised render
@@ -413,6 +425,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
         "fit_ok": bool(final_rms < POOR_FIT_PHASE_RMS),
         # stage 3: phase RMS, SSIM and latewood contrast before and after (None without --photometric)
         "photometric": photometric,
+        # --contrast-match: phase RMS, SSIM and latewood contrast before and after the luminance remap (else None)
+        "contrast_match": contrast,
         "latewood_contrast": latewood_contrast(fit_rgb, rgb),
         # ring boundaries (integer G) crossing the board; below MIN_RINGS_FOR_SCALE the scale is a rough guess
         "visible_rings": visible_rings,
@@ -568,6 +582,41 @@ def _init_color_map(model, out, target_rgb):
     model.color_map.copy_(mean.reshape(n, k, 3).to(model.color_map.dtype))
 
 
+_LUMA = (0.2126, 0.7152, 0.0722)  # linear Rec. 709 luminance weights
+
+
+def match_luminance_histogram(model, fit_rgb, target_rgb):
+    """Rescale every colour-map entry (keeping its chromaticity) by T(Y)/Y, with T the monotone map that sends the
+    fit's pixel luminance distribution to the photo's (quantile matching: T = F_photo⁻¹ ∘ F_fit).
+
+    Stage 2 takes per-bin means of photo colours; wherever the fitted phase is off by part of a ring, a thin dark
+    latewood line is averaged with earlywood, and the fit comes out with less early/late contrast than the photo.
+    The rendered pixels take their luminance from the colour map, so remapping the entries restores the photo's
+    luminance spread; the geometry is unchanged. Entries are clamped to [0, 1] afterwards.
+
+    Args:
+        model: a :class:`~torch_appearance.nn.WoodModel` (its ``color_map`` (n, K, 3) is changed in place).
+        fit_rgb: (H, W, 3) linear RGB render of the model at the photo's pixels.
+        target_rgb: (H, W, 3) linear RGB photo.
+
+    Returns:
+        (2, M) array: the quantile map's knots (fit luminance, photo luminance).
+    """
+    y = torch.tensor(_LUMA, dtype=torch.float64)
+    y_fit = np.sort((fit_rgb.detach().double().reshape(-1, 3) @ y).cpu().numpy())
+    y_photo = np.sort((target_rgb.detach().double().reshape(-1, 3) @ y).cpu().numpy())
+    qs = np.linspace(0.0, 1.0, 257)
+    knots_fit, knots_photo = np.quantile(y_fit, qs), np.quantile(y_photo, qs)
+    knots_fit = np.maximum.accumulate(knots_fit)
+    cmap = model.color_map.detach().double()
+    y_map = (cmap @ y.to(cmap.device)).cpu().numpy()
+    mapped = np.interp(y_map, knots_fit, knots_photo)
+    scale = np.where(y_map > 1e-6, mapped / np.maximum(y_map, 1e-6), 1.0)
+    new = (cmap * torch.as_tensor(scale, dtype=cmap.dtype, device=cmap.device)[..., None]).clamp(0, 1)
+    model.color_map.copy_(new.to(model.color_map.dtype))
+    return np.stack([knots_fit, knots_photo])
+
+
 def _figures(folder, rows, rgb, fit_rgb, err):
     import matplotlib
     matplotlib.use("Agg")
@@ -619,8 +668,8 @@ def latewood_contrast(fit_rgb, photo_rgb):
 
 
 def fit_metrics(model, h, w, pixel_size_mm, photo_rgb, photo_phase):
-    """Phase RMS against the photo's (sign-resolved) Gabor phase (rad, unweighted), SSIM of the fit vs the photo and
-    the latewood contrast (:func:`latewood_contrast`) of the model rendered at the photo's size; also ``fit_rgb``
+    """Phase RMS against the photo's (sign-resolved) Gabor phase (rad, unweighted), SSIM of the fit vs the photo, the
+    colour RMSE (linear RGB) and the latewood contrast (:func:`latewood_contrast`) of the model rendered at the photo's size; also ``fit_rgb``
     (H, W, 3) linear RGB."""
     from ..metrics import ssim_2d
 
@@ -628,8 +677,9 @@ def fit_metrics(model, h, w, pixel_size_mm, photo_rgb, photo_phase):
         out = model.render_board(h, w, pixel_size_mm)
     fit_rgb = out["image"].clamp(0, 1).cpu().numpy()
     err = np.angle(np.exp(1j * (np.asarray(photo_phase, np.float64) - out["phase"].cpu().numpy())))
+    rmse = float(np.sqrt(((fit_rgb.astype(np.float64) - np.asarray(photo_rgb, np.float64)) ** 2).mean()))
     return {"phase_rms": float(np.sqrt((err ** 2).mean())), "ssim": float(ssim_2d(fit_rgb, photo_rgb)),
-            "latewood_contrast": latewood_contrast(fit_rgb, photo_rgb), "fit_rgb": fit_rgb}
+            "colour_rmse": rmse, "latewood_contrast": latewood_contrast(fit_rgb, photo_rgb), "fit_rgb": fit_rgb}
 
 
 def photometric_stage(model, target_rgb, target_phase, h, w, cfg, rows=None, start=None, bar=None, phase_weight=None):

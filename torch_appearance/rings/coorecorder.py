@@ -16,7 +16,12 @@ mm * DPI / 25.4), optionally followed by `` #label``::
     13.970,12.700  14.100,13.200
     D15.240,12.700#%gap
 
-The points are in measurement order (pith first, then one point per ring boundary towards the bark). A line with
+The points are in measurement order, one per ring boundary. Two orders occur: pith first, then the boundaries
+towards the bark (the example above, whose first point is the pith); or the outermost boundary first, inwards, with
+the pith only in the ``PithCoordinates`` header (the order that public .pos readers, e.g. an R ``read_pos``,
+assign calendar years in: the first point gets the outer date). :meth:`PosFile.boundaries_px` tells them apart by
+the pith. Text lines before the first point (holding letters: some files start with the path they were written to)
+are kept in ``header["preamble"]``; any other line must be a point. A line with
 two points is a *jump* (a "double point": the path continues elsewhere, e.g. around a crack); both mark the same
 ring boundary, the first where the path arrives, which is kept as the boundary (the second is in ``jumps``).
 Lines starting with ``D`` (gaps, season-wood marks ``#W#``) are not ring boundaries and are skipped; a ``#ZERO``
@@ -56,10 +61,26 @@ class PosFile:
     jumps_px: np.ndarray
     header: dict = field(default_factory=dict)
 
-    def boundaries_px(self, first_is_pith: bool = True) -> np.ndarray:
-        """``(K, 2)`` ring boundaries in pixels, pith -> bark: the points without the first one (the pith) when
-        ``first_is_pith``."""
-        return self.points_px[1:] if first_is_pith else self.points_px.copy()
+    def boundaries_px(self, first_is_pith: bool | None = None) -> np.ndarray:
+        """``(K, 2)`` ring boundaries in pixels, ordered pith -> bark.
+
+        Args:
+            first_is_pith: None (automatic): with a ``PithCoordinates`` header, every point is a boundary except
+                points on the pith (within 1 px), and the list is reversed when it starts at the bark end (its first
+                point farther from the pith than its last); without the header the first point is taken as the pith
+                (the pith-first convention). True: drop the first point; False: every point, in file order.
+        """
+        if first_is_pith is True:
+            return self.points_px[1:].copy()
+        if first_is_pith is False:
+            return self.points_px.copy()
+        if self.pith_px is None:
+            return self.points_px[1:].copy()
+        d = np.hypot(*(self.points_px - self.pith_px).T)
+        b, d = self.points_px[d > 1.0], d[d > 1.0]
+        if len(b) > 1 and d[0] > d[-1]:
+            b = b[::-1]
+        return b.copy()
 
 
 def _xy(text, path, lineno):
@@ -84,7 +105,7 @@ def read_pos(path) -> PosFile:
             lines = f.read().splitlines()
     except OSError as e:
         raise ValueError(f"cannot read .pos file {str(path)!r}: {e}") from None
-    dpi, header, pts, jumps = None, {}, [], []
+    dpi, header, pts, jumps, preamble = None, {}, [], [], []
     for lineno, raw in enumerate(lines, 1):
         line = raw.strip()
         if not line:
@@ -107,6 +128,9 @@ def read_pos(path) -> PosFile:
             continue  # the scale line; gaps and season-wood marks are not ring boundaries
         body = line.split("#", 1)[0].strip()
         parts = body.split()
+        if not pts and re.search(r"[A-Za-z]", body) and not all(_POINT.match(p) for p in parts):
+            preamble.append(line)  # header text before the first point (e.g. the path the file was written to)
+            continue
         if not parts or len(parts) > 2:
             raise ValueError(f"{str(path)!r} line {lineno}: expected 'x,y' or a double point 'x1,y1  x2,y2'; got "
                              f"{line!r}")
@@ -119,6 +143,8 @@ def read_pos(path) -> PosFile:
         raise ValueError(f".pos file {str(path)!r}: #DPI must be > 0; got {dpi}")
     if not pts:
         raise ValueError(f".pos file {str(path)!r} holds no points")
+    if preamble:
+        header["preamble"] = preamble
     scale = dpi / 25.4
     pmm = np.array(pts, dtype=np.float64).reshape(-1, 2)
     pith = None
