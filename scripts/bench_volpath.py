@@ -524,38 +524,29 @@ def _int_list(text):
     return values
 
 
-def _scene_list(text):
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    unknown = [n for n in names if n not in SCENES]
-    if not names or unknown:
-        raise argparse.ArgumentTypeError(f"unknown scene(s) {unknown or text!r}; choose from {', '.join(SCENES)}")
-    return names
-
-
-def _chromatic_list(text):
-    from torch_appearance.render.scene import CHROMATIC
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    unknown = [n for n in names if n not in CHROMATIC]
-    if not names or unknown:
-        raise argparse.ArgumentTypeError(f"unknown estimator(s) {unknown or text!r}; choose from {', '.join(CHROMATIC)}")
-    return names
+def _names_from(choices, what):
+    """argparse type: a comma-separated list of names from ``choices`` (``what`` names them in the error)."""
+    def parse(text):
+        names = [v.strip() for v in text.split(",") if v.strip()]
+        unknown = [n for n in names if n not in choices]
+        if not names or unknown:
+            raise argparse.ArgumentTypeError(f"unknown {what} {unknown or text!r}; choose from {', '.join(choices)}")
+        return names
+    return parse
 
 
 WALKS = {"auto": -1, "scalar": 0, "avx2": 1}
 
 
-def _walk_list(text):
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    unknown = [n for n in names if n not in WALKS]
-    if not names or unknown:
-        raise argparse.ArgumentTypeError(f"unknown walk(s) {unknown or text!r}; choose from {', '.join(WALKS)}")
-    return names
+def _chromatic_names():
+    from torch_appearance.render.scene import CHROMATIC
+    return CHROMATIC
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenes", type=_scene_list, default=list(SCENES),
+    parser.add_argument("--scenes", type=_names_from(SCENES, "scene(s)"), default=list(SCENES),
                         help=f"comma-separated scenes (default: {','.join(SCENES)})")
     parser.add_argument("--threads", type=_int_list, default=[torch.get_num_threads()],
                         help=f"comma-separated torch thread counts (default: {torch.get_num_threads()}, torch's own)")
@@ -571,10 +562,10 @@ def parse_args(argv=None):
                         help="print-slab: texels per side (default: %(default)s; the issue's slab is 760)")
     parser.add_argument("--ref-mult", type=int, default=8,
                         help="reference spp = this × spp for the RMSE columns; 0: no reference (default: %(default)s)")
-    parser.add_argument("--chromatic", type=_chromatic_list, default=["per_channel"],
+    parser.add_argument("--chromatic", type=_names_from(_chromatic_names(), "estimator(s)"), default=["per_channel"],
                         help="comma-separated estimators for chromatic media, from per_channel,hero; run per_channel "
                              "first (default: %(default)s)")
-    parser.add_argument("--walks", type=_walk_list, default=["auto"],
+    parser.add_argument("--walks", type=_names_from(WALKS, "walk(s)"), default=["auto"],
                         help="comma-separated slab walks to time, from auto,scalar,avx2 (avx2: eight paths per thread "
                              "in SIMD lanes, float32 slabs on CPUs with AVX2; auto: avx2 where it serves); rows after "
                              "the first carry speed-ups and error-per-second ratios against it (default: auto)")

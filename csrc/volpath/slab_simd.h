@@ -62,8 +62,9 @@ struct WalkOut {
 
 typedef void (*WalkDone)(void* ctx, const WalkOut& out);
 
-// Walks every path of a batch (call only on a CPU with AVX2; volpath_cpu.cpp checks): for each element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the
-// channels whose bit is set in live[k] (all three when live is null). `ratio`: weights f/p_ref (the replay);
+// Walks every path of a batch (call only on a CPU with AVX2; volpath_cpu.cpp checks): for each element k < n of
+// `elems` (flat texel index, < 2^32) and sample s < spp, the channels whose bit is set in live[k] (all three when
+// live is null). `ratio`: weights f/p_ref (the replay);
 // `record`: tapes for the replay's deposit (implies ratio), `seg_cap`/`col_cap` entries per lane (a path with more
 // is reported with `overflow`). Calls done() once per path, in the order the paths end.
 void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,

@@ -89,7 +89,8 @@ inline void draw(vi elem, vi sample, vi chan, vi event, uint64_t key, vf u[4]) {
   for (int i = 0; i < 4; ++i) u[i] = unit(c[i]);
 }
 
-// scalar twin for a lane's start (event 0)
+// scalar twin for a lane's start (event 0): a copy of core/rng.h's Philox, since this file must not include that
+// header (its inline functions would be compiled for AVX2 here and might be the copy the linker keeps)
 inline void draw1(uint32_t elem, uint32_t sample, uint32_t chan, uint32_t event, uint64_t key, float u[4]) {
   uint32_t c[4] = {elem, sample, chan, event};
   uint32_t k[2] = {uint32_t(key), uint32_t(key >> 32)};
@@ -527,7 +528,8 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
           const vf zs = eq(fs, _mm256_setzero_ps()), za = eq(fa, _mm256_setzero_ps());
           prod = sel(survive, _mm256_mul_ps(_mm256_mul_ps(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)),
                      prod);
-          vi zeros = _mm256_load_si256(reinterpret_cast<const vi*>(L.zeros));  // a true mask is −1: subtracting adds 1
+          // a true mask is −1: subtracting it adds 1
+          vi zeros = _mm256_load_si256(reinterpret_cast<const vi*>(L.zeros));
           zeros = _mm256_sub_epi32(zeros, asi(vand(survive, zs)));
           zeros = _mm256_sub_epi32(zeros, asi(vand(survive, za)));
           _mm256_store_si256(reinterpret_cast<vi*>(L.zeros), zeros);
