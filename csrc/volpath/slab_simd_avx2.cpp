@@ -260,9 +260,9 @@ struct alignas(32) Lanes {
 };
 enum : int32_t { kIdle = 0, kNeedFlight = 1, kFlying = 2 };
 #ifndef TA_SIMD_ENDED_LANES
-#define TA_SIMD_ENDED_LANES 4
+#define TA_SIMD_ENDED_LANES 6
 #endif
-constexpr int kEndedLanes = TA_SIMD_ENDED_LANES;  // flights that end before the collision phase runs (tuned)
+constexpr int kEndedLanes = TA_SIMD_ENDED_LANES;  // flights that end before the collision phase runs (tuned: 4-8)
 
 template <bool DIEL, bool RATIO, bool RECORD>
 void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, int64_t seg_cap,
