@@ -11,16 +11,6 @@
 #define TA_HD
 #endif
 
-// The few small functions called per step of a walk (random numbers, grid reads, direction sampling, optics):
-// inlined always. GCC otherwise keeps them out of the (large) walk function, and a call costs as much as the work.
-#if defined(__CUDACC__)
-#define TA_INLINE __host__ __device__ __forceinline__
-#elif defined(__GNUC__)
-#define TA_INLINE inline __attribute__((always_inline))
-#else
-#define TA_INLINE inline
-#endif
-
 namespace ta {
 namespace core {
 

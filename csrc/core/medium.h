@@ -21,7 +21,7 @@ struct Channels {
   bool plain = true;               // dense and not floored: read as is (the common, fast path)
   Channels() = default;
   TA_HD Channels(const T* dense) : data(dense) {}  // NOLINT(google-explicit-constructor): a plain grid pointer
-  TA_INLINE T operator[](int64_t i) const {
+  TA_HD T operator[](int64_t i) const {
     if (plain) return data[i];
     if (index == nullptr) return tmax(data[i], floor);
     const int64_t c = i / voxels;

@@ -9,7 +9,7 @@ namespace ta {
 namespace core {
 
 struct Philox4x32 {
-  TA_INLINE static void round(uint32_t c[4], const uint32_t k[2]) {
+  TA_HD static inline void round(uint32_t c[4], const uint32_t k[2]) {
     const uint64_t p0 = uint64_t(0xD2511F53u) * c[0];
     const uint64_t p1 = uint64_t(0xCD9E8D57u) * c[2];
     const uint32_t n0 = uint32_t(p1 >> 32) ^ c[1] ^ k[0];
@@ -19,7 +19,7 @@ struct Philox4x32 {
     c[0] = n0;
     c[2] = n2;
   }
-  TA_INLINE static void generate(uint32_t c[4], uint64_t key) {
+  TA_HD static inline void generate(uint32_t c[4], uint64_t key) {
     uint32_t k[2] = {uint32_t(key), uint32_t(key >> 32)};
     for (int r = 0; r < 10; ++r) {
       round(c, k);
@@ -30,13 +30,13 @@ struct Philox4x32 {
 };
 
 template <typename T>
-TA_INLINE T to_unit_open(uint32_t x);  // uniform in the open interval (0, 1)
+TA_HD inline T to_unit_open(uint32_t x);  // uniform in the open interval (0, 1)
 template <>
-TA_INLINE float to_unit_open<float>(uint32_t x) {
+TA_HD inline float to_unit_open<float>(uint32_t x) {
   return (float(x >> 9) + 0.5f) * (1.0f / 8388608.0f);  // 23 bits: x + 0.5 stays exact, so u < 1
 }
 template <>
-TA_INLINE double to_unit_open<double>(uint32_t x) {
+TA_HD inline double to_unit_open<double>(uint32_t x) {
   return (double(x) + 0.5) * (1.0 / 4294967296.0);
 }
 
@@ -45,7 +45,7 @@ struct PathRng {
   uint64_t key;
   uint32_t element, sample, channel;
   // Four uniforms in (0, 1) for event number `event` of this path.
-  TA_INLINE void draw(uint32_t event, T u[4]) const {
+  TA_HD inline void draw(uint32_t event, T u[4]) const {
     uint32_t c[4] = {element, sample, channel, event};
     Philox4x32::generate(c, key);
     for (int i = 0; i < 4; ++i) u[i] = to_unit_open<T>(c[i]);

@@ -40,16 +40,16 @@ struct Tape {
   int64_t nseg = 0, ncol = 0;
   bool overflow = false;
 
-  TA_INLINE void clear() {
+  TA_HD void clear() {
     nseg = ncol = 0;
     overflow = false;
   }
-  TA_INLINE void segment(int64_t v, T len) {
+  TA_HD void segment(int64_t v, T len) {
     if (nseg < seg_cap) segs[nseg++] = {v, len};
     else overflow = true;
   }
   // The next collision entry, or null (and overflow) when the tape is full.
-  TA_INLINE TapeCollision<T, LANES>* collision(int64_t v) {
+  TA_HD TapeCollision<T, LANES>* collision(int64_t v) {
     if (ncol >= col_cap) {
       overflow = true;
       return nullptr;
@@ -62,7 +62,7 @@ struct Tape {
 };
 
 template <typename T>
-TA_INLINE T weight_without(T factor, T value, T prod_nonzero, int zeros) {
+TA_HD inline T weight_without(T factor, T value, T prod_nonzero, int zeros) {
   if (factor != T(0)) return zeros == 0 ? value / factor : T(0);
   return zeros == 1 ? prod_nonzero : T(0);
 }
@@ -71,7 +71,7 @@ TA_INLINE T weight_without(T factor, T value, T prod_nonzero, int zeros) {
 // walk's final PathResult fields, `adj[l]` = grad_out·L_e/spp, `chan` the channel of a one-lane walk, N the voxels
 // per channel plane.
 template <typename T, int LANES>
-TA_INLINE void deposit_tape(const Tape<T, LANES>& tape, const T* value, const T* prod_nonzero, const int* zeros,
+TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const T* prod_nonzero, const int* zeros,
                                int chan, const T* adj, const Adjoint<T>& A, int64_t N) {
   int64_t s = 0;
   auto segments_until = [&](int64_t end) {

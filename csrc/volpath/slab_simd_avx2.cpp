@@ -267,6 +267,7 @@ constexpr int kEndedLanes = TA_SIMD_ENDED_LANES;  // flights that end before the
 template <bool DIEL, bool RATIO, bool RECORD>
 void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, int64_t seg_cap,
            int64_t col_cap, WalkDone done, void* ctx) {
+  static_assert(!RECORD || RATIO, "the recording walk carries ratio weights");
   const int64_t N = int64_t(S.D) * S.H * S.W;
   const int32_t HW = S.H * S.W;
   const float vs[3] = {S.voxel[0], S.voxel[1], S.voxel[2]};
@@ -519,21 +520,19 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       const vf inv_psq = _mm256_div_ps(fset(1.0f), psq);
       wref = sel(survive, _mm256_mul_ps(wref, _mm256_mul_ps(aref, inv_psq)), wref);
       _mm256_store_ps(L.wref, wref);
-      if (RATIO || RECORD) {
+      if (RATIO) {
         const vf alb = same_alb ? aref : gather(S.albedo, cv, survive);
         const vf fa = _mm256_mul_ps(alb, inv_psq);
-        const vf fs = RATIO ? _mm256_div_ps(col_sig, col_sref) : fset(1.0f);
-        if (RATIO) {
-          w = sel(survive, _mm256_mul_ps(w, _mm256_mul_ps(fs, fa)), w);
-          const vf zs = eq(fs, _mm256_setzero_ps()), za = eq(fa, _mm256_setzero_ps());
-          prod = sel(survive, _mm256_mul_ps(_mm256_mul_ps(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)),
-                     prod);
-          // a true mask is −1: subtracting it adds 1
-          vi zeros = _mm256_load_si256(reinterpret_cast<const vi*>(L.zeros));
-          zeros = _mm256_sub_epi32(zeros, asi(vand(survive, zs)));
-          zeros = _mm256_sub_epi32(zeros, asi(vand(survive, za)));
-          _mm256_store_si256(reinterpret_cast<vi*>(L.zeros), zeros);
-        }
+        const vf fs = _mm256_div_ps(col_sig, col_sref);
+        w = sel(survive, _mm256_mul_ps(w, _mm256_mul_ps(fs, fa)), w);
+        const vf zs = eq(fs, _mm256_setzero_ps()), za = eq(fa, _mm256_setzero_ps());
+        prod = sel(survive, _mm256_mul_ps(_mm256_mul_ps(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)),
+                   prod);
+        // a true mask is −1: subtracting it adds 1
+        vi zeros = _mm256_load_si256(reinterpret_cast<const vi*>(L.zeros));
+        zeros = _mm256_sub_epi32(zeros, asi(vand(survive, zs)));
+        zeros = _mm256_sub_epi32(zeros, asi(vand(survive, za)));
+        _mm256_store_si256(reinterpret_cast<vi*>(L.zeros), zeros);
         if (RECORD) {
           alignas(32) float a_sref[8], a_ipsq[8], a_fs[8], a_fa[8];
           alignas(32) int32_t vv[8];

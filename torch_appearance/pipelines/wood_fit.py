@@ -603,8 +603,8 @@ def match_luminance_histogram(model, fit_rgb, target_rgb):
         (2, M) array: the quantile map's knots (fit luminance, photo luminance).
     """
     y = torch.tensor(_LUMA, dtype=torch.float64)
-    y_fit = np.sort((fit_rgb.detach().double().reshape(-1, 3) @ y).cpu().numpy())
-    y_photo = np.sort((target_rgb.detach().double().reshape(-1, 3) @ y).cpu().numpy())
+    y_fit = (fit_rgb.detach().double().reshape(-1, 3) @ y).cpu().numpy()
+    y_photo = (target_rgb.detach().double().reshape(-1, 3) @ y).cpu().numpy()
     qs = np.linspace(0.0, 1.0, 257)
     knots_fit, knots_photo = np.quantile(y_fit, qs), np.quantile(y_photo, qs)
     knots_fit = np.maximum.accumulate(knots_fit)
@@ -662,7 +662,7 @@ def latewood_contrast(fit_rgb, photo_rgb):
     Returns:
         dict ``fit_spread``, ``photo_spread``, ``ratio``.
     """
-    y = np.array([0.2126, 0.7152, 0.0722])
+    y = np.array(_LUMA)
     spread = [float(np.subtract(*np.percentile(np.asarray(x, np.float64) @ y, [95, 5]))) for x in (fit_rgb, photo_rgb)]
     return {"fit_spread": spread[0], "photo_spread": spread[1], "ratio": spread[0] / max(spread[1], 1e-12)}
 
