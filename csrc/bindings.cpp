@@ -111,7 +111,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("sigma_t_table"), py::arg("albedo_table"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
         "General-scene radiance of a palette medium (uint8 index volume, (3, P) tables) and ForwardCounts.");
   m.def("_set_simd", &ta::volpath::set_simd, py::arg("mode"),
-        "Test hook: the AVX2 slab walk, -1 automatic (AVX2 and TA_SIMD != 0), 0 off, 1 on; returns whether it was on.");
+        "Test hook: the slab walk, -1 automatic (the CPU and TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns the one before.");
   m.def("_set_tape_capacity", &ta::volpath::set_tape_capacity, py::arg("segments"),
         "Test-only: initial per-thread tape capacity of the replay (0: every path replays twice); returns the old.");
 }

@@ -36,9 +36,9 @@ taken as the per-channel row's corrected MSE / ref-mult (run per_channel first) 
 carry ``chromatic`` and ``efficiency_*_vs_per_channel`` (its efficiency over that of the per-channel row of the
 same scene and thread count: > 1 means the variant gives less error per second).
 
-Walks (``--walks scalar,avx2``): the float32 slab scenes with a chromatic medium (one walk per channel) run on the AVX2
-walk of eight paths per thread (csrc/volpath/slab_simd.h) where the CPU has AVX2, else on the scalar walk; both give the
-same paths. Each scene is run once per walk in the order given, rows carry ``walk``, and rows after the first carry
+Walks (``--walks scalar,avx2,avx512``): the float32 slab scenes with a chromatic medium (one walk per channel) run on
+a SIMD walk (csrc/volpath/slab_simd.h: AVX2, eight paths per thread; AVX-512, sixteen) where the CPU has it, else on
+the scalar walk; all give the same paths. Each scene is run once per walk in the order given, rows carry ``walk``, and rows after the first carry
 ``forward_speedup_vs_<first>``, ``backward_speedup_vs_<first>`` and ``efficiency_*_vs_<first>``.
 
 With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
@@ -67,7 +67,7 @@ Usage::
     python scripts/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
     python scripts/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
     python scripts/bench_volpath.py --scenes print-slab,ink-slab --chromatic per_channel,hero --threads 2
-    python scripts/bench_volpath.py --scenes print-slab --slab-size 760 --walks scalar,avx2 --threads 2 --spp 4
+    python scripts/bench_volpath.py --scenes print-slab --slab-size 760 --walks scalar,avx2,avx512 --threads 2 --spp 4
 """
 import argparse
 import io
@@ -535,7 +535,7 @@ def _names_from(choices, what):
     return parse
 
 
-WALKS = {"auto": -1, "scalar": 0, "avx2": 1}
+WALKS = {"auto": -1, "scalar": 0, "avx2": 1, "avx512": 2}
 
 
 def _chromatic_names():
@@ -566,9 +566,10 @@ def parse_args(argv=None):
                         help="comma-separated estimators for chromatic media, from per_channel,hero; run per_channel "
                              "first (default: %(default)s)")
     parser.add_argument("--walks", type=_names_from(WALKS, "walk(s)"), default=["auto"],
-                        help="comma-separated slab walks to time, from auto,scalar,avx2 (avx2: eight paths per thread "
-                             "in SIMD lanes, float32 slabs on CPUs with AVX2; auto: avx2 where it serves); rows after "
-                             "the first carry speed-ups and error-per-second ratios against it (default: auto)")
+                        help="comma-separated slab walks to time, from auto,scalar,avx2,avx512 (avx2, avx512: eight or "
+                             "sixteen paths per thread in SIMD lanes, float32 slabs on CPUs with the instruction set; "
+                             "auto: the widest that serves); rows after the first carry speed-ups and error-per-second "
+                             "ratios against it (default: auto)")
     parser.add_argument("--baseline", metavar="REV", default=None,
                         help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)
@@ -580,10 +581,12 @@ def parse_args(argv=None):
         parser.error(f"--slab-size must be >= 1, got {args.slab_size}")
     if args.ref_mult < 0:
         parser.error(f"--ref-mult must be >= 0, got {args.ref_mult}")
-    if "avx2" in args.walks:
-        _C._set_simd(-1)
-        if not _C._set_simd(-1):
-            parser.error("--walks avx2: this CPU has no AVX2 (or TA_SIMD=0 is set)")
+    _C._set_simd(-1)
+    level = _C._set_simd(-1)
+    for walk in ("avx2", "avx512"):
+        if walk in args.walks and WALKS[walk] > level:
+            parser.error(f"--walks {walk}: this CPU cannot run it (or TA_SIMD limits the walks); the widest here is "
+                         f"{[k for k, v in WALKS.items() if v == level][0]}")
     return args
 
 

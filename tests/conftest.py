@@ -42,7 +42,8 @@ def assert_z(estimate, stderr, expected, *, n_tests=None, family_alpha=1e-3, wha
 @pytest.fixture
 def walk_kernel():
     """``walk_kernel(mode)`` selects the slab walk for the rest of a test: 0 the scalar walk, 1 the AVX2 walk of
-    eight lanes (csrc/volpath/slab_simd.h), -1 automatic (the default); restored afterwards."""
+    eight lanes, 2 the AVX-512 walk of sixteen (csrc/volpath/slab_simd.h), -1 automatic (the default); restored
+    afterwards."""
     from torch_appearance._ext import _C
     before = _C._set_simd(-1)
     _C._set_simd(-1)
@@ -54,8 +55,14 @@ def walk_kernel():
     _C._set_simd(-1 if before else 0)
 
 
-def avx2_walk_available():
-    """Whether the AVX2 slab walk can run here (the CPU has AVX2 and TA_SIMD is not 0); leaves it automatic."""
+def simd_walk_level():
+    """The widest SIMD slab walk that runs here: 0 none (no AVX2, or TA_SIMD is 0), 1 AVX2, 2 AVX-512; leaves it
+    automatic."""
     from torch_appearance._ext import _C
     _C._set_simd(-1)
-    return bool(_C._set_simd(-1))
+    return int(_C._set_simd(-1))
+
+
+def avx2_walk_available():
+    """Whether the AVX2 slab walk can run here (the CPU has AVX2 and TA_SIMD is not 0); leaves it automatic."""
+    return simd_walk_level() >= 1

@@ -1,7 +1,8 @@
-"""The AVX2 slab walk (csrc/volpath/slab_simd_avx2.cpp) against the scalar walk (core/integrator.h).
+"""The SIMD slab walks (csrc/volpath/slab_simd_walk.h: AVX2, eight lanes; AVX-512, sixteen) against the scalar walk
+(core/integrator.h), each test once per width this CPU runs.
 
-Both draw the same random numbers (Philox, counter (texel, sample, channel, event)) in the same event order and apply
-the same estimator; the AVX2 walk only computes log, sin, cos and a few quotients in a different way, to the last
+They draw the same random numbers (Philox, counter (texel, sample, channel, event)) in the same event order and apply
+the same estimator; the SIMD walks only compute log, sin, cos and a few quotients in a different way, to the last
 bit. So a path and its scalar twin take the same voxels and events, the images agree texel by texel (they are
 bitwise equal here), the event counts agree, and the gradients agree to float rounding. A wrong event order, a
 missed boundary case or a wrong weight would part the paths and show up as differences of order one.
@@ -12,9 +13,11 @@ import torch
 import torch_appearance as ta
 from torch_appearance._ext import _C
 
-from conftest import avx2_walk_available
+from conftest import simd_walk_level
 
-pytestmark = pytest.mark.skipif(not avx2_walk_available(), reason="needs a CPU with AVX2 (or TA_SIMD is 0)")
+pytestmark = pytest.mark.skipif(simd_walk_level() < 1, reason="needs a CPU with AVX2 (or TA_SIMD is 0)")
+WIDTHS = [pytest.param(1, id="avx2"),
+          pytest.param(2, id="avx512", marks=pytest.mark.skipif(simd_walk_level() < 2, reason="needs AVX-512F"))]
 
 
 def _medium(shape, seed=3):
@@ -28,7 +31,7 @@ def _medium(shape, seed=3):
 
 
 def _run(walk_kernel, mode, sigma_t, albedo, threads=2, **kwargs):
-    """(image, grad σ_t, grad albedo, stats) of render_texels with the walk `mode` (0 scalar, 1 AVX2)."""
+    """(image, grad σ_t, grad albedo, stats) of render_texels with the walk `mode` (0 scalar, 1 AVX2, 2 AVX-512)."""
     walk_kernel(mode)
     torch.set_num_threads(threads)
     s = sigma_t.clone().requires_grad_()
@@ -48,10 +51,10 @@ def _assert_twins(simd, scalar, grad_rtol=1e-3, replay_events=True):
     assert float((image_s - image_c).abs().max()) < 0.05
     for key in ("scatter_events", "truncated_paths"):
         a, b = simd[3][key], scalar[3][key]
-        assert abs(a - b) <= 1e-3 * max(b, 1000), f"{key}: AVX2 {a} vs scalar {b}"
+        assert abs(a - b) <= 1e-3 * max(b, 1000), f"{key}: SIMD {a} vs scalar {b}"
     if replay_events:
         a, b = simd[3]["backward_scatter_events"], scalar[3]["backward_scatter_events"]
-        assert abs(a - b) <= 1e-3 * b, f"backward_scatter_events: AVX2 {a} vs scalar {b}"
+        assert abs(a - b) <= 1e-3 * b, f"backward_scatter_events: SIMD {a} vs scalar {b}"
     for k, name in ((1, "sigma_t"), (2, "albedo")):
         g_s, g_c = simd[k], scalar[k]
         assert bool(torch.isfinite(g_s).all())
@@ -59,48 +62,52 @@ def _assert_twins(simd, scalar, grad_rtol=1e-3, replay_events=True):
         assert rel <= grad_rtol, f"grad {name}: relative L1 difference {rel:.3g}"
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("face,ior", [("top", 1.5), ("bottom", 1.3), ("both", None)])
-def test_avx2_walk_is_the_scalar_walk(walk_kernel, face, ior):
+def test_simd_walk_is_the_scalar_walk(walk_kernel, width, face, ior):
     sigma_t, albedo = _medium((6, 11, 13))
     kw = dict(face=face, ior=ior, g=0.3, spp=8, seed=5)
-    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    simd = _run(walk_kernel, width, sigma_t, albedo, **kw)
     scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
     _assert_twins(simd, scalar)
 
 
-def test_avx2_walk_cut_by_depth_and_roulette(walk_kernel):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_simd_walk_cut_by_depth_and_roulette(walk_kernel, width):
     """max_depth cuts (counted, contributing 0) and Russian roulette from the first interaction on."""
     sigma_t, albedo = _medium((8, 9, 9), seed=4)
     kw = dict(face="top", ior=1.5, g=-0.2, spp=8, seed=9, max_depth=12, rr_depth=0)
-    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    simd = _run(walk_kernel, width, sigma_t, albedo, **kw)
     scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
     assert scalar[3]["truncated_paths"] > 100  # the cut is exercised
     _assert_twins(simd, scalar)
 
 
-def test_avx2_walk_with_explicit_sampling_medium(walk_kernel):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_simd_walk_with_explicit_sampling_medium(walk_kernel, width):
     """Ratio weights f/p_ref ≠ 1 in the forward and the replay (a sampling medium unlike the parameters)."""
     sigma_t, albedo = _medium((5, 8, 8), seed=6)
     ref_s = (sigma_t * 0.7 + 2.0).detach()
     ref_a = (albedo * 0.5 + 0.4).clamp(max=1.0).detach()
     kw = dict(face="top", ior=1.5, g=0.5, spp=8, seed=2, sampling_sigma_t=ref_s, sampling_albedo=ref_a)
-    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    simd = _run(walk_kernel, width, sigma_t, albedo, **kw)
     scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
     assert float(simd[0].std()) > 0
     _assert_twins(simd, scalar)
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("capacity", [0, 4])
-def test_avx2_replay_of_paths_longer_than_the_lane_tape(walk_kernel, capacity):
+def test_simd_replay_of_paths_longer_than_the_lane_tape(walk_kernel, width, capacity):
     """Paths that do not fit their lane's tape are replayed by the scalar code (walk and deposit)."""
     sigma_t, albedo = _medium((6, 9, 10), seed=8)
     kw = dict(face="both", ior=1.5, g=0.3, spp=4, seed=3)
     old = _C._set_tape_capacity(capacity)
     try:
-        short = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+        short = _run(walk_kernel, width, sigma_t, albedo, **kw)
     finally:
         _C._set_tape_capacity(old)
-    simd = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+    simd = _run(walk_kernel, width, sigma_t, albedo, **kw)
     scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
     _assert_twins(short, scalar, replay_events=False)  # (the replayed paths are walked again: more events)
     _assert_twins(simd, scalar)
@@ -108,23 +115,42 @@ def test_avx2_replay_of_paths_longer_than_the_lane_tape(walk_kernel, capacity):
         assert short[3]["backward_scatter_events"] > 1.5 * simd[3]["backward_scatter_events"]
 
 
-def test_avx2_walk_does_not_depend_on_threads_or_partition(walk_kernel):
+@pytest.mark.parametrize("width", WIDTHS)
+def test_simd_walk_does_not_depend_on_threads_or_partition(walk_kernel, width):
     sigma_t, albedo = _medium((5, 10, 12), seed=1)
     kw = dict(face="top", ior=1.5, g=0.3, spp=4, seed=7)
-    one = _run(walk_kernel, 1, sigma_t, albedo, threads=1, **kw)
-    two = _run(walk_kernel, 1, sigma_t, albedo, threads=2, **kw)
+    one = _run(walk_kernel, width, sigma_t, albedo, threads=1, **kw)
+    two = _run(walk_kernel, width, sigma_t, albedo, threads=2, **kw)
     assert torch.equal(one[0], two[0])
-    walk_kernel(1)
+    walk_kernel(width)
     with torch.no_grad():
         parts = [ta.render_texels(sigma_t, albedo, voxel_size=0.1, partition=(r, 3), **kw) for r in range(3)]
     assert torch.equal(sum(parts), one[0])
 
 
-def test_avx2_walk_serves_float32_slabs_only(walk_kernel):
-    """float64 grids keep the scalar walk: its images equal the scalar walk's bitwise with the AVX2 walk on."""
+@pytest.mark.parametrize("width", WIDTHS)
+def test_simd_walk_serves_float32_slabs_only(walk_kernel, width):
+    """float64 grids keep the scalar walk: its images equal the scalar walk's bitwise with a SIMD walk on."""
     sigma_t, albedo = _medium((4, 6, 6))
     kw = dict(face="top", ior=1.5, g=0.3, spp=4, seed=1)
-    on = _run(walk_kernel, 1, sigma_t.double(), albedo.double(), **kw)
+    on = _run(walk_kernel, width, sigma_t.double(), albedo.double(), **kw)
     off = _run(walk_kernel, 0, sigma_t.double(), albedo.double(), **kw)
     for x, y in zip(on[:3], off[:3]):
         assert torch.equal(x, y)
+
+
+@pytest.mark.skipif(simd_walk_level() < 2, reason="needs AVX-512F")
+def test_avx2_and_avx512_walks_take_the_same_paths(walk_kernel):
+    """Both widths compute every event with the same IEEE operations: the images are bitwise equal, the event counts
+    equal, and the gradients differ only by the order of the deposits (float rounding)."""
+    sigma_t, albedo = _medium((6, 12, 10), seed=11)
+    ref_s = (sigma_t * 0.8 + 1.0).detach()
+    for kw in (dict(face="both", ior=1.5, g=0.4, spp=6, seed=4),
+               dict(face="top", ior=None, g=-0.3, spp=6, seed=8, sampling_sigma_t=ref_s)):
+        a = _run(walk_kernel, 1, sigma_t, albedo, **kw)
+        b = _run(walk_kernel, 2, sigma_t, albedo, **kw)
+        assert torch.equal(a[0], b[0])
+        for key in ("scatter_events", "truncated_paths", "backward_scatter_events"):
+            assert a[3][key] == b[3][key], key
+        for k in (1, 2):
+            assert float((a[k] - b[k]).abs().sum() / a[k].abs().sum()) < 1e-5

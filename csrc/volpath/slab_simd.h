@@ -1,13 +1,15 @@
-// The slab walk eight paths at a time (AVX2): the hot loop of print optimisation on slabs (box boundary, face texels,
-// one walk per colour channel, constant environment) as a wavefront of eight independent walks, one per SIMD lane.
-// A lane whose path ends takes the next path of its batch, so the lanes stay busy while paths differ in length.
+// The slab walk eight or sixteen paths at a time (AVX2, AVX-512): the hot loop of print optimisation on slabs (box
+// boundary, face texels, one walk per colour channel, constant environment) as a wavefront of independent walks, one
+// per SIMD lane. A lane whose path ends takes the next path of its batch, so the lanes stay busy while paths differ
+// in length. The walk is written once (slab_simd_walk.h) and compiled per instruction set.
 //
 // Same estimator, same random numbers (Philox4x32-10 keyed as in core/rng.h, counter (element, sample, channel,
 // event)) and the same event order as core::trace_path<float, 1, kBoxBoundary, ...>; what differs is the last bits of
 // log, sin and cos (polynomials here, libm there), so a path may part from its scalar twin after many events, never
-// in distribution. Selected at run time where the CPU has AVX2 (and TA_SIMD is not 0); otherwise the scalar walk runs.
+// in distribution; the two widths give the same bits. Selected at run time by the CPU (AVX-512F, else AVX2) and
+// TA_SIMD (0 off, avx2 at most AVX2); otherwise the scalar walk runs.
 //
-// This header is plain C++ (no torch, no std::): the AVX2 translation unit includes nothing that could be
+// This header is plain C++ (no torch, no std::): the SIMD translation units include nothing that could be
 // instantiated there and linked into scalar code.
 #pragma once
 
@@ -62,13 +64,16 @@ struct WalkOut {
 
 typedef void (*WalkDone)(void* ctx, const WalkOut& out);
 
-// Walks every path of a batch (call only on a CPU with AVX2; volpath_cpu.cpp checks): for each element k < n of
-// `elems` (flat texel index, < 2^32) and sample s < spp, the channels whose bit is set in live[k] (all three when
-// live is null). `ratio`: weights f/p_ref (the replay);
-// `record`: tapes for the replay's deposit (implies ratio), `seg_cap`/`col_cap` entries per lane (a path with more
-// is reported with `overflow`). Calls done() once per path, in the order the paths end.
+// Walks every path of a batch (call only on a CPU with the instruction set; volpath_cpu.cpp checks): for each
+// element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the channels whose bit is set in live[k]
+// (all three when live is null). `ratio`: weights f/p_ref (the replay); `record`: tapes for the replay's deposit
+// (implies ratio), `seg_cap`/`col_cap` entries per lane (a path with more is reported with `overflow`).
+// `ended_lanes`: the collision phase runs once this many lanes have ended their flights (0: three quarters of the
+// lanes; a tuning knob, the paths do not depend on it). Calls done() once per path, in the order the paths end.
 void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
-                     bool record, int64_t seg_cap, int64_t col_cap, WalkDone done, void* ctx);
+                     bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx);
+void slab_walks_avx512(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                       bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx);
 
 }  // namespace simd
 }  // namespace ta

@@ -132,7 +132,8 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
 // Test-only: the initial per-thread tape capacity of the replay (segments; collisions get half). 0 makes every path
 // take the two-pass fallback, so tests can compare both replays. Returns the previous value.
 int64_t set_tape_capacity(int64_t segments);
-// The AVX2 slab walk (slab_simd.h): -1 automatic (AVX2 and TA_SIMD != 0), 0 off, 1 on; returns whether it was on.
+// The SIMD slab walk (slab_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
+// the level before.
 int64_t set_simd(int64_t mode);
 
 }  // namespace volpath

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdlib>
+#include <cstring>
 #include <string>
 #include <type_traits>
 #include <vector>
@@ -320,26 +321,50 @@ static_assert(sizeof(simd::TapeCollisionF) == sizeof(TapeCollisionF1) &&
                   offsetof(simd::TapeCollisionF, fa) == offsetof(TapeCollisionF1, fa),
               "the AVX2 walk's tape collisions must match core::TapeCollision<float, 1>");
 
-bool cpu_has_avx2() {
+// The widest SIMD walk this CPU runs: 2 AVX-512F, 1 AVX2, 0 none (libgcc also checks that the OS saves the registers).
+int cpu_simd_level() {
 #if (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)
   __builtin_cpu_init();
-  return __builtin_cpu_supports("avx2");
+  if (__builtin_cpu_supports("avx512f")) return 2;
+  return __builtin_cpu_supports("avx2") ? 1 : 0;
 #else
-  return false;
+  return 0;
 #endif
 }
 
-// -1: not decided yet (the CPU and TA_SIMD decide at first use); 0 off; 1 on. set_simd (tests, benchmarks) overrides.
+// -1: not decided yet (the CPU and TA_SIMD decide at first use); 0 the scalar walk; 1 AVX2; 2 AVX-512. set_simd (tests,
+// benchmarks) overrides.
 std::atomic<int> g_simd{-1};
 
-bool simd_enabled() {
+int simd_level() {
   int v = g_simd.load();
   if (v < 0) {
     const char* env = std::getenv("TA_SIMD");
-    v = (env && env[0] == '0') ? 0 : (cpu_has_avx2() ? 1 : 0);
+    v = cpu_simd_level();
+    if (env && env[0] == '0') v = 0;
+    else if (env && std::strcmp(env, "avx2") == 0) v = std::min(v, 1);
     g_simd.store(v);
   }
-  return v == 1;
+  return v;
+}
+bool simd_enabled() { return simd_level() > 0; }
+
+// TA_SIMD_ENDED_LANES: flights that end before the SIMD walk's collision phase runs (0: its default); for tuning
+int simd_ended_lanes() {
+  static const int v = [] {
+    const char* env = std::getenv("TA_SIMD_ENDED_LANES");
+    return env ? std::atoi(env) : 0;
+  }();
+  return v;
+}
+
+// The SIMD walk of the selected width.
+void slab_walks(const simd::SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                bool record, int64_t seg_cap, int64_t col_cap, simd::WalkDone done, void* ctx) {
+  if (simd_level() == 2)
+    simd::slab_walks_avx512(S, elems, live, n, ratio, record, seg_cap, col_cap, simd_ended_lanes(), done, ctx);
+  else
+    simd::slab_walks_avx2(S, elems, live, n, ratio, record, seg_cap, col_cap, simd_ended_lanes(), done, ctx);
 }
 
 constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the AVX2 walk
@@ -425,7 +450,7 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, float* out, int64_t c, i
     if (elems.empty()) return;
     const int64_t n = int64_t(elems.size());
     ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
-    simd::slab_walks_avx2(W, elems.data(), nullptr, n, RATIO, false, 0, 0,
+    slab_walks(W, elems.data(), nullptr, n, RATIO, false, 0, 0,
                           [](void* p, const simd::WalkOut& o) {
                             auto* x = static_cast<Ctx*>(p);
                             x->values[size_t(o.item)] = o.value;
@@ -590,7 +615,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* grad_out, const 
   auto flush = [&]() {
     if (elems.empty()) return;
     ctx.elems = elems.data();
-    simd::slab_walks_avx2(
+    slab_walks(
         W, elems.data(), live.data(), int64_t(elems.size()), true, true, seg_cap, seg_cap / 2,
         [](void* p, const simd::WalkOut& o) {
           auto* x = static_cast<Ctx*>(p);
@@ -753,9 +778,9 @@ std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
 }  // namespace
 
 int64_t set_simd(int64_t mode) {
-  TORCH_CHECK(mode >= -1 && mode <= 1, "mode: expected -1 (automatic), 0 (off) or 1 (on), got ", mode);
-  TORCH_CHECK(mode != 1 || cpu_has_avx2(), "mode: this CPU has no AVX2");
-  const int before = simd_enabled() ? 1 : 0;
+  TORCH_CHECK(mode >= -1 && mode <= 2, "mode: expected -1 (automatic), 0 (scalar), 1 (AVX2) or 2 (AVX-512), got ", mode);
+  TORCH_CHECK(mode <= cpu_simd_level(), "mode: this CPU cannot run ", mode == 2 ? "AVX-512F" : "AVX2");
+  const int before = simd_level();
   g_simd.store(int(mode));
   return before;
 }

@@ -1,0 +1,594 @@
+// The slab walk of slab_simd.h written once for any SIMD width. Not a normal header: an instruction-set translation
+// unit (slab_simd_avx2.cpp, slab_simd_avx512.cpp) includes it inside its anonymous namespace, after defining
+//   kLanes                    lanes per vector (8, 16)
+//   F, I, M                   float vector, int32 vector, lane mask
+//   fset iset fzero           broadcast constants
+//   add sub mul div sqrt_ fmin_ fmax_ floor_ round_ neg fabs_ sign1   float arithmetic (round_: to nearest even;
+//                             fmin_/fmax_: the instruction's min/max; sign1(x) = copysign(1, x))
+//   cvtif cvtfi               int → float, float → int (round to nearest)
+//   iadd isub imul iand ior_ ixor srli<K> slli<K> srai<K>   int32 lanes; asf asi   bit casts
+//   lt ge gt eq (F) ieq igt (I) → M;  mand mor mandnot(a, b) = !a & b, mnot, mnone, bits(M) → lane bits
+//   sel(M, a, b) = M ? a : b for F, seli for I;  iadd1(I, M) adds 1 in the lanes of M
+//   loadf storef loadi storei (aligned to the vector), gather(base, idx, M) (0 in lanes outside M)
+//   mulhilo(a, m, hi, lo)     the 32 × 32 → 64-bit products of Philox
+//
+// Each lane follows core::trace_path<float, 1, kBoxBoundary, DIELECTRIC, RATIO, false, RECORD> for face texels and a
+// constant emitter step by step (integrator.h is the reference; comments there explain the estimator):
+//   start   event 0: position in the texel (u0, u1), specular reflection at the entry face (u2 < F(1)) escapes;
+//   flight  one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 absorption (at a
+//           collision) or Fresnel (at the box), u2 u3 the new direction (HG cosine, azimuth 2π u3);
+//   DDA     exact regular tracking through the voxels, one voxel per iteration of the wavefront loop;
+//   collide depth cut, continuation p_s = α̂ times roulette q on the reference weight, weights σ/σ̂ and α/(p_s q);
+//   box     internal reflection with probability F(|d_a|) (depth counted), else escape with weight w.
+//
+// Every operation is IEEE-exact (no contraction), so each width gives the same bits as the other and as the scalar
+// walk where the scalar walk computes the same expression.
+
+// scalar tmin/tmax semantics: tmin(a, b) = b < a ? b : a; tmax(a, b) = a < b ? b : a
+inline F tmin(F a, F b) { return sel(lt(b, a), b, a); }
+inline F tmax(F a, F b) { return sel(lt(a, b), b, a); }
+
+// ---- Philox4x32-10, kLanes counters at once (core/rng.h)
+inline void philox(I c[4], uint64_t key) {
+  uint32_t k0 = uint32_t(key), k1 = uint32_t(key >> 32);
+  for (int r = 0; r < 10; ++r) {
+    I hi0, lo0, hi1, lo1;
+    mulhilo(c[0], 0xD2511F53u, &hi0, &lo0);
+    mulhilo(c[2], 0xCD9E8D57u, &hi1, &lo1);
+    const I n0 = ixor(ixor(hi1, c[1]), iset(int32_t(k0)));
+    const I n2 = ixor(ixor(hi0, c[3]), iset(int32_t(k1)));
+    c[1] = lo1;
+    c[3] = lo0;
+    c[0] = n0;
+    c[2] = n2;
+    k0 += 0x9E3779B9u;
+    k1 += 0xBB67AE85u;
+  }
+}
+
+// uniform in (0, 1): (float(x >> 9) + 0.5) · 2^-23, as to_unit_open<float>
+inline F unit(I x) { return mul(add(cvtif(srli<9>(x)), fset(0.5f)), fset(1.0f / 8388608.0f)); }
+
+inline void draw(I elem, I sample, I chan, I event, uint64_t key, F u[4]) {
+  I c[4] = {elem, sample, chan, event};
+  philox(c, key);
+  for (int i = 0; i < 4; ++i) u[i] = unit(c[i]);
+}
+
+// scalar twin for a lane's start (event 0): a copy of core/rng.h's Philox, since this file must not include that
+// header (its inline functions would be compiled for this instruction set and might be the copy the linker keeps)
+inline void draw1(uint32_t elem, uint32_t sample, uint32_t chan, uint32_t event, uint64_t key, float u[4]) {
+  uint32_t c[4] = {elem, sample, chan, event};
+  uint32_t k[2] = {uint32_t(key), uint32_t(key >> 32)};
+  for (int r = 0; r < 10; ++r) {
+    const uint64_t p0 = uint64_t(0xD2511F53u) * c[0];
+    const uint64_t p1 = uint64_t(0xCD9E8D57u) * c[2];
+    const uint32_t n0 = uint32_t(p1 >> 32) ^ c[1] ^ k[0];
+    const uint32_t n2 = uint32_t(p0 >> 32) ^ c[3] ^ k[1];
+    c[1] = uint32_t(p1);
+    c[3] = uint32_t(p0);
+    c[0] = n0;
+    c[2] = n2;
+    k[0] += 0x9E3779B9u;
+    k[1] += 0xBB67AE85u;
+  }
+  for (int i = 0; i < 4; ++i) u[i] = (float(c[i] >> 9) + 0.5f) * (1.0f / 8388608.0f);
+}
+
+// ---- float math (Cephes single-precision polynomials, about 1 ulp)
+// log x for normal x > 0
+inline F vlog(F x) {
+  const I xi = asi(x);
+  I e = isub(srli<23>(xi), iset(126));                                        // x = m·2^e, m in [0.5, 1)
+  const F m = asf(ior_(iand(xi, iset(0x007FFFFF)), iset(0x3F000000)));
+  const M small = lt(m, fset(0.707106781186547524f));
+  e = isub(e, seli(small, iset(1), iset(0)));
+  const F z = sub(add(m, sel(small, m, fzero())), fset(1.0f));                // 2m − 1 or m − 1
+  const F ef = cvtif(e);
+  const F z2 = mul(z, z);
+  F y = fset(7.0376836292E-2f);
+  y = add(mul(y, z), fset(-1.1514610310E-1f));
+  y = add(mul(y, z), fset(1.1676998740E-1f));
+  y = add(mul(y, z), fset(-1.2420140846E-1f));
+  y = add(mul(y, z), fset(1.4249322787E-1f));
+  y = add(mul(y, z), fset(-1.6668057665E-1f));
+  y = add(mul(y, z), fset(2.0000714765E-1f));
+  y = add(mul(y, z), fset(-2.4999993993E-1f));
+  y = add(mul(y, z), fset(3.3333331174E-1f));
+  y = mul(mul(y, z), z2);
+  y = add(y, mul(ef, fset(-2.12194440e-4f)));
+  y = sub(y, mul(z2, fset(0.5f)));
+  return add(add(z, y), mul(ef, fset(0.693359375f)));
+}
+
+// exp x (0 below −87.3, +inf above 88.72)
+inline F vexp(F x) {
+  const M hi = gt(x, fset(88.7228391f)), lo = lt(x, fset(-87.3365448f));
+  F xc = fmin_(fmax_(x, fset(-87.3365448f)), fset(88.7228391f));
+  const F fx = floor_(add(mul(xc, fset(1.44269504088896341f)), fset(0.5f)));
+  xc = sub(xc, mul(fx, fset(0.693359375f)));
+  xc = sub(xc, mul(fx, fset(-2.12194440e-4f)));
+  const F z = mul(xc, xc);
+  F y = fset(1.9875691500E-4f);
+  y = add(mul(y, xc), fset(1.3981999507E-3f));
+  y = add(mul(y, xc), fset(8.3334519073E-3f));
+  y = add(mul(y, xc), fset(4.1665795894E-2f));
+  y = add(mul(y, xc), fset(1.6666665459E-1f));
+  y = add(mul(y, xc), fset(5.0000001201E-1f));
+  y = add(add(mul(y, z), xc), fset(1.0f));
+  // 2^fx in two halves (fx in [−126, 128])
+  const I n = cvtfi(fx);
+  const I n1 = srai<1>(n), n2 = isub(n, n1);
+  const F s1 = asf(slli<23>(iadd(n1, iset(127))));
+  const F s2 = asf(slli<23>(iadd(n2, iset(127))));
+  y = mul(mul(y, s1), s2);
+  y = sel(hi, fset(__builtin_inff()), y);
+  return sel(lo, fzero(), y);
+}
+
+// sin and cos of 2π·u for u in (0, 1): quadrant from round(4u) (exact), polynomials on [−π/4, π/4]
+inline void vsincos_turns(F u, F* s, F* c) {
+  const F jf = round_(mul(u, fset(4.0f)));
+  const F r = sub(u, mul(jf, fset(0.25f)));                                   // exact, |r| <= 1/8
+  const F x = mul(r, fset(6.283185307179586f));
+  const F z = mul(x, x);
+  F ps = fset(-1.9515295891E-4f);
+  ps = add(mul(ps, z), fset(8.3321608736E-3f));
+  ps = add(mul(ps, z), fset(-1.6666654611E-1f));
+  ps = add(mul(mul(ps, z), x), x);
+  F pc = fset(2.443315711809948E-5f);
+  pc = add(mul(pc, z), fset(-1.388731625493765E-3f));
+  pc = add(mul(pc, z), fset(4.166664568298827E-2f));
+  pc = add(sub(mul(mul(pc, z), z), mul(z, fset(0.5f))), fset(1.0f));
+  const I j = iand(cvtfi(jf), iset(3));
+  const M swap = ieq(iand(j, iset(1)), iset(1));
+  const F sv = sel(swap, pc, ps), cv = sel(swap, ps, pc);
+  // sin sign: quadrants 2, 3 negative; cos sign: quadrants 1, 2 negative
+  const I sneg = slli<31>(srli<1>(j));
+  const I cneg = slli<31>(ixor(srli<1>(j), iand(j, iset(1))));
+  *s = asf(ixor(asi(sv), sneg));
+  *c = asf(ixor(asi(cv), cneg));
+}
+
+// Henyey–Greenstein cosine (optics.h sample_hg_cos), g the same for every lane
+inline F hg_cos(float g, F u) {
+  if (g < 1e-3f && g > -1e-3f) return sub(fset(1.0f), mul(fset(2.0f), u));
+  const F s = div(fset(1.0f - g * g), add(fset(1.0f - g), mul(fset(2.0f * g), u)));
+  const F c = mul(sub(fset(1.0f + g * g), mul(s, s)), fset(1.0f / (2.0f * g)));
+  return tmin(fset(1.0f), tmax(fset(-1.0f), c));
+}
+
+// new direction at angle acos(cos_t) from d, azimuth 2π u (optics.h rotate_direction: frame of Duff et al. 2017)
+inline void rotate(F d[3], F cos_t, F u) {
+  const F sin_t = sqrt_(tmax(fzero(), sub(fset(1.0f), mul(cos_t, cos_t))));
+  F sp, cp;
+  vsincos_turns(u, &sp, &cp);
+  const F sign = sign1(d[2]);  // copysign(1, d_z)
+  const F a = div(fset(-1.0f), add(sign, d[2]));
+  const F b = mul(mul(d[0], d[1]), a);
+  const F b1[3] = {add(fset(1.0f), mul(mul(mul(sign, d[0]), d[0]), a)), mul(sign, b), neg(mul(sign, d[0]))};
+  const F b2[3] = {b, add(sign, mul(mul(d[1], d[1]), a)), neg(d[1])};
+  F n[3];
+  for (int k = 0; k < 3; ++k) n[k] = add(mul(sin_t, add(mul(cp, b1[k]), mul(sp, b2[k]))), mul(cos_t, d[k]));
+  const F len2 = add(add(mul(n[0], n[0]), mul(n[1], n[1])), mul(n[2], n[2]));
+  const F inv = div(fset(1.0f), sqrt_(len2));
+  for (int k = 0; k < 3; ++k) d[k] = mul(n[k], inv);
+}
+
+// unpolarised Fresnel reflectance from inside (eta = ior), 1 under total internal reflection
+inline F fresnel(F cos_i, float eta) {
+  const F e = fset(eta);
+  const F sin2_t = mul(mul(e, e), sub(fset(1.0f), mul(cos_i, cos_i)));
+  const M tir = ge(sin2_t, fset(1.0f));
+  const F cos_t = sqrt_(fmax_(fzero(), sub(fset(1.0f), sin2_t)));
+  const F ec = mul(e, cos_i), et = mul(e, cos_t);
+  const F rs = div(sub(ec, cos_t), add(ec, cos_t));
+  const F rp = div(sub(cos_i, et), add(cos_i, et));
+  const F f = mul(fset(0.5f), add(mul(rs, rs), mul(rp, rp)));
+  return sel(tir, fset(1.0f), f);
+}
+
+inline float fresnel1(float cos_i, float eta) {  // scalar twin (the entry face, n_i/n_t = 1/ior)
+  const float sin2_t = eta * eta * (1.0f - cos_i * cos_i);
+  if (sin2_t >= 1.0f) return 1.0f;
+  const float cos_t = __builtin_sqrtf(1.0f - sin2_t);
+  const float rs = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+  const float rp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+  return 0.5f * (rs * rs + rp * rp);
+}
+
+// Per-lane state, kept in memory between the phases of the wavefront loop (lanes are refilled one at a time).
+struct alignas(64) Lanes {
+  float p[3][kLanes], d[3][kLanes], tn[3][kLanes], td[3][kLanes];
+  int32_t idx[3][kLanes], step[3][kLanes], vstep[3][kLanes], cv[kLanes];
+  float tau[kLanes], acc[kLanes], t[kLanes], u1[kLanes], u2[kLanes], u3[kLanes], excess[kLanes];
+  float w[kLanes], wref[kLanes], prod[kLanes];
+  int32_t zeros[kLanes], event[kLanes], depth[kLanes], chan[kLanes], elem[kLanes], sample[kLanes], state[kLanes];
+  int64_t item[kLanes], scatter[kLanes];
+};
+enum : int32_t { kIdle = 0, kNeedFlight = 1, kFlying = 2 };
+
+template <bool DIEL, bool RATIO, bool RECORD>
+void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, int64_t seg_cap,
+           int64_t col_cap, int ended_lanes, WalkDone done, void* ctx) {
+  static_assert(!RECORD || RATIO, "the recording walk carries ratio weights");
+  const int64_t N = int64_t(S.D) * S.H * S.W;
+  const int32_t HW = S.H * S.W;
+  const float vs[3] = {S.voxel[0], S.voxel[1], S.voxel[2]};
+  const int32_t dims[3] = {S.W, S.H, S.D};
+  const bool plain_s = !(S.ref_sigma_t_floor > 0), plain_a = !(S.ref_albedo_floor > 0);
+  // the reference is the medium itself (floored or not): one gather serves both
+  const bool same_sig = S.sigma_t == S.ref_sigma_t;
+  const bool same_alb = S.albedo == S.ref_albedo && plain_a;
+  const float r_entry = DIEL ? fresnel1(1.0f, 1.0f / S.ior) : 0.0f;
+
+  Lanes L;
+  memset(&L, 0, sizeof(L));
+  TapeSegmentF* segs = nullptr;
+  TapeCollisionF* cols = nullptr;
+  int64_t nseg[kLanes] = {0}, ncol[kLanes] = {0};
+  // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
+  // the caller: overflow when more than `cap` entries were counted)
+  const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
+  if (RECORD) {
+    segs = static_cast<TapeSegmentF*>(malloc(sizeof(TapeSegmentF) * size_t(kLanes * seg_room)));
+    cols = static_cast<TapeCollisionF*>(malloc(sizeof(TapeCollisionF) * size_t(kLanes * col_room)));
+  }
+
+  // the next path of the batch: k (element), s (sample), c (channel)
+  int64_t k = 0, s = 0;
+  int c = -1;
+  auto next_item = [&]() -> bool {
+    for (;;) {
+      ++c;
+      if (c == 3) {
+        c = 0;
+        if (++s == S.spp) {
+          s = 0;
+          ++k;
+        }
+      }
+      if (k >= n) return false;
+      if (!live || (live[k] >> c) & 1) return true;
+    }
+  };
+  auto finish = [&](int l, float value, bool escaped, bool truncated) {
+    WalkOut o;
+    o.item = L.item[l];
+    o.value = value;
+    o.prod_nonzero = L.prod[l];
+    o.zeros = L.zeros[l];
+    o.escaped = escaped;
+    o.truncated = truncated;
+    o.scatter_events = L.scatter[l];
+    o.segs = RECORD ? segs + l * seg_room : nullptr;
+    o.cols = RECORD ? cols + l * col_room : nullptr;
+    o.nseg = nseg[l];
+    o.ncol = ncol[l];
+    o.overflow = RECORD && (nseg[l] > seg_cap || ncol[l] > col_cap);
+    done(ctx, o);
+    L.state[l] = kIdle;
+  };
+  // Starts paths in idle lanes until they are all busy or the batch is empty (a path may end at its start).
+  bool more = true;
+  auto refill = [&](int l) {
+    while (L.state[l] == kIdle && more) {
+      more = next_item();
+      if (!more) return;
+      const int64_t elem = elems[k];
+      const int face = S.face == 2 ? int(elem / HW) : S.face;
+      const int64_t ti = elem % HW;
+      const int32_t tj = int32_t(ti / S.W), tx = int32_t(ti % S.W);
+      float u[4];
+      draw1(uint32_t(elem), uint32_t(s), uint32_t(c), 0u, S.seed, u);
+      L.item[l] = (k * S.spp + s) * 3 + c;
+      L.elem[l] = int32_t(uint32_t(elem));
+      L.sample[l] = int32_t(s);
+      L.chan[l] = c;
+      L.event[l] = 1;
+      L.depth[l] = 0;
+      L.scatter[l] = 0;
+      L.w[l] = L.wref[l] = L.prod[l] = 1.0f;
+      L.zeros[l] = 0;
+      nseg[l] = ncol[l] = 0;
+      L.p[0][l] = (float(tx) + u[0]) * vs[0];
+      L.p[1][l] = (float(tj) + u[1]) * vs[1];
+      L.p[2][l] = face == 0 ? float(S.D) * vs[2] : 0.0f;
+      L.d[0][l] = L.d[1][l] = 0.0f;
+      L.d[2][l] = face == 0 ? -1.0f : 1.0f;
+      L.idx[0][l] = tx;
+      L.idx[1][l] = tj;
+      L.idx[2][l] = face == 0 ? S.D - 1 : 0;
+      L.state[l] = kNeedFlight;
+      if (DIEL && u[2] < r_entry) finish(l, 1.0f, true, false);  // specular reflection at the entry face
+    }
+  };
+  for (int l = 0; l < kLanes; ++l) refill(l);
+
+  const I Wv = iset(S.W), HWv = iset(HW), Nv = iset(int32_t(N));
+  const int32_t max_depth = int32_t(S.max_depth < 0x7fffffff ? S.max_depth : 0x7fffffff);
+  const int32_t rr_depth = int32_t(S.rr_depth < 0x7fffffff ? S.rr_depth : 0x7fffffff);
+  for (;;) {
+    const I state = loadi(L.state);
+    const M active = igt(state, iset(0));
+    if (!bits(active)) break;
+    F p[3], d[3], tn[3], td[3];
+    I idx[3], step[3], vstep[3];
+    for (int a = 0; a < 3; ++a) {
+      p[a] = loadf(L.p[a]);
+      d[a] = loadf(L.d[a]);
+      tn[a] = loadf(L.tn[a]);
+      td[a] = loadf(L.td[a]);
+      idx[a] = loadi(L.idx[a]);
+      step[a] = loadi(L.step[a]);
+      vstep[a] = loadi(L.vstep[a]);
+    }
+    I cvox = loadi(L.cv);
+    F tau = loadf(L.tau), acc = loadf(L.acc), t = loadf(L.t);
+    F u1 = loadf(L.u1), u2 = loadf(L.u2), u3 = loadf(L.u3);
+    F excess = loadf(L.excess);
+    const I chan = loadi(L.chan);
+    const I chN = imul(chan, Nv);
+
+    // ---- lanes starting a free flight: one event, the optical depth and the DDA set-up
+    const M nf = ieq(state, iset(kNeedFlight));
+    if (bits(nf)) {
+      const I ev = loadi(L.event);
+      F u[4];
+      draw(loadi(L.elem), loadi(L.sample), chan, ev, S.seed, u);
+      storei(L.event, seli(nf, iadd(ev, iset(1)), ev));
+      tau = sel(nf, neg(vlog(u[0])), tau);
+      u1 = sel(nf, u[1], u1);
+      u2 = sel(nf, u[2], u2);
+      u3 = sel(nf, u[3], u3);
+      acc = sel(nf, fzero(), acc);
+      t = sel(nf, fzero(), t);
+      excess = sel(nf, fzero(), excess);
+      const F inf = fset(__builtin_inff());
+      for (int a = 0; a < 3; ++a) {
+        const M pos = gt(d[a], fzero()), negd = lt(d[a], fzero());
+        const F v = fset(vs[a]);
+        const F i0 = cvtif(idx[a]);
+        const F inv = div(fset(1.0f), d[a]);  // one division per axis (the scalar walk divides thrice)
+        const F tdp = mul(v, inv);
+        const F tnp = tmax(fzero(), mul(sub(mul(add(i0, fset(1.0f)), v), p[a]), inv));
+        const F tnn = tmax(fzero(), mul(sub(mul(i0, v), p[a]), inv));
+        const F tdn = neg(tdp);
+        const F tdx = sel(pos, tdp, sel(negd, tdn, inf));
+        const F tnx = sel(pos, tnp, sel(negd, tnn, inf));
+        const I stx = seli(pos, iset(1), seli(negd, iset(-1), iset(0)));
+        td[a] = sel(nf, tdx, td[a]);
+        tn[a] = sel(nf, tnx, tn[a]);
+        step[a] = seli(nf, stx, step[a]);
+        const int32_t stride = a == 0 ? 1 : (a == 1 ? S.W : HW);
+        vstep[a] = seli(nf, seli(pos, iset(stride), seli(negd, iset(-stride), iset(0))), vstep[a]);
+      }
+      const I v0 = iadd(iadd(imul(idx[2], HWv), imul(idx[1], Wv)), idx[0]);
+      cvox = seli(nf, iadd(chN, v0), cvox);
+    }
+
+    // ---- regular tracking: one voxel per iteration for every lane in flight, until enough flights have ended
+    // (the collision and flight-start phases below cost the same for one lane or all, so they wait for several)
+    M collided = mnone(), out = mnone(), flying = active;
+    F col_sref = fset(1.0f), col_sig = fzero();
+    I col_v = iset(0), exit_axis = iset(-1);
+    do {
+      const M m01 = lt(tn[0], tn[1]), m02 = lt(tn[0], tn[2]), m12 = lt(tn[1], tn[2]);
+      const M is0 = mand(m01, m02), is1 = mandnot(m01, m12);
+      const M is2 = mnot(mor(is0, is1));
+      const F tend = sel(is0, tn[0], sel(is1, tn[1], tn[2]));
+      const I cv = cvox;
+      const I v = isub(cvox, chN);
+      const F seg = tmax(fzero(), sub(tend, t));
+      const F raw = gather(S.ref_sigma_t, cv, flying);
+      const F sref = plain_s ? raw : tmax(raw, fset(S.ref_sigma_t_floor));
+      const F od = mul(sref, seg);
+      const M hit = mand(flying, ge(add(acc, od), tau));
+      const F len = sel(hit, div(sub(tau, acc), sel(hit, sref, fset(1.0f))), seg);
+      F sig = fzero();
+      if (RATIO) {
+        sig = same_sig ? raw : gather(S.sigma_t, cv, flying);
+        excess = sel(flying, add(excess, mul(sub(sig, sref), len)), excess);
+      }
+      if (RECORD) {
+        alignas(64) float lens[kLanes];
+        alignas(64) int32_t vv[kLanes];
+        storef(lens, len);
+        storei(vv, v);
+        const int m = bits(mand(flying, gt(len, fzero())));
+        for (int l = 0; l < kLanes; ++l) {  // branch-free: every lane writes, only the recording lanes advance
+          const int64_t pos = nseg[l];
+          segs[l * seg_room + (pos < seg_room ? pos : seg_room - 1)] = {int64_t(vv[l]), lens[l]};
+          nseg[l] = pos + ((m >> l) & 1);
+        }
+      }
+      col_sref = sel(hit, sref, col_sref);
+      col_sig = sel(hit, sig, col_sig);
+      col_v = seli(hit, v, col_v);
+      // lanes that did not collide: advance to the next voxel (or leave the box)
+      const M moving = mandnot(hit, flying);
+      acc = sel(moving, add(acc, od), acc);
+      t = sel(hit, add(t, len), sel(moving, tend, t));
+      M left = mnone();
+      for (int a = 0; a < 3; ++a) {
+        const M on = mand(moving, a == 0 ? is0 : (a == 1 ? is1 : is2));
+        const I moved = iadd(idx[a], step[a]);
+        const M oob = mor(igt(iset(0), moved), igt(moved, iset(dims[a] - 1)));
+        const M leave = mand(on, oob), go = mandnot(oob, on);
+        idx[a] = seli(go, moved, idx[a]);
+        cvox = seli(go, iadd(cvox, vstep[a]), cvox);
+        tn[a] = sel(go, add(tn[a], td[a]), tn[a]);
+        left = mor(left, leave);
+        exit_axis = seli(leave, iset(a), exit_axis);
+      }
+      collided = mor(collided, hit);
+      out = mor(out, left);
+      flying = mandnot(mor(hit, left), flying);
+    } while (bits(flying) && __builtin_popcount(unsigned(bits(mor(collided, out)))) < ended_lanes);
+    // lanes whose flight ended: move along it, apply the flight's transmittance ratio
+    const M ended = mor(collided, out);
+    F w = loadf(L.w), prod = loadf(L.prod);
+    if (bits(ended)) {
+      for (int a = 0; a < 3; ++a) p[a] = sel(ended, add(p[a], mul(d[a], t)), p[a]);
+      if (RATIO) {
+        const F f = vexp(neg(excess));
+        w = sel(ended, mul(w, f), w);
+        prod = sel(ended, mul(prod, f), prod);
+      }
+    }
+    I depth = loadi(L.depth);
+    const I newstate = seli(ended, iset(kNeedFlight), seli(active, iset(kFlying), iset(kIdle)));
+    const I cv = iadd(chN, col_v);  // the collision voxel of lanes that collided
+    int kill_trunc = 0, kill_absorb = 0, escape = 0;
+
+    // ---- collisions
+    if (bits(collided)) {
+      for (int a = 0; a < 3; ++a) {
+        const F i0 = cvtif(idx[a]), v_ = fset(vs[a]);
+        const F lo = mul(i0, v_), hi = mul(add(i0, fset(1.0f)), v_);
+        p[a] = sel(collided, tmin(hi, tmax(lo, p[a])), p[a]);
+      }
+      depth = seli(collided, iadd(depth, iset(1)), depth);
+      const M trunc = mand(collided, igt(depth, iset(max_depth)));
+      const M col = mandnot(trunc, collided);
+      kill_trunc = bits(trunc);
+      const F araw = gather(S.ref_albedo, cv, col);
+      const F aref = plain_a ? araw : tmax(araw, fset(S.ref_albedo_floor));
+      const F ps = aref;
+      F wref = loadf(L.wref);
+      F q = fset(1.0f);
+      const M rr = igt(depth, iset(rr_depth));
+      if (bits(mand(rr, col))) q = sel(rr, tmin(fset(1.0f), div(mul(wref, aref), ps)), q);
+      const F psq = mul(ps, q);
+      const M survive = mand(col, lt(u1, psq));
+      kill_absorb = bits(mandnot(survive, col));
+      const F inv_psq = div(fset(1.0f), psq);
+      wref = sel(survive, mul(wref, mul(aref, inv_psq)), wref);
+      storef(L.wref, wref);
+      if (RATIO) {
+        const F alb = same_alb ? aref : (S.albedo == S.ref_albedo ? araw : gather(S.albedo, cv, survive));
+        const F fa = mul(alb, inv_psq);
+        const F fs = div(col_sig, col_sref);
+        w = sel(survive, mul(w, mul(fs, fa)), w);
+        const M zs = eq(fs, fzero()), za = eq(fa, fzero());
+        prod = sel(survive, mul(mul(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)), prod);
+        I zeros = loadi(L.zeros);
+        zeros = iadd1(zeros, mand(survive, zs));
+        zeros = iadd1(zeros, mand(survive, za));
+        storei(L.zeros, zeros);
+        if (RECORD) {
+          alignas(64) float a_sref[kLanes], a_ipsq[kLanes], a_fs[kLanes], a_fa[kLanes];
+          alignas(64) int32_t vv[kLanes];
+          storef(a_sref, col_sref);
+          storef(a_ipsq, inv_psq);
+          storef(a_fs, fs);
+          storef(a_fa, fa);
+          storei(vv, col_v);
+          const int m = bits(survive);
+          for (int l = 0; l < kLanes; ++l) {
+            const int64_t pos = ncol[l];
+            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {int64_t(vv[l]), nseg[l], a_sref[l],
+                                                                          a_ipsq[l], a_fs[l], a_fa[l]};
+            ncol[l] = pos + ((m >> l) & 1);
+          }
+        }
+      }
+      {
+        int m = bits(col);
+        while (m) {
+          const int l = __builtin_ctz(unsigned(m));
+          m &= m - 1;
+          ++L.scatter[l];
+        }
+      }
+      if (bits(survive)) {
+        F dn[3] = {d[0], d[1], d[2]};
+        rotate(dn, hg_cos(S.g, u2), u3);
+        for (int a = 0; a < 3; ++a) d[a] = sel(survive, dn[a], d[a]);
+      }
+    }
+
+    // ---- lanes at the box: internal reflection or escape
+    if (bits(out)) {
+      F cos_i = fzero();
+      for (int a = 0; a < 3; ++a) {
+        const M on = mand(out, ieq(exit_axis, iset(a)));
+        const F face = sel(gt(d[a], fzero()), fset(float(dims[a]) * vs[a]), fzero());
+        p[a] = sel(on, face, p[a]);
+        cos_i = sel(on, fabs_(d[a]), cos_i);
+      }
+      M refl = mnone();
+      if (DIEL) refl = mand(out, lt(u1, fresnel(cos_i, S.ior)));
+      if (bits(refl)) {
+        depth = seli(refl, iadd(depth, iset(1)), depth);
+        const M trunc = mand(refl, igt(depth, iset(max_depth)));
+        kill_trunc |= bits(trunc);
+        const M flip = mandnot(trunc, refl);
+        for (int a = 0; a < 3; ++a) {
+          const M on = mand(flip, ieq(exit_axis, iset(a)));
+          d[a] = sel(on, neg(d[a]), d[a]);
+        }
+      }
+      escape = bits(mandnot(refl, out));
+    }
+
+    // ---- back to memory
+    for (int a = 0; a < 3; ++a) {
+      storef(L.p[a], p[a]);
+      storef(L.d[a], d[a]);
+      storef(L.tn[a], tn[a]);
+      storef(L.td[a], td[a]);
+      storei(L.idx[a], idx[a]);
+      storei(L.step[a], step[a]);
+      storei(L.vstep[a], vstep[a]);
+    }
+    storei(L.cv, cvox);
+    storef(L.tau, tau);
+    storef(L.acc, acc);
+    storef(L.t, t);
+    storef(L.u1, u1);
+    storef(L.u2, u2);
+    storef(L.u3, u3);
+    storef(L.excess, excess);
+    storef(L.w, w);
+    storef(L.prod, prod);
+    storei(L.depth, depth);
+    storei(L.state, newstate);
+
+    // ---- paths that ended: report, then start new ones in their lanes
+    const int ended_paths = kill_trunc | kill_absorb | escape;
+    if (ended_paths) {
+      int m = ended_paths;
+      while (m) {
+        const int l = __builtin_ctz(unsigned(m));
+        m &= m - 1;
+        if ((kill_trunc >> l) & 1) finish(l, 0.0f, false, true);
+        else if ((kill_absorb >> l) & 1) finish(l, 0.0f, false, false);
+        else finish(l, RATIO ? L.w[l] : 1.0f, true, false);
+      }
+      m = ended_paths;
+      while (m) {
+        const int l = __builtin_ctz(unsigned(m));
+        m &= m - 1;
+        refill(l);
+      }
+    }
+  }
+  free(segs);
+  free(cols);
+}
+
+// The entry point's body: the template instance for the scene's flags.
+inline void walks_dispatch(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                           bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx) {
+  if (ended_lanes < 1 || ended_lanes > kLanes) ended_lanes = kLanes * 3 / 4;
+  if (S.dielectric) {
+    if (record) walks<true, true, true>(S, elems, live, n, seg_cap, col_cap, ended_lanes, done, ctx);
+    else if (ratio) walks<true, true, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
+    else walks<true, false, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
+  } else {
+    if (record) walks<false, true, true>(S, elems, live, n, seg_cap, col_cap, ended_lanes, done, ctx);
+    else if (ratio) walks<false, true, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
+    else walks<false, false, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
+  }
+}
