@@ -24,6 +24,9 @@ struct SlabWalkScene {
   const float* albedo = nullptr;
   const float* ref_sigma_t = nullptr;
   const float* ref_albedo = nullptr;
+  // the reference pair voxel by voxel, (3·D·H·W, 2) = (ref_sigma_t, ref_albedo) side by side (not floored): the
+  // walk reads it, so a collision's albedo lies in the cache line of the σ_t that its flight just read
+  const float* ref_pair = nullptr;
   float ref_sigma_t_floor = 0, ref_albedo_floor = 0;
   int32_t D = 0, H = 0, W = 0;  // 3·D·H·W < 2^31
   float voxel[3] = {1, 1, 1};   // x, y, z edges (mm)

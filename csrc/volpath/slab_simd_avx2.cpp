@@ -81,6 +81,15 @@ inline F gather(const float* base, I idx, M mask) {
   return _mm256_and_ps(x, mask);
 }
 
+inline F gather_pair(const float* base, int k, I idx, M mask) {
+  alignas(32) int32_t ii[8];
+  _mm256_store_si256(reinterpret_cast<I*>(ii), _mm256_and_si256(idx, asi(mask)));
+  const float* b = base + k;
+  const F x = _mm256_set_ps(b[2 * int64_t(ii[7])], b[2 * int64_t(ii[6])], b[2 * int64_t(ii[5])], b[2 * int64_t(ii[4])],
+                            b[2 * int64_t(ii[3])], b[2 * int64_t(ii[2])], b[2 * int64_t(ii[1])], b[2 * int64_t(ii[0])]);
+  return _mm256_and_ps(x, mask);
+}
+
 inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   const I mv = _mm256_set1_epi64x(int64_t(m));
   const I even = _mm256_mul_epu32(a, mv);                        // lanes 0 2 4 6: 64-bit products

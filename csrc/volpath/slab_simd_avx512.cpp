@@ -79,6 +79,10 @@ inline F gather(const float* base, I idx, M mask) {
   return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), mask, idx, base, 4);
 }
 
+inline F gather_pair(const float* base, int k, I idx, M mask) {
+  return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), mask, idx, base + k, 8);
+}
+
 inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   const I mv = _mm512_set1_epi64(int64_t(m));
   const I even = _mm512_mul_epu32(a, mv);                        // even lanes: 64-bit products

@@ -9,7 +9,8 @@
 //   iadd isub imul iand ior_ ixor srli<K> slli<K> srai<K>   int32 lanes; asf asi   bit casts
 //   lt ge gt eq (F) ieq igt (I) → M;  mand mor mandnot(a, b) = !a & b, mnot, mnone, bits(M) → lane bits
 //   sel(M, a, b) = M ? a : b for F, seli for I;  iadd1(I, M) adds 1 in the lanes of M
-//   loadf storef loadi storei (aligned to the vector), gather(base, idx, M) (0 in lanes outside M)
+//   loadf storef loadi storei (aligned to the vector), gather(base, idx, M) = base[idx] and
+//                             gather_pair(base, k, idx, M) = base[2 idx + k] (0 in lanes outside M)
 //   mulhilo(a, m, hi, lo)     the 32 × 32 → 64-bit products of Philox
 //
 // Each lane follows core::trace_path<float, 1, kBoxBoundary, DIELECTRIC, RATIO, false, RECORD> for face texels and a
@@ -368,10 +369,15 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     }
 
     // ---- regular tracking: one voxel per iteration for every lane in flight, until enough flights have ended
-    // (the collision and flight-start phases below cost the same for one lane or all, so they wait for several)
+    // (the collision and flight-start phases below cost the same for one lane or all, so they wait for several).
+    // Every lane of the loop steps on to its next voxel whether its flight went on or not, so the next gather's
+    // address never waits for this one's value and successive gathers overlap; a lane whose flight ended keeps the
+    // voxel of its collision (hit_idx) or stays put at the box (leaving stops its steps), and the state it stepped
+    // past (tn, cvox) is set afresh by its next flight.
     M collided = mnone(), out = mnone(), flying = active;
     F col_sref = fset(1.0f), col_sig = fzero();
     I col_v = iset(0), exit_axis = iset(-1);
+    I hit_idx[3] = {idx[0], idx[1], idx[2]};
     do {
       const M m01 = lt(tn[0], tn[1]), m02 = lt(tn[0], tn[2]), m12 = lt(tn[1], tn[2]);
       const M is0 = mand(m01, m02), is1 = mandnot(m01, m12);
@@ -380,14 +386,14 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       const I cv = cvox;
       const I v = isub(cvox, chN);
       const F seg = tmax(fzero(), sub(tend, t));
-      const F raw = gather(S.ref_sigma_t, cv, flying);
+      const F raw = gather_pair(S.ref_pair, 0, cv, active);
       const F sref = plain_s ? raw : tmax(raw, fset(S.ref_sigma_t_floor));
       const F od = mul(sref, seg);
       const M hit = mand(flying, ge(add(acc, od), tau));
       const F len = sel(hit, div(sub(tau, acc), sel(hit, sref, fset(1.0f))), seg);
       F sig = fzero();
       if (RATIO) {
-        sig = same_sig ? raw : gather(S.sigma_t, cv, flying);
+        sig = same_sig ? raw : gather(S.sigma_t, cv, active);
         excess = sel(flying, add(excess, mul(sub(sig, sref), len)), excess);
       }
       if (RECORD) {
@@ -411,10 +417,11 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       t = sel(hit, add(t, len), sel(moving, tend, t));
       M left = mnone();
       for (int a = 0; a < 3; ++a) {
-        const M on = mand(moving, a == 0 ? is0 : (a == 1 ? is1 : is2));
+        const M axis = a == 0 ? is0 : (a == 1 ? is1 : is2);
         const I moved = iadd(idx[a], step[a]);
         const M oob = mor(igt(iset(0), moved), igt(moved, iset(dims[a] - 1)));
-        const M leave = mand(on, oob), go = mandnot(oob, on);
+        const M leave = mand(mand(moving, axis), oob), go = mandnot(oob, mand(active, axis));
+        hit_idx[a] = seli(hit, idx[a], hit_idx[a]);
         idx[a] = seli(go, moved, idx[a]);
         cvox = seli(go, iadd(cvox, vstep[a]), cvox);
         tn[a] = sel(go, add(tn[a], td[a]), tn[a]);
@@ -425,6 +432,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       out = mor(out, left);
       flying = mandnot(mor(hit, left), flying);
     } while (bits(flying) && __builtin_popcount(unsigned(bits(mor(collided, out)))) < ended_lanes);
+    for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx[a], idx[a]);
     // lanes whose flight ended: move along it, apply the flight's transmittance ratio
     const M ended = mor(collided, out);
     F w = loadf(L.w), prod = loadf(L.prod);
@@ -452,7 +460,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       const M trunc = mand(collided, igt(depth, iset(max_depth)));
       const M col = mandnot(trunc, collided);
       kill_trunc = bits(trunc);
-      const F araw = gather(S.ref_albedo, cv, col);
+      const F araw = gather_pair(S.ref_pair, 1, cv, col);
       const F aref = plain_a ? araw : tmax(araw, fset(S.ref_albedo_floor));
       const F ps = aref;
       F wref = loadf(L.wref);

@@ -383,9 +383,27 @@ bool simd_serves(const Scene<T>& S) {
   }
 }
 
-simd::SlabWalkScene simd_scene(const Scene<float>& S) {
+// The reference σ_t and albedo side by side, voxel by voxel (SlabWalkScene::ref_pair), for the SIMD walk.
+std::vector<float> pack_reference(const Scene<float>& S) {
+  const auto& M = S.medium;
+  const int64_t n = 3 * M.voxels();
+  std::vector<float> pair(size_t(2 * n));
+  const float* s = M.ref_sigma_t.data;
+  const float* a = M.ref_albedo.data;
+  float* out = pair.data();
+  at::parallel_for(0, n, 1 << 16, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      out[2 * i] = s[i];
+      out[2 * i + 1] = a[i];
+    }
+  });
+  return pair;
+}
+
+simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
   simd::SlabWalkScene W;
   const auto& M = S.medium;
+  W.ref_pair = ref_pair;
   W.sigma_t = M.sigma_t.data;
   W.albedo = M.albedo.data;
   W.ref_sigma_t = M.ref_sigma_t.data;
@@ -436,8 +454,9 @@ void for_chunk_elements(const Scene<T>& S, int64_t c, int64_t nchunks, const Sha
 // Forward of one chunk with the AVX2 walk: per batch of elements, every path's value, then the per-element sums in
 // sample order (as the scalar kernel adds them, so the image does not depend on the order the lanes finish in).
 template <bool DIEL, bool RATIO>
-ForwardCounts simd_forward_chunk(const Scene<float>& S, float* out, int64_t c, int64_t nchunks, const Share& share) {
-  simd::SlabWalkScene W = simd_scene(S);
+ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, float* out, int64_t c, int64_t nchunks,
+                                 const Share& share) {
+  simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
   struct Ctx {
     std::vector<float> values;
@@ -484,10 +503,13 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
   const bool simd = simd_serves<T, LANES, B, HERO>(S);
+  std::vector<float> ref_pair;
+  if constexpr (std::is_same_v<T, float>)
+    if (simd) ref_pair = pack_reference(S);
   for_each_chunk(nchunks, [&](int64_t c) {
     if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
       if (simd) {
-        counts[c] = simd_forward_chunk<DIEL, RATIO>(S, out, c, nchunks, share);
+        counts[c] = simd_forward_chunk<DIEL, RATIO>(S, ref_pair.data(), out, c, nchunks, share);
         return;
       }
     }
@@ -594,9 +616,10 @@ inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* 
 // (deposit_tape, as the scalar replay) when it ends; a path longer than its lane's tape is replayed by the scalar
 // code from the start (walk and deposit), so every deposit belongs to the walk that produced its weight.
 template <bool DIEL>
-int64_t simd_backward_chunk(const Scene<float>& S, const float* grad_out, const Adjoint<float>& A,
-                            TapeStore<float, 1>& store, int64_t c, int64_t nchunks, const Share& share) {
-  simd::SlabWalkScene W = simd_scene(S);
+int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const float* grad_out,
+                            const Adjoint<float>& A, TapeStore<float, 1>& store, int64_t c, int64_t nchunks,
+                            const Share& share) {
+  simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
   const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
   struct Ctx {
@@ -668,6 +691,9 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
   std::vector<int64_t> events(nchunks, 0);
   const bool constant = S.emitter.kind == core::kConstant;
   const bool simd = simd_serves<T, LANES, B, HERO>(S);
+  std::vector<float> ref_pair;
+  if constexpr (std::is_same_v<T, float>)
+    if (simd) ref_pair = pack_reference(S);
   for_each_chunk(nchunks, [&](int64_t c) {
     Adjoint<T> A;
     if (gs) {
@@ -682,7 +708,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     TapeStore<T, LANES> store;
     if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
       if (simd) {
-        events[c] = simd_backward_chunk<DIEL>(S, grad_out, A, store, c, nchunks, share);
+        events[c] = simd_backward_chunk<DIEL>(S, ref_pair.data(), grad_out, A, store, c, nchunks, share);
         return;
       }
     }
