@@ -62,7 +62,3 @@ def simd_walk_level():
     _C._set_simd(-1)
     return int(_C._set_simd(-1))
 
-
-def avx2_walk_available():
-    """Whether the AVX2 slab walk can run here (the CPU has AVX2 and TA_SIMD is not 0); leaves it automatic."""
-    return simd_walk_level() >= 1

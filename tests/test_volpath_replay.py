@@ -4,7 +4,7 @@ The single walk records each path's events in a per-thread tape and deposits the
 a path that does not fit the tape is walked twice (the two-pass replay). Both must give bitwise the same gradients
 (same expressions, operands and order). ``_C._set_tape_capacity(0)`` sends every path through the two-pass replay,
 a small capacity mixes both, so each comparison below checks the tape deposit against an independent code path.
-All of it is the scalar walk's (the AVX2 slab walk is tested against it in test_volpath_simd.py).
+All of it is the scalar walk's (the SIMD slab walks are tested against it in test_volpath_simd.py).
 """
 import math
 
