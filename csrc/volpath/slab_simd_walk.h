@@ -377,7 +377,8 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     M collided = mnone(), out = mnone(), flying = active;
     F col_sref = fset(1.0f), col_sig = fzero();
     I col_v = iset(0), exit_axis = iset(-1);
-    I hit_idx[3] = {idx[0], idx[1], idx[2]};
+    I hit_idx[3], hit_idx_end[3] = {idx[0], idx[1], idx[2]};
+    F raw_next = gather_pair(S.ref_pair, 0, cvox, active);
     do {
       const M m01 = lt(tn[0], tn[1]), m02 = lt(tn[0], tn[2]), m12 = lt(tn[1], tn[2]);
       const M is0 = mand(m01, m02), is1 = mandnot(m01, m12);
@@ -385,8 +386,23 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       const F tend = sel(is0, tn[0], sel(is1, tn[1], tn[2]));
       const I cv = cvox;
       const I v = isub(cvox, chN);
+      const F raw = raw_next;
+      // the step to the next voxel first, and that voxel's gather, which then runs while this voxel is weighed
+      M oob_on = mnone();  // lanes whose step would leave the box
+      for (int a = 0; a < 3; ++a) {
+        const M axis = a == 0 ? is0 : (a == 1 ? is1 : is2);
+        const I moved = iadd(idx[a], step[a]);
+        const M oob = mor(igt(iset(0), moved), igt(moved, iset(dims[a] - 1)));
+        const M go = mandnot(oob, mand(active, axis));
+        oob_on = mor(oob_on, mand(oob, axis));
+        exit_axis = seli(mand(flying, mand(oob, axis)), iset(a), exit_axis);
+        hit_idx[a] = idx[a];
+        idx[a] = seli(go, moved, idx[a]);
+        cvox = seli(go, iadd(cvox, vstep[a]), cvox);
+        tn[a] = sel(go, add(tn[a], td[a]), tn[a]);
+      }
+      raw_next = gather_pair(S.ref_pair, 0, cvox, active);
       const F seg = tmax(fzero(), sub(tend, t));
-      const F raw = gather_pair(S.ref_pair, 0, cv, active);
       const F sref = plain_s ? raw : tmax(raw, fset(S.ref_sigma_t_floor));
       const F od = mul(sref, seg);
       const M hit = mand(flying, ge(add(acc, od), tau));
@@ -411,28 +427,17 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       col_sref = sel(hit, sref, col_sref);
       col_sig = sel(hit, sig, col_sig);
       col_v = seli(hit, v, col_v);
-      // lanes that did not collide: advance to the next voxel (or leave the box)
+      for (int a = 0; a < 3; ++a) hit_idx_end[a] = seli(hit, hit_idx[a], hit_idx_end[a]);
+      // lanes that did not collide move on to the next voxel (done above) or leave the box
       const M moving = mandnot(hit, flying);
       acc = sel(moving, add(acc, od), acc);
       t = sel(hit, add(t, len), sel(moving, tend, t));
-      M left = mnone();
-      for (int a = 0; a < 3; ++a) {
-        const M axis = a == 0 ? is0 : (a == 1 ? is1 : is2);
-        const I moved = iadd(idx[a], step[a]);
-        const M oob = mor(igt(iset(0), moved), igt(moved, iset(dims[a] - 1)));
-        const M leave = mand(mand(moving, axis), oob), go = mandnot(oob, mand(active, axis));
-        hit_idx[a] = seli(hit, idx[a], hit_idx[a]);
-        idx[a] = seli(go, moved, idx[a]);
-        cvox = seli(go, iadd(cvox, vstep[a]), cvox);
-        tn[a] = sel(go, add(tn[a], td[a]), tn[a]);
-        left = mor(left, leave);
-        exit_axis = seli(leave, iset(a), exit_axis);
-      }
+      const M left = mand(moving, oob_on);
       collided = mor(collided, hit);
       out = mor(out, left);
       flying = mandnot(mor(hit, left), flying);
     } while (bits(flying) && __builtin_popcount(unsigned(bits(mor(collided, out)))) < ended_lanes);
-    for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx[a], idx[a]);
+    for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx_end[a], idx[a]);
     // lanes whose flight ended: move along it, apply the flight's transmittance ratio
     const M ended = mor(collided, out);
     F w = loadf(L.w), prod = loadf(L.prod);
