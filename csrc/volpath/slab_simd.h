@@ -39,15 +39,25 @@ struct SlabWalkScene {
   int64_t spp = 1;
 };
 
-// Layout-compatible with core::TapeSegment<float, 1> and core::TapeCollision<float, 1> (checked where both are seen).
+// The recording walk's tape, compact (the sixteen lanes' tapes share the first-level cache with the grid): a segment
+// of a flight in one voxel, and a collision with the segments before it (seg_end) and its factors, as in core/tape.h.
 struct TapeSegmentF {
-  int64_t v;
+  int32_t v;  // voxel within the channel plane
   float len;
 };
 struct TapeCollisionF {
-  int64_t v;
-  int64_t seg_end;
+  int32_t v;
+  int32_t seg_end;
   float sref, inv_psq, fs, fa;
+};
+
+// Room for the tapes of every lane (kMaxLanes × (cap + 1) entries of each kind), owned by the caller and reused from
+// call to call: lane l's tape starts at l·(cap + 1); the extra entry per lane takes the writes of a full tape.
+constexpr int kMaxLanes = 16;
+struct LaneTapes {
+  TapeSegmentF* segs = nullptr;
+  TapeCollisionF* cols = nullptr;
+  int64_t seg_cap = 0, col_cap = 0;
 };
 
 // A finished path. `item` = (k·spp + sample)·3 + channel for the k-th element of the batch.
@@ -69,14 +79,14 @@ typedef void (*WalkDone)(void* ctx, const WalkOut& out);
 
 // Walks every path of a batch (call only on a CPU with the instruction set; volpath_cpu.cpp checks): for each
 // element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the channels whose bit is set in live[k]
-// (all three when live is null). `ratio`: weights f/p_ref (the replay); `record`: tapes for the replay's deposit
-// (implies ratio), `seg_cap`/`col_cap` entries per lane (a path with more is reported with `overflow`).
+// (all three when live is null). `ratio`: weights f/p_ref (the replay); `tapes` (not null: implies ratio): record
+// each path's tape for the replay's deposit (a path with more than the caps is reported with `overflow`).
 // `ended_lanes`: the collision phase runs once this many lanes have ended their flights (0: three quarters of the
 // lanes; a tuning knob, the paths do not depend on it). Calls done() once per path, in the order the paths end.
 void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
-                     bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx);
+                     const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx);
 void slab_walks_avx512(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
-                       bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx);
+                       const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx);
 
 }  // namespace simd
 }  // namespace ta

@@ -96,8 +96,8 @@ inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
 }  // namespace
 
 void slab_walks_avx512(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
-                       bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx) {
-  walks_dispatch(S, elems, live, n, ratio, record, seg_cap, col_cap, ended_lanes, done, ctx);
+                       const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
+  walks_dispatch(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
 }
 
 }  // namespace simd
@@ -111,8 +111,8 @@ void slab_walks_avx512(const SlabWalkScene& S, const int64_t* elems, const uint8
 
 namespace ta {
 namespace simd {
-void slab_walks_avx512(const SlabWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, bool, int64_t, int64_t,
-                       int, WalkDone, void*) {
+void slab_walks_avx512(const SlabWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, const LaneTapes*, int,
+                       WalkDone, void*) {
   __builtin_trap();
 }
 }  // namespace simd

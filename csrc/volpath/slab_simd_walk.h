@@ -210,8 +210,8 @@ struct alignas(64) Lanes {
 enum : int32_t { kIdle = 0, kNeedFlight = 1, kFlying = 2 };
 
 template <bool DIEL, bool RATIO, bool RECORD>
-void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, int64_t seg_cap,
-           int64_t col_cap, int ended_lanes, WalkDone done, void* ctx) {
+void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, const LaneTapes* tapes,
+           int ended_lanes, WalkDone done, void* ctx) {
   static_assert(!RECORD || RATIO, "the recording walk carries ratio weights");
   const int64_t N = int64_t(S.D) * S.H * S.W;
   const int32_t HW = S.H * S.W;
@@ -225,16 +225,14 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
 
   Lanes L;
   memset(&L, 0, sizeof(L));
-  TapeSegmentF* segs = nullptr;
-  TapeCollisionF* cols = nullptr;
+  static_assert(kLanes <= kMaxLanes, "LaneTapes holds kMaxLanes tapes");
+  TapeSegmentF* segs = RECORD ? tapes->segs : nullptr;
+  TapeCollisionF* cols = RECORD ? tapes->cols : nullptr;
+  const int64_t seg_cap = RECORD ? tapes->seg_cap : 0, col_cap = RECORD ? tapes->col_cap : 0;
   int64_t nseg[kLanes] = {0}, ncol[kLanes] = {0};
   // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
   // the caller: overflow when more than `cap` entries were counted)
   const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
-  if (RECORD) {
-    segs = static_cast<TapeSegmentF*>(malloc(sizeof(TapeSegmentF) * size_t(kLanes * seg_room)));
-    cols = static_cast<TapeCollisionF*>(malloc(sizeof(TapeCollisionF) * size_t(kLanes * col_room)));
-  }
 
   // the next path of the batch: k (element), s (sample), c (channel)
   int64_t k = 0, s = 0;
@@ -420,7 +418,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         const int m = bits(mand(flying, gt(len, fzero())));
         for (int l = 0; l < kLanes; ++l) {  // branch-free: every lane writes, only the recording lanes advance
           const int64_t pos = nseg[l];
-          segs[l * seg_room + (pos < seg_room ? pos : seg_room - 1)] = {int64_t(vv[l]), lens[l]};
+          segs[l * seg_room + (pos < seg_room ? pos : seg_room - 1)] = {vv[l], lens[l]};
           nseg[l] = pos + ((m >> l) & 1);
         }
       }
@@ -500,7 +498,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
           const int m = bits(survive);
           for (int l = 0; l < kLanes; ++l) {
             const int64_t pos = ncol[l];
-            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {int64_t(vv[l]), nseg[l], a_sref[l],
+            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {vv[l], int32_t(nseg[l]), a_sref[l],
                                                                           a_ipsq[l], a_fs[l], a_fa[l]};
             ncol[l] = pos + ((m >> l) & 1);
           }
@@ -587,21 +585,19 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       }
     }
   }
-  free(segs);
-  free(cols);
 }
 
 // The entry point's body: the template instance for the scene's flags.
 inline void walks_dispatch(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
-                           bool record, int64_t seg_cap, int64_t col_cap, int ended_lanes, WalkDone done, void* ctx) {
+                           const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
   if (ended_lanes < 1 || ended_lanes > kLanes) ended_lanes = kLanes * 3 / 4;
   if (S.dielectric) {
-    if (record) walks<true, true, true>(S, elems, live, n, seg_cap, col_cap, ended_lanes, done, ctx);
-    else if (ratio) walks<true, true, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
-    else walks<true, false, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
+    if (tapes) walks<true, true, true>(S, elems, live, n, tapes, ended_lanes, done, ctx);
+    else if (ratio) walks<true, true, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+    else walks<true, false, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
   } else {
-    if (record) walks<false, true, true>(S, elems, live, n, seg_cap, col_cap, ended_lanes, done, ctx);
-    else if (ratio) walks<false, true, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
-    else walks<false, false, false>(S, elems, live, n, 0, 0, ended_lanes, done, ctx);
+    if (tapes) walks<false, true, true>(S, elems, live, n, tapes, ended_lanes, done, ctx);
+    else if (ratio) walks<false, true, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+    else walks<false, false, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
   }
 }

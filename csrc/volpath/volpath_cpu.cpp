@@ -10,6 +10,7 @@
 #include <cstddef>
 #include <cstdlib>
 #include <cstring>
+#include <memory>
 #include <string>
 #include <type_traits>
 #include <vector>
@@ -309,18 +310,6 @@ int64_t num_chunks(int64_t n) {
 }
 
 // ---- the AVX2 slab walk (slab_simd.h): eight paths per thread at once where the scene allows it
-using TapeSegmentF1 = core::TapeSegment<float, 1>;
-using TapeCollisionF1 = core::TapeCollision<float, 1>;
-static_assert(sizeof(simd::TapeSegmentF) == sizeof(TapeSegmentF1) &&
-                  offsetof(simd::TapeSegmentF, len) == offsetof(TapeSegmentF1, len),
-              "the AVX2 walk's tape segments must match core::TapeSegment<float, 1>");
-static_assert(sizeof(simd::TapeCollisionF) == sizeof(TapeCollisionF1) &&
-                  offsetof(simd::TapeCollisionF, seg_end) == offsetof(TapeCollisionF1, seg_end) &&
-                  offsetof(simd::TapeCollisionF, sref) == offsetof(TapeCollisionF1, sref) &&
-                  offsetof(simd::TapeCollisionF, fs) == offsetof(TapeCollisionF1, fs) &&
-                  offsetof(simd::TapeCollisionF, fa) == offsetof(TapeCollisionF1, fa),
-              "the AVX2 walk's tape collisions must match core::TapeCollision<float, 1>");
-
 // The widest SIMD walk this CPU runs: 2 AVX-512F, 1 AVX2, 0 none (libgcc also checks that the OS saves the registers).
 int cpu_simd_level() {
 #if (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)
@@ -360,11 +349,9 @@ int simd_ended_lanes() {
 
 // The SIMD walk of the selected width.
 void slab_walks(const simd::SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
-                bool record, int64_t seg_cap, int64_t col_cap, simd::WalkDone done, void* ctx) {
-  if (simd_level() == 2)
-    simd::slab_walks_avx512(S, elems, live, n, ratio, record, seg_cap, col_cap, simd_ended_lanes(), done, ctx);
-  else
-    simd::slab_walks_avx2(S, elems, live, n, ratio, record, seg_cap, col_cap, simd_ended_lanes(), done, ctx);
+                const simd::LaneTapes* tapes, simd::WalkDone done, void* ctx) {
+  if (simd_level() == 2) simd::slab_walks_avx512(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
+  else simd::slab_walks_avx2(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
 }
 
 constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the AVX2 walk
@@ -469,7 +456,7 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, f
     if (elems.empty()) return;
     const int64_t n = int64_t(elems.size());
     ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
-    slab_walks(W, elems.data(), nullptr, n, RATIO, false, 0, 0,
+    slab_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
                           [](void* p, const simd::WalkOut& o) {
                             auto* x = static_cast<Ctx*>(p);
                             x->values[size_t(o.item)] = o.value;
@@ -612,6 +599,38 @@ inline int64_t replay(const Scene<T>& S, int64_t t, int64_t s, int ch, const T* 
   return r1.scatter_events + r2.scatter_events;
 }
 
+// core::deposit_tape<float, 1> for the SIMD walk's compact tape (slab_simd.h), with the σ_t deposits of one voxel in a
+// row summed before they are added (a flight that ends by a collision and the next flight's first segment there).
+void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A, int64_t N) {
+  float* gs = A.grad_sigma_t ? A.grad_sigma_t + ch * N : nullptr;
+  float* ga = A.grad_albedo ? A.grad_albedo + ch * N : nullptr;
+  const float av = adj * o.value;
+  int64_t cur = -1;  // the voxel of the pending σ_t deposit
+  float run = 0.0f;
+  auto add_s = [&](int64_t v, float d) {
+    if (v == cur) {
+      run += d;
+      return;
+    }
+    if (cur >= 0) gs[cur] += run;
+    cur = v;
+    run = d;
+  };
+  int64_t s = 0;
+  for (int64_t k = 0; k < o.ncol; ++k) {
+    const simd::TapeCollisionF& col = o.cols[k];
+    if (gs) {
+      for (; s < col.seg_end; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
+      add_s(col.v, adj * core::weight_without(col.fs, o.value, o.prod_nonzero, int(o.zeros)) / col.sref);
+    }
+    if (ga) ga[col.v] += adj * core::weight_without(col.fa, o.value, o.prod_nonzero, int(o.zeros)) * col.inv_psq;
+  }
+  if (gs) {
+    for (; s < o.nseg; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
+    if (cur >= 0) gs[cur] += run;
+  }
+}
+
 // Gradient replay of one chunk with the AVX2 walk: the lanes record their paths' tapes, and each path is deposited
 // (deposit_tape, as the scalar replay) when it ends; a path longer than its lane's tape is replayed by the scalar
 // code from the start (walk and deposit), so every deposit belongs to the walk that produced its weight.
@@ -622,6 +641,14 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
   simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
   const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
+  // the lanes' tapes, for all the batches of this chunk (not zeroed: only the pages the paths reach are touched)
+  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
+  std::unique_ptr<simd::TapeCollisionF[]> col_buf(new simd::TapeCollisionF[size_t(simd::kMaxLanes * (seg_cap / 2 + 1))]);
+  simd::LaneTapes tapes;
+  tapes.segs = seg_buf.get();
+  tapes.cols = col_buf.get();
+  tapes.seg_cap = seg_cap;
+  tapes.col_cap = seg_cap / 2;
   struct Ctx {
     const Scene<float>* S;
     const float* grad_out;
@@ -639,7 +666,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
     if (elems.empty()) return;
     ctx.elems = elems.data();
     slab_walks(
-        W, elems.data(), live.data(), int64_t(elems.size()), true, true, seg_cap, seg_cap / 2,
+        W, elems.data(), live.data(), int64_t(elems.size()), true, &tapes,
         [](void* p, const simd::WalkOut& o) {
           auto* x = static_cast<Ctx*>(p);
           const Scene<float>& S = *x->S;
@@ -655,14 +682,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
           if (!o.escaped) return;
           const float adj[1] = {g[ch] * S.emitter.radiance[ch] / float(spp)};
           if (adj[0] == 0.0f) return;
-          core::Tape<float, 1> tape;
-          tape.segs = reinterpret_cast<core::TapeSegment<float, 1>*>(const_cast<simd::TapeSegmentF*>(o.segs));
-          tape.cols = reinterpret_cast<core::TapeCollision<float, 1>*>(const_cast<simd::TapeCollisionF*>(o.cols));
-          tape.nseg = o.nseg;
-          tape.ncol = o.ncol;
-          const float value[1] = {o.value}, prod[1] = {o.prod_nonzero};
-          const int zeros[1] = {o.zeros};
-          core::deposit_tape<float, 1>(tape, value, prod, zeros, ch, adj, *x->A, S.medium.voxels());
+          deposit_simd_tape(o, ch, adj[0], *x->A, S.medium.voxels());
         },
         &ctx);
     elems.clear();
