@@ -38,8 +38,8 @@ same scene and thread count: > 1 means the variant gives less error per second).
 
 Walks (``--walks scalar,avx2,avx512``): the float32 slab scenes with a chromatic medium (one walk per channel) run on
 a SIMD walk (csrc/volpath/slab_simd.h: AVX2, eight paths per thread; AVX-512, sixteen) where the CPU has it, else on
-the scalar walk; all give the same paths. Each scene is run once per walk in the order given, rows carry ``walk``, and rows after the first carry
-``forward_speedup_vs_<first>``, ``backward_speedup_vs_<first>`` and ``efficiency_*_vs_<first>``.
+the scalar walk; all give the same paths. Each scene is run once per walk in the order given, rows carry ``walk``, and
+rows after the first carry ``forward_speedup_vs_<first>``, ``backward_speedup_vs_<first>`` and ``efficiency_*_vs_<first>``.
 
 With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
 into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry

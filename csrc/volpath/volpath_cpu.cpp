@@ -309,7 +309,7 @@ int64_t num_chunks(int64_t n) {
   return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), blocks));
 }
 
-// ---- the AVX2 slab walk (slab_simd.h): eight paths per thread at once where the scene allows it
+// ---- the SIMD slab walk (slab_simd.h): eight or sixteen paths per thread at once where the scene allows it
 // The widest SIMD walk this CPU runs: 2 AVX-512F, 1 AVX2, 0 none (libgcc also checks that the OS saves the registers).
 int cpu_simd_level() {
 #if (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)
@@ -354,10 +354,10 @@ void slab_walks(const simd::SlabWalkScene& S, const int64_t* elems, const uint8_
   else simd::slab_walks_avx2(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
 }
 
-constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the AVX2 walk
+constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the SIMD walk
 constexpr int64_t kSimdSegments = int64_t(1) << 16;  // tape entries per lane (longer paths: scalar replay)
 
-// Whether the AVX2 slab walk serves this scene: float32 dense grids, box boundary, face texels, constant emitter.
+// Whether the SIMD slab walk serves this scene: float32 dense grids, box boundary, face texels, constant emitter.
 template <typename T, int LANES, int B, bool HERO>
 bool simd_serves(const Scene<T>& S) {
   if constexpr (!std::is_same_v<T, float> || LANES != 1 || B != core::kBoxBoundary || HERO) {
@@ -438,7 +438,7 @@ void for_chunk_elements(const Scene<T>& S, int64_t c, int64_t nchunks, const Sha
   else for_elements_of_chunk(c, nchunks, share, body);
 }
 
-// Forward of one chunk with the AVX2 walk: per batch of elements, every path's value, then the per-element sums in
+// Forward of one chunk with the SIMD walk: per batch of elements, every path's value, then the per-element sums in
 // sample order (as the scalar kernel adds them, so the image does not depend on the order the lanes finish in).
 template <bool DIEL, bool RATIO>
 ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, float* out, int64_t c, int64_t nchunks,
@@ -457,13 +457,13 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, f
     const int64_t n = int64_t(elems.size());
     ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
     slab_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
-                          [](void* p, const simd::WalkOut& o) {
-                            auto* x = static_cast<Ctx*>(p);
-                            x->values[size_t(o.item)] = o.value;
-                            x->ev += o.scatter_events;
-                            x->cut += o.truncated;
-                          },
-                          &ctx);
+               [](void* p, const simd::WalkOut& o) {
+                 auto* x = static_cast<Ctx*>(p);
+                 x->values[size_t(o.item)] = o.value;
+                 x->ev += o.scatter_events;
+                 x->cut += o.truncated;
+               },
+               &ctx);
     for (int64_t k = 0; k < n; ++k) {
       double acc[3] = {0, 0, 0};
       for (int64_t s = 0; s < S.spp; ++s)
@@ -631,8 +631,8 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
   }
 }
 
-// Gradient replay of one chunk with the AVX2 walk: the lanes record their paths' tapes, and each path is deposited
-// (deposit_tape, as the scalar replay) when it ends; a path longer than its lane's tape is replayed by the scalar
+// Gradient replay of one chunk with the SIMD walk: the lanes record their paths' tapes, and each path is deposited
+// (deposit_simd_tape) when it ends; a path longer than its lane's tape is replayed by the scalar
 // code from the start (walk and deposit), so every deposit belongs to the walk that produced its weight.
 template <bool DIEL>
 int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const float* grad_out,
@@ -642,13 +642,14 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
   W.dielectric = DIEL;
   const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
   // the lanes' tapes, for all the batches of this chunk (not zeroed: only the pages the paths reach are touched)
-  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
-  std::unique_ptr<simd::TapeCollisionF[]> col_buf(new simd::TapeCollisionF[size_t(simd::kMaxLanes * (seg_cap / 2 + 1))]);
   simd::LaneTapes tapes;
-  tapes.segs = seg_buf.get();
-  tapes.cols = col_buf.get();
   tapes.seg_cap = seg_cap;
   tapes.col_cap = seg_cap / 2;
+  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
+  std::unique_ptr<simd::TapeCollisionF[]> col_buf(
+      new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
+  tapes.segs = seg_buf.get();
+  tapes.cols = col_buf.get();
   struct Ctx {
     const Scene<float>* S;
     const float* grad_out;
@@ -824,7 +825,8 @@ std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
 }  // namespace
 
 int64_t set_simd(int64_t mode) {
-  TORCH_CHECK(mode >= -1 && mode <= 2, "mode: expected -1 (automatic), 0 (scalar), 1 (AVX2) or 2 (AVX-512), got ", mode);
+  TORCH_CHECK(mode >= -1 && mode <= 2, "mode: expected -1 (automatic), 0 (scalar), 1 (AVX2) or 2 (AVX-512), got ",
+              mode);
   TORCH_CHECK(mode <= cpu_simd_level(), "mode: this CPU cannot run ", mode == 2 ? "AVX-512F" : "AVX2");
   const int before = simd_level();
   g_simd.store(int(mode));
