@@ -154,3 +154,23 @@ def test_avx2_and_avx512_walks_take_the_same_paths(walk_kernel):
             assert a[3][key] == b[3][key], key
         for k in (1, 2):
             assert float((a[k] - b[k]).abs().sum() / a[k].abs().sum()) < 1e-5
+
+
+@pytest.mark.parametrize("env,most", [("0", 0), ("avx2", 1)])
+def test_ta_simd_limits_the_walk(env, most):
+    """TA_SIMD=0 leaves the scalar walk, TA_SIMD=avx2 at most the AVX2 walk (read once, at the first render)."""
+    import os
+    import subprocess
+    import sys
+    code = "from torch_appearance._ext import _C; print(_C._set_simd(-1))"
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "TA_SIMD": env}, capture_output=True,
+                         text=True, timeout=120, check=True)
+    level = int(out.stdout.strip().splitlines()[-1])
+    assert level <= most
+    if env == "avx2":
+        assert level == min(simd_walk_level(), 1)
+
+
+def test_set_simd_refuses_unknown_modes():
+    with pytest.raises(RuntimeError, match="mode: expected -1"):
+        _C._set_simd(3)
