@@ -375,7 +375,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     M collided = mnone(), out = mnone(), flying = active;
     F col_sref = fset(1.0f), col_sig = fzero();
     I col_v = iset(0), exit_axis = iset(-1);
-    I hit_idx[3], hit_idx_end[3] = {idx[0], idx[1], idx[2]};
+    I idx_here[3], hit_idx[3] = {idx[0], idx[1], idx[2]};  // this iteration's voxel; the collision voxel
     F raw_next = gather_pair(S.ref_pair, 0, cvox, active);
     do {
       const M m01 = lt(tn[0], tn[1]), m02 = lt(tn[0], tn[2]), m12 = lt(tn[1], tn[2]);
@@ -394,7 +394,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         const M go = mandnot(oob, mand(active, axis));
         oob_on = mor(oob_on, mand(oob, axis));
         exit_axis = seli(mand(flying, mand(oob, axis)), iset(a), exit_axis);
-        hit_idx[a] = idx[a];
+        idx_here[a] = idx[a];
         idx[a] = seli(go, moved, idx[a]);
         cvox = seli(go, iadd(cvox, vstep[a]), cvox);
         tn[a] = sel(go, add(tn[a], td[a]), tn[a]);
@@ -425,7 +425,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       col_sref = sel(hit, sref, col_sref);
       col_sig = sel(hit, sig, col_sig);
       col_v = seli(hit, v, col_v);
-      for (int a = 0; a < 3; ++a) hit_idx_end[a] = seli(hit, hit_idx[a], hit_idx_end[a]);
+      for (int a = 0; a < 3; ++a) hit_idx[a] = seli(hit, idx_here[a], hit_idx[a]);
       // lanes that did not collide move on to the next voxel (done above) or leave the box
       const M moving = mandnot(hit, flying);
       acc = sel(moving, add(acc, od), acc);
@@ -435,7 +435,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       out = mor(out, left);
       flying = mandnot(mor(hit, left), flying);
     } while (bits(flying) && __builtin_popcount(unsigned(bits(mor(collided, out)))) < ended_lanes);
-    for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx_end[a], idx[a]);
+    for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx[a], idx[a]);
     // lanes whose flight ended: move along it, apply the flight's transmittance ratio
     const M ended = mor(collided, out);
     F w = loadf(L.w), prod = loadf(L.prod);
