@@ -45,14 +45,12 @@ def walk_kernel():
     eight lanes, 2 the AVX-512 walk of sixteen (csrc/volpath/slab_simd.h), -1 automatic (the default); restored
     afterwards."""
     from torch_appearance._ext import _C
-    before = _C._set_simd(-1)
-    _C._set_simd(-1)
 
     def select(mode):
         _C._set_simd(mode)
 
     yield select
-    _C._set_simd(-1 if before else 0)
+    _C._set_simd(-1)
 
 
 def simd_walk_level():
@@ -61,4 +59,3 @@ def simd_walk_level():
     from torch_appearance._ext import _C
     _C._set_simd(-1)
     return int(_C._set_simd(-1))
-

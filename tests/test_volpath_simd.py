@@ -174,3 +174,16 @@ def test_ta_simd_limits_the_walk(env, most):
 def test_set_simd_refuses_unknown_modes():
     with pytest.raises(RuntimeError, match="mode: expected -1"):
         _C._set_simd(3)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_simd_walk_below_the_albedo_floor(walk_kernel, width):
+    """Albedo under the sampling floor (0.05) in much of the medium: the walk samples with the floored albedo and
+    weighs with the medium's own (ratio f/p ≠ 1 at every such collision)."""
+    sigma_t, albedo = _medium((5, 8, 9), seed=12)
+    albedo = albedo * 0.06  # about 0.04–0.06: half the voxels under the floor
+    kw = dict(face="top", ior=1.5, g=0.2, spp=16, seed=6)
+    simd = _run(walk_kernel, width, sigma_t, albedo, **kw)
+    scalar = _run(walk_kernel, 0, sigma_t, albedo, **kw)
+    assert float(simd[2].abs().sum()) > 0
+    _assert_twins(simd, scalar)

@@ -18,7 +18,8 @@
 namespace ta {
 namespace simd {
 
-// One channel-planar (3, D, H, W) float32 grid pair and the reference (sampling) pair read as max(ref, floor).
+// One channel-planar (3, D, H, W) float32 grid pair and the reference (sampling) pair read as max(ref, floor). The walk
+// reads the reference through ref_pair; the planar pointers tell it whether the reference is the medium itself.
 struct SlabWalkScene {
   const float* sigma_t = nullptr;
   const float* albedo = nullptr;

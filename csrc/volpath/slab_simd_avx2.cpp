@@ -12,7 +12,6 @@
 #endif
 
 #include <immintrin.h>
-#include <stdlib.h>
 #include <string.h>
 
 namespace ta {

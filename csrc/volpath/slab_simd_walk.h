@@ -218,9 +218,8 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   const float vs[3] = {S.voxel[0], S.voxel[1], S.voxel[2]};
   const int32_t dims[3] = {S.W, S.H, S.D};
   const bool plain_s = !(S.ref_sigma_t_floor > 0), plain_a = !(S.ref_albedo_floor > 0);
-  // the reference is the medium itself (floored or not): one gather serves both
-  const bool same_sig = S.sigma_t == S.ref_sigma_t;
-  const bool same_alb = S.albedo == S.ref_albedo && plain_a;
+  // the reference is the medium itself (floored or not): the reference's (unfloored) gather serves both
+  const bool same_sig = S.sigma_t == S.ref_sigma_t, same_alb = S.albedo == S.ref_albedo;
   const float r_entry = DIEL ? fresnel1(1.0f, 1.0f / S.ior) : 0.0f;
 
   Lanes L;
@@ -477,7 +476,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       wref = sel(survive, mul(wref, mul(aref, inv_psq)), wref);
       storef(L.wref, wref);
       if (RATIO) {
-        const F alb = same_alb ? aref : (S.albedo == S.ref_albedo ? araw : gather(S.albedo, cv, survive));
+        const F alb = same_alb ? araw : gather(S.albedo, cv, survive);
         const F fa = mul(alb, inv_psq);
         const F fs = div(col_sig, col_sref);
         w = sel(survive, mul(w, mul(fs, fa)), w);

@@ -669,8 +669,8 @@ def latewood_contrast(fit_rgb, photo_rgb):
 
 def fit_metrics(model, h, w, pixel_size_mm, photo_rgb, photo_phase):
     """Phase RMS against the photo's (sign-resolved) Gabor phase (rad, unweighted), SSIM of the fit vs the photo, the
-    colour RMSE (linear RGB) and the latewood contrast (:func:`latewood_contrast`) of the model rendered at the photo's size; also ``fit_rgb``
-    (H, W, 3) linear RGB."""
+    colour RMSE (linear RGB) and the latewood contrast (:func:`latewood_contrast`) of the model rendered at the photo's
+    size; also ``fit_rgb`` (H, W, 3) linear RGB."""
     from ..metrics import ssim_2d
 
     with torch.no_grad():
