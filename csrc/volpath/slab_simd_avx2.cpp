@@ -97,6 +97,16 @@ inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   *hi = _mm256_blend_epi32(_mm256_srli_epi64(even, 32), odd, 0xAA);
 }
 
+// branch-free: every lane writes its slot (lanes outside m write their tape's next free entry, written over later)
+inline void store_segments(TapeSegmentF* base, I slot, I v, F len, M) {
+  alignas(32) int32_t s[8], x[8];
+  alignas(32) float y[8];
+  storei(s, slot);
+  storei(x, v);
+  storef(y, len);
+  for (int l = 0; l < 8; ++l) base[s[l]] = {x[l], y[l]};
+}
+
 #include "volpath/slab_simd_walk.h"
 
 }  // namespace

@@ -12,6 +12,8 @@
 //   loadf storef loadi storei (aligned to the vector), gather(base, idx, M) = base[idx] and
 //                             gather_pair(base, k, idx, M) = base[2 idx + k] (0 in lanes outside M)
 //   mulhilo(a, m, hi, lo)     the 32 × 32 → 64-bit products of Philox
+//   store_segments(base, slot, v, len, M)   base[slot] = {v, len} in the lanes of M (other lanes may write their
+//                             slot too: the recording walk points them at their tape's next free entry)
 //
 // Each lane follows core::trace_path<float, 1, kBoxBoundary, DIELECTRIC, RATIO, false, RECORD> for face texels and a
 // constant emitter step by step (integrator.h is the reference; comments there explain the estimator):
@@ -205,6 +207,7 @@ struct alignas(64) Lanes {
   float tau[kLanes], acc[kLanes], t[kLanes], u1[kLanes], u2[kLanes], u3[kLanes], excess[kLanes];
   float w[kLanes], wref[kLanes], prod[kLanes];
   int32_t zeros[kLanes], event[kLanes], depth[kLanes], chan[kLanes], elem[kLanes], sample[kLanes], state[kLanes];
+  int32_t nseg[kLanes];  // RECORD: segments counted (at most the tape's room: cap + 1 is an overflow)
   int64_t item[kLanes], scatter[kLanes];
 };
 enum : int32_t { kIdle = 0, kNeedFlight = 1, kFlying = 2 };
@@ -228,10 +231,15 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   TapeSegmentF* segs = RECORD ? tapes->segs : nullptr;
   TapeCollisionF* cols = RECORD ? tapes->cols : nullptr;
   const int64_t seg_cap = RECORD ? tapes->seg_cap : 0, col_cap = RECORD ? tapes->col_cap : 0;
-  int64_t nseg[kLanes] = {0}, ncol[kLanes] = {0};
+  int64_t ncol[kLanes] = {0};
   // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
   // the caller: overflow when more than `cap` entries were counted)
   const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
+  // the segment slots in lane order (kMaxLanes · (seg_cap + 1) < 2^31: the caller's caps are at most 2^16)
+  alignas(64) int32_t lane_ids[kLanes];
+  for (int l = 0; l < kLanes; ++l) lane_ids[l] = l;
+  const I seg_base = imul(loadi(lane_ids), iset(int32_t(seg_room)));
+  const I seg_capv = iset(int32_t(seg_cap)), seg_roomv = iset(int32_t(seg_room));
 
   // the next path of the batch: k (element), s (sample), c (channel)
   int64_t k = 0, s = 0;
@@ -261,9 +269,9 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     o.scatter_events = L.scatter[l];
     o.segs = RECORD ? segs + l * seg_room : nullptr;
     o.cols = RECORD ? cols + l * col_room : nullptr;
-    o.nseg = nseg[l];
+    o.nseg = L.nseg[l];
     o.ncol = ncol[l];
-    o.overflow = RECORD && (nseg[l] > seg_cap || ncol[l] > col_cap);
+    o.overflow = RECORD && (L.nseg[l] > seg_cap || ncol[l] > col_cap);
     done(ctx, o);
     L.state[l] = kIdle;
   };
@@ -288,7 +296,8 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       L.scatter[l] = 0;
       L.w[l] = L.wref[l] = L.prod[l] = 1.0f;
       L.zeros[l] = 0;
-      nseg[l] = ncol[l] = 0;
+      L.nseg[l] = 0;
+      ncol[l] = 0;
       L.p[0][l] = (float(tx) + u[0]) * vs[0];
       L.p[1][l] = (float(tj) + u[1]) * vs[1];
       L.p[2][l] = face == 0 ? float(S.D) * vs[2] : 0.0f;
@@ -376,6 +385,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     I col_v = iset(0), exit_axis = iset(-1);
     I idx_here[3], hit_idx[3] = {idx[0], idx[1], idx[2]};  // this iteration's voxel; the collision voxel
     F raw_next = gather_pair(S.ref_pair, 0, cvox, active);
+    I nseg = RECORD ? loadi(L.nseg) : iset(0);
     do {
       const M m01 = lt(tn[0], tn[1]), m02 = lt(tn[0], tn[2]), m12 = lt(tn[1], tn[2]);
       const M is0 = mand(m01, m02), is1 = mandnot(m01, m12);
@@ -409,17 +419,10 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         sig = same_sig ? raw : gather(S.sigma_t, cv, active);
         excess = sel(flying, add(excess, mul(sub(sig, sref), len)), excess);
       }
-      if (RECORD) {
-        alignas(64) float lens[kLanes];
-        alignas(64) int32_t vv[kLanes];
-        storef(lens, len);
-        storei(vv, v);
-        const int m = bits(mand(flying, gt(len, fzero())));
-        for (int l = 0; l < kLanes; ++l) {  // branch-free: every lane writes, only the recording lanes advance
-          const int64_t pos = nseg[l];
-          segs[l * seg_room + (pos < seg_room ? pos : seg_room - 1)] = {vv[l], lens[l]};
-          nseg[l] = pos + ((m >> l) & 1);
-        }
+      if (RECORD) {  // a full tape's lane writes its spare slot and counts up to the room (then overflow)
+        const M rec = mand(flying, gt(len, fzero()));
+        store_segments(segs, iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)), v, len, rec);
+        nseg = iadd1(nseg, mand(rec, igt(seg_roomv, nseg)));
       }
       col_sref = sel(hit, sref, col_sref);
       col_sig = sel(hit, sig, col_sig);
@@ -434,6 +437,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       out = mor(out, left);
       flying = mandnot(mor(hit, left), flying);
     } while (bits(flying) && __builtin_popcount(unsigned(bits(mor(collided, out)))) < ended_lanes);
+    if (RECORD) storei(L.nseg, nseg);
     for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx[a], idx[a]);
     // lanes whose flight ended: move along it, apply the flight's transmittance ratio
     const M ended = mor(collided, out);
@@ -497,7 +501,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
           const int m = bits(survive);
           for (int l = 0; l < kLanes; ++l) {
             const int64_t pos = ncol[l];
-            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {vv[l], int32_t(nseg[l]), a_sref[l],
+            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {vv[l], L.nseg[l], a_sref[l],
                                                                           a_ipsq[l], a_fs[l], a_fa[l]};
             ncol[l] = pos + ((m >> l) & 1);
           }
