@@ -241,20 +241,22 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   const I seg_base = imul(loadi(lane_ids), iset(int32_t(seg_room)));
   const I seg_capv = iset(int32_t(seg_cap)), seg_roomv = iset(int32_t(seg_room));
 
-  // the next path of the batch: k (element), s (sample), c (channel)
-  int64_t k = 0, s = 0;
-  int c = -1;
+  // the next path of the batch: channel by channel (c), then element (k) and sample (s): the lanes' paths read one
+  // channel plane of the grids at a time, so the caches hold a third of what three interleaved channels need (760²
+  // slab at 32 spp: 20.8 + 38.2 → 18.6 + 34.5 s)
+  int64_t k = 0, s = -1;
+  int c = 0;
   auto next_item = [&]() -> bool {
+    if (n <= 0) return false;
     for (;;) {
-      ++c;
-      if (c == 3) {
-        c = 0;
-        if (++s == S.spp) {
-          s = 0;
-          ++k;
+      if (++s == S.spp) {
+        s = 0;
+        if (++k == n) {
+          k = 0;
+          ++c;
         }
       }
-      if (k >= n) return false;
+      if (c >= 3) return false;
       if (!live || (live[k] >> c) & 1) return true;
     }
   };
