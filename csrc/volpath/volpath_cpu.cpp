@@ -46,10 +46,20 @@ void check_grid(const torch::Tensor& x, const char* name, const torch::Tensor& l
 template <typename T>
 void check_values(const torch::Tensor& x, const char* name, T lo, T hi) {
   const T* p = x.data_ptr<T>();
-  const int64_t n = x.numel();
-  bool ok = true;
-  for (int64_t i = 0; i < n; ++i) ok &= (p[i] >= lo) & (p[i] <= hi);  // false for NaN
+  const bool ok = at::parallel_reduce(
+      int64_t(0), x.numel(), int64_t(1) << 16, true,
+      [&](int64_t b, int64_t e, bool acc) {
+        for (int64_t i = b; i < e; ++i) acc &= (p[i] >= lo) & (p[i] <= hi);  // false for NaN
+        return acc;
+      },
+      [](bool a, bool b) { return a && b; });
   TORCH_CHECK(ok, name, ": expected finite values in [", lo, ", ", hi, "]");
+}
+
+// The same grid (the sampling medium is often the medium itself, detached: another tensor over the same memory).
+bool same_grid(const torch::Tensor& a, const torch::Tensor& b) {
+  return a.is_same(b) || (a.data_ptr() == b.data_ptr() && a.scalar_type() == b.scalar_type() &&
+                          a.sizes() == b.sizes() && a.strides() == b.strides());
 }
 
 void check_vec(const std::vector<double>& v, const char* name, double lo, double hi) {
@@ -796,8 +806,8 @@ void check_all(const torch::Tensor& sigma_t, const torch::Tensor& albedo, const 
     const scalar_t inf = std::numeric_limits<scalar_t>::max();
     check_values<scalar_t>(sigma_t, "sigma_t", 0, inf);
     check_values<scalar_t>(albedo, "albedo", 0, 1);
-    if (!ref_sigma_t.is_same(sigma_t)) check_values<scalar_t>(ref_sigma_t, "sampling_sigma_t", 0, inf);
-    if (!ref_albedo.is_same(albedo)) check_values<scalar_t>(ref_albedo, "sampling_albedo", 0, 1);
+    if (!same_grid(ref_sigma_t, sigma_t)) check_values<scalar_t>(ref_sigma_t, "sampling_sigma_t", 0, inf);
+    if (!same_grid(ref_albedo, albedo)) check_values<scalar_t>(ref_albedo, "sampling_albedo", 0, 1);
     if (opt.lanes == 3 && !opt.hero) {
       const scalar_t* r = ref_sigma_t.data_ptr<scalar_t>();
       const int64_t n = ref_sigma_t.numel() / 3;
