@@ -98,13 +98,15 @@ inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
 }
 
 // branch-free: every lane writes its slot (lanes outside m write their tape's next free entry, written over later)
-inline void store_segments(TapeSegmentF* base, I slot, I v, F len, M) {
-  alignas(32) int32_t s[8], x[8];
-  alignas(32) float y[8];
+inline void store_pairs(void* base, I slot, I a, I b, M) {
+  alignas(32) int32_t s[8], x[8], y[8];
   storei(s, slot);
-  storei(x, v);
-  storef(y, len);
-  for (int l = 0; l < 8; ++l) base[s[l]] = {x[l], y[l]};
+  storei(x, a);
+  storei(y, b);
+  for (int l = 0; l < 8; ++l) {
+    const int32_t pair[2] = {x[l], y[l]};
+    memcpy(static_cast<char*>(base) + 8 * int64_t(s[l]), pair, 8);
+  }
 }
 
 #include "volpath/slab_simd_walk.h"

@@ -90,12 +90,11 @@ inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   *hi = _mm512_mask_blend_epi32(0xAAAA, _mm512_srli_epi64(even, 32), odd);
 }
 
-// two 8-lane scatters of 64-bit {v, len} pairs, only the lanes of m
-inline void store_segments(TapeSegmentF* base, I slot, I v, F len, M m) {
-  const I b = asi(len);
-  const __m512i p0 = _mm512_or_si512(_mm512_cvtepu32_epi64(_mm512_castsi512_si256(v)),
+// two 8-lane scatters of 64-bit pairs, only the lanes of m
+inline void store_pairs(void* base, I slot, I a, I b, M m) {
+  const __m512i p0 = _mm512_or_si512(_mm512_cvtepu32_epi64(_mm512_castsi512_si256(a)),
                                      _mm512_slli_epi64(_mm512_cvtepu32_epi64(_mm512_castsi512_si256(b)), 32));
-  const __m512i p1 = _mm512_or_si512(_mm512_cvtepu32_epi64(_mm512_extracti64x4_epi64(v, 1)),
+  const __m512i p1 = _mm512_or_si512(_mm512_cvtepu32_epi64(_mm512_extracti64x4_epi64(a, 1)),
                                      _mm512_slli_epi64(_mm512_cvtepu32_epi64(_mm512_extracti64x4_epi64(b, 1)), 32));
   _mm512_mask_i32scatter_epi64(base, __mmask8(m), _mm512_castsi512_si256(slot), p0, 8);
   _mm512_mask_i32scatter_epi64(base, __mmask8(m >> 8), _mm512_extracti64x4_epi64(slot, 1), p1, 8);

@@ -12,8 +12,9 @@
 //   loadf storef loadi storei (aligned to the vector), gather(base, idx, M) = base[idx] and
 //                             gather_pair(base, k, idx, M) = base[2 idx + k] (0 in lanes outside M)
 //   mulhilo(a, m, hi, lo)     the 32 × 32 → 64-bit products of Philox
-//   store_segments(base, slot, v, len, M)   base[slot] = {v, len} in the lanes of M (other lanes may write their
-//                             slot too: the recording walk points them at their tape's next free entry)
+//   store_pairs(base, slot, a, b, M)   the 8 bytes at base + 8·slot = {a, b} (int32 bit patterns) in the lanes of M
+//                             (other lanes may write their slot too: the recording walk points them at their tape's
+//                             next free entry)
 //
 // Each lane follows core::trace_path<float, 1, kBoxBoundary, DIELECTRIC, RATIO, false, RECORD> for face texels and a
 // constant emitter step by step (integrator.h is the reference; comments there explain the estimator):
@@ -207,7 +208,7 @@ struct alignas(64) Lanes {
   float tau[kLanes], acc[kLanes], t[kLanes], u1[kLanes], u2[kLanes], u3[kLanes], excess[kLanes];
   float w[kLanes], wref[kLanes], prod[kLanes];
   int32_t zeros[kLanes], event[kLanes], depth[kLanes], chan[kLanes], elem[kLanes], sample[kLanes], state[kLanes];
-  int32_t nseg[kLanes];  // RECORD: segments counted (at most the tape's room: cap + 1 is an overflow)
+  int32_t nseg[kLanes], ncol[kLanes];  // RECORD: entries counted (at most the tape's room: cap + 1 is an overflow)
   int64_t item[kLanes], scatter[kLanes];
 };
 enum : int32_t { kIdle = 0, kNeedFlight = 1, kFlying = 2 };
@@ -231,15 +232,18 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   TapeSegmentF* segs = RECORD ? tapes->segs : nullptr;
   TapeCollisionF* cols = RECORD ? tapes->cols : nullptr;
   const int64_t seg_cap = RECORD ? tapes->seg_cap : 0, col_cap = RECORD ? tapes->col_cap : 0;
-  int64_t ncol[kLanes] = {0};
   // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
   // the caller: overflow when more than `cap` entries were counted)
   const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
-  // the segment slots in lane order (kMaxLanes · (seg_cap + 1) < 2^31: the caller's caps are at most 2^16)
+  // the lanes' first tape entries (3 · kMaxLanes · (cap + 1) < 2^31: the caller's caps are at most 2^16); a
+  // collision is three 8-byte slots
+  static_assert(sizeof(TapeSegmentF) == 8 && sizeof(TapeCollisionF) == 24, "tape entries of 8 and 3 × 8 bytes");
   alignas(64) int32_t lane_ids[kLanes];
   for (int l = 0; l < kLanes; ++l) lane_ids[l] = l;
   const I seg_base = imul(loadi(lane_ids), iset(int32_t(seg_room)));
   const I seg_capv = iset(int32_t(seg_cap)), seg_roomv = iset(int32_t(seg_room));
+  const I col_base = imul(loadi(lane_ids), iset(int32_t(col_room)));
+  const I col_capv = iset(int32_t(col_cap)), col_roomv = iset(int32_t(col_room));
 
   // the next path of the batch: channel by channel (c), then element (k) and sample (s): the lanes' paths read one
   // channel plane of the grids at a time, so the caches hold a third of what three interleaved channels need (760²
@@ -272,8 +276,8 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     o.segs = RECORD ? segs + l * seg_room : nullptr;
     o.cols = RECORD ? cols + l * col_room : nullptr;
     o.nseg = L.nseg[l];
-    o.ncol = ncol[l];
-    o.overflow = RECORD && (L.nseg[l] > seg_cap || ncol[l] > col_cap);
+    o.ncol = L.ncol[l];
+    o.overflow = RECORD && (L.nseg[l] > seg_cap || L.ncol[l] > col_cap);
     done(ctx, o);
     L.state[l] = kIdle;
   };
@@ -298,8 +302,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       L.scatter[l] = 0;
       L.w[l] = L.wref[l] = L.prod[l] = 1.0f;
       L.zeros[l] = 0;
-      L.nseg[l] = 0;
-      ncol[l] = 0;
+      L.nseg[l] = L.ncol[l] = 0;
       L.p[0][l] = (float(tx) + u[0]) * vs[0];
       L.p[1][l] = (float(tj) + u[1]) * vs[1];
       L.p[2][l] = face == 0 ? float(S.D) * vs[2] : 0.0f;
@@ -423,7 +426,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       }
       if (RECORD) {  // a full tape's lane writes its spare slot and counts up to the room (then overflow)
         const M rec = mand(flying, gt(len, fzero()));
-        store_segments(segs, iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)), v, len, rec);
+        store_pairs(segs, iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)), v, asi(len), rec);
         nseg = iadd1(nseg, mand(rec, igt(seg_roomv, nseg)));
       }
       col_sref = sel(hit, sref, col_sref);
@@ -492,21 +495,14 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         zeros = iadd1(zeros, mand(survive, zs));
         zeros = iadd1(zeros, mand(survive, za));
         storei(L.zeros, zeros);
-        if (RECORD) {
-          alignas(64) float a_sref[kLanes], a_ipsq[kLanes], a_fs[kLanes], a_fa[kLanes];
-          alignas(64) int32_t vv[kLanes];
-          storef(a_sref, col_sref);
-          storef(a_ipsq, inv_psq);
-          storef(a_fs, fs);
-          storef(a_fa, fa);
-          storei(vv, col_v);
-          const int m = bits(survive);
-          for (int l = 0; l < kLanes; ++l) {
-            const int64_t pos = ncol[l];
-            cols[l * col_room + (pos < col_room ? pos : col_room - 1)] = {vv[l], L.nseg[l], a_sref[l],
-                                                                          a_ipsq[l], a_fs[l], a_fa[l]};
-            ncol[l] = pos + ((m >> l) & 1);
-          }
+        if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa}
+          const I ncol = loadi(L.ncol);
+          const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
+          const I s3 = iadd(iadd(slot, slot), slot);
+          store_pairs(cols, s3, col_v, loadi(L.nseg), survive);
+          store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), survive);
+          store_pairs(cols, iadd(s3, iset(2)), asi(fs), asi(fa), survive);
+          storei(L.ncol, iadd1(ncol, mand(survive, igt(col_roomv, ncol))));
         }
       }
       {
