@@ -54,7 +54,9 @@ struct TapeCollisionF {
 
 // Room for the tapes of every lane (kMaxLanes × (cap + 1) entries of each kind), owned by the caller and reused from
 // call to call: lane l's tape starts at l·(cap + 1); the extra entry per lane takes the writes of a full tape.
+// The walk addresses the entries with int32 lane offsets: caps at most kMaxTapeCap (3 · 16 · (2^20 + 1) < 2^31).
 constexpr int kMaxLanes = 16;
+constexpr int64_t kMaxTapeCap = int64_t(1) << 20;
 struct LaneTapes {
   TapeSegmentF* segs = nullptr;
   TapeCollisionF* cols = nullptr;

@@ -235,7 +235,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
   // the caller: overflow when more than `cap` entries were counted)
   const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
-  // the lanes' first tape entries (3 · kMaxLanes · (cap + 1) < 2^31: the caller's caps are at most 2^16); a
+  // the lanes' first tape entries (int32: the caps are at most kMaxTapeCap, checked by the entry point); a
   // collision is three 8-byte slots
   static_assert(sizeof(TapeSegmentF) == 8 && sizeof(TapeCollisionF) == 24, "tape entries of 8 and 3 × 8 bytes");
   alignas(64) int32_t lane_ids[kLanes];
@@ -592,6 +592,9 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
 inline void walks_dispatch(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
                            const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
   if (ended_lanes < 1 || ended_lanes > kLanes) ended_lanes = kLanes * 3 / 4;
+  if (tapes && !(tapes->seg_cap >= 0 && tapes->seg_cap <= kMaxTapeCap && tapes->col_cap >= 0 &&
+                 tapes->col_cap <= kMaxTapeCap))
+    __builtin_trap();  // (the caller checks first: see volpath_cpu.cpp)
   if (S.dielectric) {
     if (tapes) walks<true, true, true>(S, elems, live, n, tapes, ended_lanes, done, ctx);
     else if (ratio) walks<true, true, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);

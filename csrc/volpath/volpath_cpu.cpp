@@ -366,6 +366,7 @@ void slab_walks(const simd::SlabWalkScene& S, const int64_t* elems, const uint8_
 
 constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the SIMD walk
 constexpr int64_t kSimdSegments = int64_t(1) << 16;  // tape entries per lane (longer paths: scalar replay)
+static_assert(kSimdSegments <= simd::kMaxTapeCap, "the SIMD walk's tape offsets are int32");
 
 // Whether the SIMD slab walk serves this scene: float32 dense grids, box boundary, face texels, constant emitter.
 template <typename T, int LANES, int B, bool HERO>
