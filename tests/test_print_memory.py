@@ -231,3 +231,57 @@ def test_all_finite_in_chunks():
         y = x.clone().reshape(-1)
         y[where] = bad
         assert not all_finite(y.view(4, 5, 6), chunk=7)
+
+
+def _status_mb(key):
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    return None
+
+
+def _reset_peak_rss():
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def test_replay_thread_buffers_follow_the_paths_not_the_grid():
+    """With two threads the replay's second thread deposits into its own gradient buffers. They come zeroed from
+    calloc, so pages that no path touches are never resident: a small object in a large grid adds the two gradient
+    outputs to the peak memory, not two more grid-sized buffers (Spot at 40 mm: 1.4 GB). (Where the allocator maps
+    large blocks fresh, as glibc does above 32 MB.)"""
+    import torch_appearance as ta
+    from torch_appearance.render import Scene, SDFBoundary, SurfaceTexels
+    if _status_mb("VmHWM") is None or not _reset_peak_rss():
+        pytest.skip("needs /proc/self/status and a resettable peak (clear_refs)")
+    # 0.1 mm voxels, 50 MB per grid (glibc maps blocks above 32 MB fresh from the kernel); a sphere of radius
+    # 0.4 mm near one corner
+    d, h, w = 64, 256, 256
+    k, j, i = torch.meshgrid(torch.arange(d + 1.0), torch.arange(h + 1.0), torch.arange(w + 1.0), indexing="ij")
+    sdf = (((i - 6) ** 2 + (j - 6) ** 2 + (k - 6) ** 2).sqrt() * 0.1 - 0.4).to(torch.float32)
+    n = torch.randn(64, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    n = n / n.norm(dim=1, keepdim=True)
+    scene = Scene(voxel_size=0.1, origin=(-0.6, -0.6, -0.6), boundary=SDFBoundary(sdf, ior=1.5),
+                  sensor=SurfaceTexels(0.4 * n, n, footprint_mm=0.03), g=0.4)
+    sigma_t = torch.full((3, d, h, w), 8.0).requires_grad_()
+    albedo = torch.full((3, d, h, w), 0.9).requires_grad_()
+    grid_mb = sigma_t.numel() * 4 / 2 ** 20
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        image = ta.render_scene(scene, sigma_t, albedo, spp=2, seed=1)
+        loss = image.sum()
+        assert _reset_peak_rss()
+        before = _status_mb("VmRSS")
+        gs, ga = torch.autograd.grad(loss, (sigma_t, albedo))
+        growth = _status_mb("VmHWM") - before
+    finally:
+        torch.set_num_threads(threads)
+    assert float(gs.abs().sum()) > 0 and float(ga.abs().sum()) > 0
+    # the two outputs (2 grids) and a little; dense buffers of the second thread would add two more grids
+    assert growth < 2.6 * grid_mb, f"backward peak grew by {growth:.0f} MB for {grid_mb:.0f} MB grids"

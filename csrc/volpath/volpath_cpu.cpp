@@ -714,12 +714,28 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
   return ctx.ev;
 }
 
+// A gradient buffer of n zeros from calloc: a large block comes fresh from the kernel, so the pages that the deposits
+// never touch are never resident (an object's paths touch the voxels near its surface, not its whole bounding box).
+template <typename T>
+struct ZeroedBuffer {
+  std::unique_ptr<T, void (*)(void*)> p{nullptr, std::free};
+  explicit ZeroedBuffer(int64_t n) : p(static_cast<T*>(std::calloc(size_t(n), sizeof(T))), std::free) {
+    TORCH_CHECK(p != nullptr, "volpath backward: could not allocate a gradient buffer of ", n * int64_t(sizeof(T)),
+                " bytes");
+  }
+  T* data() const { return p.get(); }
+};
+
 template <typename T, int LANES, int B, bool DIEL, bool HERO>
 int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share) {
   const int64_t nchunks = num_chunks(share.count);
   const int64_t n = 3 * S.medium.voxels();
   // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
-  std::vector<std::vector<T>> bufs_s(gs ? nchunks - 1 : 0), bufs_a(ga ? nchunks - 1 : 0);
+  std::vector<ZeroedBuffer<T>> bufs_s, bufs_a;
+  for (int64_t c = 1; c < nchunks; ++c) {
+    if (gs) bufs_s.emplace_back(n);
+    if (ga) bufs_a.emplace_back(n);
+  }
   std::vector<int64_t> events(nchunks, 0);
   const bool constant = S.emitter.kind == core::kConstant;
   const bool simd = simd_serves<T, LANES, B, HERO>(S);
@@ -730,11 +746,11 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     Adjoint<T> A;
     if (gs) {
       if (c == 0) A.grad_sigma_t = gs;
-      else { bufs_s[c - 1].assign(n, T(0)); A.grad_sigma_t = bufs_s[c - 1].data(); }
+      else A.grad_sigma_t = bufs_s[c - 1].data();
     }
     if (ga) {
       if (c == 0) A.grad_albedo = ga;
-      else { bufs_a[c - 1].assign(n, T(0)); A.grad_albedo = bufs_a[c - 1].data(); }
+      else A.grad_albedo = bufs_a[c - 1].data();
     }
     int64_t ev = 0;
     TapeStore<T, LANES> store;
@@ -764,11 +780,13 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     events[c] = ev;
   });
   // deterministic reduction in chunk order, parallel over voxels
-  auto reduce = [&](T* out, std::vector<std::vector<T>>& bufs) {
+  auto reduce = [&](T* out, const std::vector<ZeroedBuffer<T>>& bufs) {
     if (!out || bufs.empty()) return;
     at::parallel_for(0, n, 1 << 14, [&](int64_t b, int64_t e) {
-      for (const auto& buf : bufs)
-        for (int64_t i = b; i < e; ++i) out[i] += buf[i];
+      for (const auto& buf : bufs) {
+        const T* x = buf.data();
+        for (int64_t i = b; i < e; ++i) out[i] += x[i];
+      }
     });
   };
   reduce(gs, bufs_s);

@@ -646,6 +646,8 @@ def _optimize(cfg, target, inks, shape, constraints, fixed, folder, ckpt_path, p
             _save_texels(target, folder, "baseline", baseline["image"])
         if cfg.init == "naive":  # warm start: the optimisation begins where the naive extrusion ends
             model.set_weights(_naive_baseline(target, inks, cfg)[0] if base_w is None else base_w)
+        # the extrusion's (inks, D, H, W) weights are not kept through the optimisation (1.16 GB for Spot at 40 mm)
+        del base_w
         initial = evaluate()
         _save_texels(target, folder, "initial", initial)
         rows.append({"iteration": 0, "wall_s": 0.0, **loss_row(initial), **score(initial), "seed": eval_seed})
