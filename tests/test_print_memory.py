@@ -233,21 +233,15 @@ def test_all_finite_in_chunks():
         assert not all_finite(y.view(4, 5, 6), chunk=7)
 
 
-def _status_mb(key):
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) / 1024.0
-    return None
-
-
-def _reset_peak_rss():
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
+def _memory_probes():
+    """(status_kb, reset_peak_rss): the /proc memory probes of scripts/bench_volpath.py."""
+    import importlib.util
+    import os
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "bench_volpath.py")
+    spec = importlib.util.spec_from_file_location("_bench_volpath_probes", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module._status_kb, module._reset_peak_rss
 
 
 def test_replay_thread_buffers_follow_the_paths_not_the_grid():
@@ -257,7 +251,8 @@ def test_replay_thread_buffers_follow_the_paths_not_the_grid():
     large blocks fresh, as glibc does above 32 MB.)"""
     import torch_appearance as ta
     from torch_appearance.render import Scene, SDFBoundary, SurfaceTexels
-    if _status_mb("VmHWM") is None or not _reset_peak_rss():
+    status_kb, reset_peak_rss = _memory_probes()
+    if status_kb("VmHWM") is None or not reset_peak_rss():
         pytest.skip("needs /proc/self/status and a resettable peak (clear_refs)")
     # 0.1 mm voxels, 50 MB per grid (glibc maps blocks above 32 MB fresh from the kernel); a sphere of radius
     # 0.4 mm near one corner
@@ -276,10 +271,10 @@ def test_replay_thread_buffers_follow_the_paths_not_the_grid():
     try:
         image = ta.render_scene(scene, sigma_t, albedo, spp=2, seed=1)
         loss = image.sum()
-        assert _reset_peak_rss()
-        before = _status_mb("VmRSS")
+        assert reset_peak_rss()
+        before = status_kb("VmRSS")
         gs, ga = torch.autograd.grad(loss, (sigma_t, albedo))
-        growth = _status_mb("VmHWM") - before
+        growth = (status_kb("VmHWM") - before) / 1024.0
     finally:
         torch.set_num_threads(threads)
     assert float(gs.abs().sum()) > 0 and float(ga.abs().sum()) > 0
