@@ -71,23 +71,18 @@ inline void storef(float* p, F a) { _mm256_store_ps(p, a); }
 inline I loadi(const int32_t* p) { return _mm256_load_si256(reinterpret_cast<const I*>(p)); }
 inline void storei(int32_t* p, I a) { _mm256_store_si256(reinterpret_cast<I*>(p), a); }
 
-// emulated with scalar loads: faster than vpgather on the machines measured
-inline F gather(const float* base, I idx, M mask) {
+// emulated with scalar loads: faster than vpgather on the machines measured; base[STRIDE·idx] (0 outside mask)
+template <int STRIDE>
+inline F gather_strided(const float* base, I idx, M mask) {
   alignas(32) int32_t ii[8];
   _mm256_store_si256(reinterpret_cast<I*>(ii), _mm256_and_si256(idx, asi(mask)));
-  const F x = _mm256_set_ps(base[ii[7]], base[ii[6]], base[ii[5]], base[ii[4]], base[ii[3]], base[ii[2]],
-                            base[ii[1]], base[ii[0]]);
+  auto at = [&](int l) { return base[STRIDE * int64_t(ii[l])]; };
+  const F x = _mm256_set_ps(at(7), at(6), at(5), at(4), at(3), at(2), at(1), at(0));
   return _mm256_and_ps(x, mask);
 }
 
-inline F gather_pair(const float* base, int k, I idx, M mask) {
-  alignas(32) int32_t ii[8];
-  _mm256_store_si256(reinterpret_cast<I*>(ii), _mm256_and_si256(idx, asi(mask)));
-  const float* b = base + k;
-  const F x = _mm256_set_ps(b[2 * int64_t(ii[7])], b[2 * int64_t(ii[6])], b[2 * int64_t(ii[5])], b[2 * int64_t(ii[4])],
-                            b[2 * int64_t(ii[3])], b[2 * int64_t(ii[2])], b[2 * int64_t(ii[1])], b[2 * int64_t(ii[0])]);
-  return _mm256_and_ps(x, mask);
-}
+inline F gather(const float* base, I idx, M mask) { return gather_strided<1>(base, idx, mask); }
+inline F gather_pair(const float* base, int k, I idx, M mask) { return gather_strided<2>(base + k, idx, mask); }
 
 inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   const I mv = _mm256_set1_epi64x(int64_t(m));
