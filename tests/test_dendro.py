@@ -1,7 +1,6 @@
 """Dendrochronology: ring boundaries on synthetic cores, the matching metric, the CLI's bad-input handling, and
 section mode (microscopy cross-sections: synthetic cells, and real patches in tests/data/rings_microscopy, MIT,
 see the README there, with human ring-boundary masks)."""
-import importlib.util
 import os
 import subprocess
 import sys
@@ -143,39 +142,18 @@ def test_ring_widths_mm():
 # ---------------------------------------------------------------------------------------------------------------
 def run(script, *args):
     """Run a CLI script in a fresh interpreter (as a user would): CompletedProcess."""
-    return subprocess.run([sys.executable, os.path.join(ROOT, "scripts", script), *map(str, args)],
+    return subprocess.run([sys.executable, "-m", f"torch_appearance.cli.{script}", *map(str, args)],
                           capture_output=True, text=True, timeout=120)
-
-
-def _load_script(script):
-    spec = importlib.util.spec_from_file_location(script[:-3], os.path.join(ROOT, "scripts", script))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture(scope="module")
 def run_inproc():
-    """Run a CLI script's ``main(argv)`` in this process (no interpreter start-up: the bad-input cases are many).
+    """Run a ta-… command's ``main(argv)`` in this process (no interpreter start-up: the bad-input cases are many).
 
-    Returns ``run(script, *args) -> (returncode, stdout, stderr)``; argparse errors (SystemExit) give their code.
+    Returns ``run(name, *args) -> (returncode, stdout, stderr)``; argparse errors (SystemExit) give their code.
     """
-    import contextlib
-    import io
-
-    mods = {}
-
-    def run_(script, *args):
-        mod = mods.setdefault(script, _load_script(script))
-        out, err = io.StringIO(), io.StringIO()
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                rc = mod.main([str(a) for a in args])
-            except SystemExit as e:
-                rc = e.code
-        return rc, out.getvalue(), err.getvalue()
-
-    return run_
+    from torch_appearance.testing import run_command
+    return run_command
 
 
 @pytest.fixture(scope="module")
@@ -189,13 +167,13 @@ def core_png(tmp_path_factory):
 def test_cli_detect_and_eval(core_png, tmp_path):
     path, b = core_png
     out, ovl, lab = tmp_path / "rings.csv", tmp_path / "overlay.png", tmp_path / "labels.csv"
-    r = run("detect_rings.py", path, "--out", out, "--overlay", ovl, "--bark", "right", "--dpi", 2540)
+    r = run("detect_rings", path, "--out", out, "--overlay", ovl, "--bark", "right", "--dpi", 2540)
     assert r.returncode == 0, r.stderr
     lines = out.read_text().splitlines()
     assert lines[0] == "index,x_px,y_px,width_px,width_mm" and lines[1].endswith(",,")
     assert ovl.stat().st_size > 0
     lab.write_text("year,x_px,ring_width_mm\n" + "".join(f"{2000 + i},{x:.1f},NA\n" for i, x in enumerate(b)))
-    r = run("eval_rings.py", out, lab, "--tolerance-px", 3)
+    r = run("eval_rings", out, lab, "--tolerance-px", 3)
     assert r.returncode == 0, r.stderr
     assert "sensitivity" in r.stdout and "F1" in r.stdout
 
@@ -213,7 +191,7 @@ def test_cli_bad_inputs(core_png, tmp_path, run_inproc):
              ((path, "--out", out, "--transect", "1,2,3"), "four numbers"),
              ((path, "--out", out, "--dpi", "0"), "--dpi")]
     for args, msg in cases:
-        rc, _, err = run_inproc("detect_rings.py", *args)
+        rc, _, err = run_inproc("detect_rings", *args)
         assert rc not in (0, None) and msg in err, (args, err)
         assert not out.exists() and not ovl.exists(), args
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.png"]  # no partial or temporary files
@@ -227,7 +205,7 @@ def test_cli_eval_bad_inputs(tmp_path, run_inproc):
     cases = [((good, good, "--tolerance-px", 0), "tolerance"), ((good, good, "--tolerance-px", -2), "tolerance"),
              ((good, nocol), "x_px"), ((good, tmp_path / "missing.csv"), "cannot read")]
     for args, msg in cases:
-        rc, out, err = run_inproc("eval_rings.py", *args)
+        rc, out, err = run_inproc("eval_rings", *args)
         assert rc not in (0, None) and msg in err and out == "", (args, err)
 
 
@@ -353,7 +331,7 @@ def test_section_bad_inputs():
 def test_cli_section_mode(tmp_path, run_inproc):
     img = os.path.join(DATA, "input_00002_preview.png")
     out, ovl = tmp_path / "b.csv", tmp_path / "b.png"
-    rc, stdout, err = run_inproc("detect_rings.py", img, "--mode", "section", "--out", out, "--overlay", ovl)
+    rc, stdout, err = run_inproc("detect_rings", img, "--mode", "section", "--out", out, "--overlay", ovl)
     assert rc == 0, err
     lines = out.read_text().splitlines()
     assert lines[0] == "index,x_px,y_px" and len(lines) > 200 and ovl.stat().st_size > 0
@@ -362,6 +340,6 @@ def test_cli_section_mode(tmp_path, run_inproc):
     assert boundary_f_measure(pts, mask_centerline(mask), 3)["f1"] >= 0.9
     out.unlink(), ovl.unlink()
     for args, msg in [(("--cell-px", 0), "cell_px"), (("--bark", "left"), "do not apply")]:
-        rc, _, err = run_inproc("detect_rings.py", img, "--mode", "section", "--out", out, "--overlay", ovl, *args)
+        rc, _, err = run_inproc("detect_rings", img, "--mode", "section", "--out", out, "--overlay", ovl, *args)
         assert rc not in (0, None) and msg in err, (args, err)
         assert not out.exists() and not ovl.exists()

@@ -2,10 +2,7 @@
 discs with known rings, filtering only polar strips (once per transect), the CSV / overlay, bad input; the
 CooRecorder .pos reader (hand-written fixture in tests/data/coorecorder, CC0) and eval_rings.py with .pos labels
 and transect columns."""
-import contextlib
 import csv
-import importlib.util
-import io
 import math
 import os
 
@@ -29,17 +26,9 @@ def disc():
     return synthetic_disc(seed=0)  # 320 x 300, 12 eccentric rings 14 -> 7 px, white background, noise 0.02
 
 
-def _run(script, *args):
-    spec = importlib.util.spec_from_file_location(script[:-3], os.path.join(ROOT, "scripts", script))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = mod.main([str(a) for a in args])
-        except SystemExit as e:
-            rc = e.code
-    return rc, out.getvalue(), err.getvalue()
+def _run(name, *args):
+    from torch_appearance.testing import run_command
+    return run_command(name, *args)
 
 
 def test_polar_strip_straightens_circles():
@@ -196,7 +185,7 @@ def disc_png(disc, tmp_path_factory):
 def test_cli_disc_mode(disc_png, tmp_path):
     path, radius = disc_png
     out, ovl = tmp_path / "disc.csv", tmp_path / "disc_overlay.png"
-    rc, stdout, err = _run("detect_rings.py", path, "--pith", "150,160", "--angles", "0,120,240",
+    rc, stdout, err = _run("detect_rings", path, "--pith", "150,160", "--angles", "0,120,240",
                            "--transect", "150,20", "--edge", "--dpi", 254, "--out", out, "--overlay", ovl)
     assert rc == 0, err
     with open(out, newline="") as f:
@@ -215,9 +204,9 @@ def test_cli_disc_mode(disc_png, tmp_path):
     img = cv2.imread(str(ovl))
     assert img is not None and img.shape[:2] == (320, 300)
     # eval_rings.py: the CSV against itself as labels (transect columns on both sides: matched per transect)
-    rc, stdout, err = _run("eval_rings.py", out, out, "--tolerance-px", 1)
+    rc, stdout, err = _run("eval_rings", out, out, "--tolerance-px", 1)
     assert rc == 0 and "F1 1.0000" in stdout, (stdout, err)
-    rc, stdout, err = _run("eval_rings.py", out, out, "--transect", 7)
+    rc, stdout, err = _run("eval_rings", out, out, "--transect", 7)
     assert rc != 0 and "no transect 7" in err
 
 
@@ -233,7 +222,7 @@ def test_cli_disc_bad_inputs(disc_png, tmp_path):
              (("--angles", "0,90"), "--pith"),
              (("--pith", "150,160", "--bark", "left"), "--pith")]
     for args, msg in cases:
-        rc, _, err = _run("detect_rings.py", path, *args, "--out", out, "--overlay", ovl)
+        rc, _, err = _run("detect_rings", path, *args, "--out", out, "--overlay", ovl)
         assert rc not in (0, None) and msg in err, (args, err)
         assert not out.exists() and not ovl.exists(), args
     assert list(tmp_path.iterdir()) == []  # no partial or temporary files
@@ -244,7 +233,7 @@ def test_cli_disc_truncated_image(disc_png, tmp_path):
     cut = tmp_path / "cut.png"
     cut.write_bytes(path.read_bytes()[:5000])  # a PNG cut off after its first 5 kB
     out, ovl = tmp_path / "o.csv", tmp_path / "o.png"
-    rc, _, err = _run("detect_rings.py", cut, "--pith", "150,160", "--out", out, "--overlay", ovl)
+    rc, _, err = _run("detect_rings", cut, "--pith", "150,160", "--out", out, "--overlay", ovl)
     assert rc not in (0, None) and "cannot read image" in err and "cut.png" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.png"]
 
@@ -288,14 +277,14 @@ def test_eval_rings_with_pos_labels(tmp_path):
     # one extra, plus a second transect that --transect 0 leaves out
     det.write_text("transect,index,x_px,y_px\n0,0,110.5,200\n0,1,129,200\n0,2,132,200.5\n0,3,165,204\n"
                    "0,4,180,204\n1,0,110,200\n")
-    rc, out, err = _run("eval_rings.py", det, POS, "--transect", 0, "--tolerance-px", 3)
+    rc, out, err = _run("eval_rings", det, POS, "--transect", 0, "--tolerance-px", 3)
     assert rc == 0, err
     assert "matched 3, detected 5, labelled 5" in out and "F1 0.6000" in out, out
-    rc, out, err = _run("eval_rings.py", det, POS, "--transect", 0, "--tolerance-px", 5)
+    rc, out, err = _run("eval_rings", det, POS, "--transect", 0, "--tolerance-px", 5)
     assert "matched 4, detected 5, labelled 5" in out, out
-    rc, out, err = _run("eval_rings.py", det, POS, "--transect", 0, "--pos-keep-first")
+    rc, out, err = _run("eval_rings", det, POS, "--transect", 0, "--pos-keep-first")
     assert "labelled 6" in out, out
-    rc, out, err = _run("eval_rings.py", det, POS)  # several transects but no --transect
+    rc, out, err = _run("eval_rings", det, POS)  # several transects but no --transect
     assert rc != 0 and "--transect" in err
 
 

@@ -276,10 +276,14 @@ def test_corrupt_files_are_refused(tmp_path, good):
 # every command that reads images refuses them, before writing anything
 # ----------------------------------------------------------------------------------------------------------------
 def _load_script(script):
-    spec = importlib.util.spec_from_file_location(f"_image_input_{script[:-3]}", os.path.join(ROOT, "scripts", script))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    name = script[:-3]
+    try:
+        return importlib.import_module(f"torch_appearance.cli.{name}")
+    except ModuleNotFoundError:  # a tool not yet moved into torch_appearance.cli
+        spec = importlib.util.spec_from_file_location(f"_image_input_{name}", os.path.join(ROOT, "scripts", script))
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
 
 
 @pytest.fixture(scope="module")

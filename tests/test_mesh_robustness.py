@@ -453,3 +453,26 @@ def test_bad_input(tmp_path):
     assert report["texture_size"] == (1024, 1024) and report["texture_source"] == "argument"
     assert report["hint"] == "texture= replaced the file's own 256x256 texture"
     assert mesh.visual.material.image.size == (1024, 1024)
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf"])
+@pytest.mark.parametrize("suffix", [".obj", ".ply"])
+def test_non_finite_vertex_is_refused_not_dropped(tmp_path, bad, suffix):
+    """trimesh's processing drops the faces of a NaN/Inf vertex without a word, and the rest voxelised as if the
+    mesh were whole; load_mesh refuses the file and says how many triangles are affected."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0.5]], dtype=np.float64)
+    vertices[4, 0] = float(bad)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3], [1, 2, 4]])
+    path = tmp_path / f"tetra{suffix}"
+    if suffix == ".obj":
+        path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices)
+                        + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+    else:
+        trimesh.Trimesh(vertices, faces, process=False).export(str(path))
+    with pytest.raises(ValueError, match=r"path: .*non-finite \(NaN or Inf\) vertex coordinates in 1 of 5 triangles"):
+        load_mesh(str(path), height_mm=5.0)
+    vertices[4, 0] = 0.5  # the same file with a finite vertex loads
+    path.unlink()
+    trimesh.Trimesh(vertices, faces, process=False).export(str(path))
+    mesh, _ = load_mesh(str(path), height_mm=5.0)
+    assert len(mesh.faces) == 5

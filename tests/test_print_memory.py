@@ -233,17 +233,6 @@ def test_all_finite_in_chunks():
         assert not all_finite(y.view(4, 5, 6), chunk=7)
 
 
-def _memory_probes():
-    """(status_kb, reset_peak_rss): the /proc memory probes of scripts/bench_volpath.py."""
-    import importlib.util
-    import os
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "bench_volpath.py")
-    spec = importlib.util.spec_from_file_location("_bench_volpath_probes", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module._status_kb, module._reset_peak_rss
-
-
 def test_replay_thread_buffers_follow_the_paths_not_the_grid():
     """With two threads the replay's second thread deposits into its own gradient buffers. They come zeroed from
     calloc, so pages that no path touches are never resident: a small object in a large grid adds the two gradient
@@ -251,7 +240,7 @@ def test_replay_thread_buffers_follow_the_paths_not_the_grid():
     large blocks fresh, as glibc does above 32 MB.)"""
     import torch_appearance as ta
     from torch_appearance.render import Scene, SDFBoundary, SurfaceTexels
-    status_kb, reset_peak_rss = _memory_probes()
+    from torch_appearance.testing import reset_peak_rss, status_kb
     if status_kb("VmHWM") is None or not reset_peak_rss():
         pytest.skip("needs /proc/self/status and a resettable peak (clear_refs)")
     # 0.1 mm voxels, 50 MB per grid (glibc maps blocks above 32 MB fresh from the kernel); a sphere of radius

@@ -333,7 +333,7 @@ def test_quantised_white_object_renders_like_its_continuous_mixture():
     so their texel colours agree in distribution. The micro-voxels whose centre is outside are VOID, but the
     smooth surface cuts some of them; light crosses those first, so they must hold the printed neighbour's ink
     (white), not a placeholder ink (cyan is ink 0 here: a cyan skin would take red out of every texel)."""
-    from conftest import assert_z, seed_stats
+    from torch_appearance.testing import assert_z, seed_stats
 
     from torch_appearance.fabrication.quantize import quantize_mixture
     from torch_appearance.nn import mix_inks

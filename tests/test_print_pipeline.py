@@ -14,7 +14,7 @@ from torch_appearance.pipelines import PrintConfig, optimize_print
 from torch_appearance.pipelines.print_optimization import (LOG_FIELDS, naive_extrusion, render_quantized,
                                                            slab_texel_grid)
 from torch_appearance.pipelines.targets import ZEBRA_STRIPES, colorchecker_patches, load_target, zebra_target
-from conftest import assert_z, seed_stats
+from torch_appearance.testing import assert_z, seed_stats
 
 
 def test_zebra_target_stripes():

@@ -8,7 +8,7 @@ from torch_appearance.geometry import sphere_sdf
 from torch_appearance.render import (BoxBoundary, ConstantEnvironment, DiscLight, EnvironmentMap, OrthographicCamera,
                                      PerspectiveCamera, Scene, SDFBoundary, SurfaceTexels)
 
-from conftest import assert_z, seed_stats
+from torch_appearance.testing import assert_z, seed_stats
 
 N, H = 4, 0.1
 ORIGIN = (-0.2, -0.2, -0.2)

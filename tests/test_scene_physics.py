@@ -11,7 +11,7 @@ from torch_appearance.geometry import box_sdf, sphere_sdf, spherical_shell_sdf, 
 from torch_appearance.render import (BoxBoundary, ConstantEnvironment, DiscLight, FaceTexels, OrthographicCamera,
                                      PerspectiveCamera, Scene, SDFBoundary, SurfaceTexels)
 
-from conftest import assert_z
+from torch_appearance.testing import assert_z
 
 N = 12          # voxels per axis
 H = 0.1         # voxel edge, mm

@@ -10,7 +10,7 @@ from torch_appearance.geometry import sphere_sdf
 from torch_appearance.render import (BoxBoundary, ConstantEnvironment, DiscLight, EnvironmentMap, OrthographicCamera,
                                      PerspectiveCamera, Scene, SDFBoundary, SurfaceTexels)
 
-from conftest import assert_z
+from torch_appearance.testing import assert_z
 from reference_tracer import reference_render_scene
 
 N, H = 6, 0.1

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import torch_appearance as ta
-from conftest import assert_z, seed_stats
+from torch_appearance.testing import assert_z, seed_stats
 
 
 def scene(seed=0, shape=(2, 2, 3), chromatic=True, dtype=torch.float64):

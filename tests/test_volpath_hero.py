@@ -20,7 +20,7 @@ import torch
 from scipy import stats as scipy_stats
 
 import torch_appearance as ta
-from conftest import assert_z, seed_stats
+from torch_appearance.testing import assert_z, seed_stats
 from reference_tracer import reference_render_texels
 from torch_appearance._ext import _C
 

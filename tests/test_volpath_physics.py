@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import torch_appearance as ta
-from conftest import assert_z, seed_stats
+from torch_appearance.testing import assert_z, seed_stats
 
 INK_SIGMA = (2.25, 3.75, 19.0)  # Vero yellow: strongly chromatic extinction, mm⁻¹
 

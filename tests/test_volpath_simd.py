@@ -13,7 +13,7 @@ import torch
 import torch_appearance as ta
 from torch_appearance._ext import _C
 
-from conftest import simd_walk_level
+from torch_appearance.testing import simd_walk_level
 
 pytestmark = pytest.mark.skipif(simd_walk_level() < 1, reason="needs a CPU with AVX2 (or TA_SIMD is 0)")
 WIDTHS = [pytest.param(1, id="avx2"),

@@ -198,14 +198,9 @@ def test_load_mesh_bad_input(tmp_path):
 
 
 def test_voxelize_cli(tmp_path):
-    """scripts/voxelize.py on an STL box: npz, summary and previews written; bad input → exit code 2."""
-    import importlib.util
+    """ta-voxelize on an STL box: npz, summary and previews written; bad input → exit code 2."""
     import json
-    import os
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "scripts", "voxelize.py")
-    spec = importlib.util.spec_from_file_location("voxelize_cli", path)
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
+    from torch_appearance.cli import voxelize as cli
     stl = tmp_path / "box.stl"
     trimesh.creation.box((2.0, 3.0, 1.0)).export(str(stl))
     out = tmp_path / "out"

@@ -1,7 +1,6 @@
 """Previews of a voxelised object (torch_appearance.geometry.preview): offscreen pyvista renders of the texels where
 this machine can render, the matplotlib fallback otherwise (and always when pyvista fails), the SDF slice, and
-scripts/voxelize.py writing them with --texture and "preview_backend" in its summary."""
-import importlib.util
+ta-voxelize writing them with --texture and "preview_backend" in its summary."""
 import json
 import os
 
@@ -120,10 +119,7 @@ def test_write_previews_and_cli(ball, tmp_path):
     lines += ["f " + " ".join(f"{i + 1}/{i + 1}" for i in face) for face in box.faces]
     (tmp_path / "box.obj").write_text("\n".join(lines) + "\n")
     Image.new("RGB", (4, 4), BLUE).save(tmp_path / "blue.png")
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "scripts", "voxelize.py")
-    spec = importlib.util.spec_from_file_location("voxelize_cli_previews", path)
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
+    from torch_appearance.cli import voxelize as cli
     out = tmp_path / "out"
     assert cli.main([str(tmp_path / "box.obj"), "--texture", str(tmp_path / "blue.png"), "--height-mm", "3",
                      "--dpi", "80", "--out", str(out), "--quiet"]) == 0

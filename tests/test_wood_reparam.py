@@ -7,7 +7,7 @@ from torch_appearance.nn import WoodModel
 from torch_appearance.nn.wood_reparam import (compare_ring_scale_gradients, ring_scale_gradient,
                                               ring_scale_gradient_fd)
 
-from conftest import assert_z, seed_stats
+from torch_appearance.testing import assert_z, seed_stats
 
 
 def board(cmap=None):

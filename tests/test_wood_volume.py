@@ -1,7 +1,6 @@
 """Wood as a volume (issue 14): the σ_t/albedo builder, the surface colour → albedo mapping checked on our tracer,
 the backlit veneer against the independent numpy reference tracer, the lamp-shade geometry, bad inputs, the script.
 """
-import importlib.util
 import json
 import math
 import os
@@ -23,7 +22,7 @@ from torch_appearance.render import DiscLight
 from torch_appearance.render.albedo_mapping import (ELEK_C, ELEK_CS, albedo_from_colour, colour_from_albedo,
                                                     elek_albedo, slab_colour)
 
-from conftest import assert_z
+from torch_appearance.testing import assert_z
 from reference_tracer import reference_render_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -255,13 +254,11 @@ def test_bad_builder_arguments_are_refused():
 
 # ---- the script -----------------------------------------------------------------------------------------------
 def test_render_wood_volume_script_writes_its_outputs(tmp_path, capsys):
-    script = os.path.join(ROOT, "scripts", "render_wood_volume.py")
-    env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    out = subprocess.run([sys.executable, script, "--help"], env=env, capture_output=True, text=True, timeout=60)
+    from torch_appearance.cli import render_wood_volume as cli
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, "-m", "torch_appearance.cli.render_wood_volume", "--help"], env=env,
+                         capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "--synthetic" in out.stdout
-    spec = importlib.util.spec_from_file_location("render_wood_volume_script", script)
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
     assert cli.main([str(tmp_path / "missing"), "--out", str(tmp_path / "x")]) == 2
     assert "fit_dir: expected a run folder" in capsys.readouterr().err
     assert cli.main(["--synthetic", "1", "--synthetic-size", "24", "32", "--out", str(tmp_path / "run"),

@@ -226,9 +226,21 @@ def load_mesh(path, *, height_mm=None, scale=None, texture=None):
         _check_gltf_textures(path)
     try:
         # what trimesh.load(force="mesh") does (scene → baked parts → one mesh), keeping each face's material
-        parts = [g for g in trimesh.load_scene(path).dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
-        mesh = trimesh.util.concatenate(parts) if parts else None
+        # read unprocessed first: trimesh's processing silently drops faces with NaN/Inf vertices
+        parts = [g for g in trimesh.load_scene(path, process=False).dump()
+                 if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     except Exception as error:  # trimesh raises many kinds for unreadable input
+        raise ValueError(f"path: could not read {path!r} as a mesh ({type(error).__name__}: {error})") from None
+    bad = sum(int((~np.isfinite(np.asarray(g.vertices, dtype=np.float64)[g.faces])).any(axis=(1, 2)).sum())
+              for g in parts)
+    if bad:
+        raise ValueError(f"path: {path!r} has non-finite (NaN or Inf) vertex coordinates in {bad} of "
+                         f"{sum(len(g.faces) for g in parts)} triangles; repair or remove them in the mesh")
+    try:
+        for g in parts:
+            g.process()  # what loading with process=True does: merge vertices, drop degenerate data
+        mesh = trimesh.util.concatenate(parts) if parts else None
+    except Exception as error:
         raise ValueError(f"path: could not read {path!r} as a mesh ({type(error).__name__}: {error})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"path: {path!r} holds no triangles")

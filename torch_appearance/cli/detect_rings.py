@@ -1,0 +1,248 @@
+"""Detect tree-ring boundaries on an increment core scan (core mode), along a transect of a board photo, or along
+several pith -> bark transects of a whole-disc photo (disc mode).
+
+Core mode (default): rings cross the core's long axis; the bark (youngest rings) is at the side given by --bark
+(default: right for wide images, bottom for tall ones). Transect mode: --transect X0,Y0,X1,Y1 in pixels, drawn from
+the pith towards the bark (filters the whole image; for discs use disc mode). The boundary is the sharp latewood ->
+earlywood transition (torch_appearance.rings.dendro). Writes a CSV with columns index,x_px,y_px,width_px,width_mm
+ordered pith -> bark (width to the previous boundary; empty for the first, width_mm empty without --dpi /
+--pixel-size-mm).
+Disc mode (--pith X,Y): transects run from the pith outwards, given as --angles A1,A2,... (degrees from the +x axis
+towards +y, i.e. clockwise on screen: 0 = right, 90 = down, 180 = left, 270 = up; each runs to the disc edge or the
+image border) and/or repeated --transect X,Y (the bark-side end point in pixels); default: --angles 0,90,180,270.
+Only a narrow polar strip around each transect is resampled and filtered, once (torch_appearance.rings.disc).
+Writes one CSV with columns transect,angle_deg,index,kind,x_px,y_px,radius_px,width_px,width_mm (kind: ring, or
+edge for the disc edge with --edge) and one overlay with all transects.
+Section mode (--mode section): a stained microscopy cross-section; writes the boundary polyline (index,x_px,y_px,
+about 1 px apart; header only if none was found); --cell-px is the typical cell diameter in pixels.
+
+Examples:
+    ta-detect-rings core.png --bark left --dpi 1200 --out rings.csv --overlay rings.png
+    ta-detect-rings board.jpg --transect 512,500,980,130 --pixel-size-mm 0.05 --out board.csv
+    ta-detect-rings disc.jpg --pith 1520,1610 --angles 0,90,180,270 --out disc.csv --overlay disc.png
+    ta-detect-rings disc.jpg --pith 1520,1610 --transect 2900,1650 --transect 1480,40 --out disc.csv
+    ta-detect-rings section.png --mode section --out boundary.csv --overlay boundary.png
+"""
+import sys
+
+import cv2
+import numpy as np
+
+from torch_appearance.io import atomic_write_bytes, read_image, write_csv
+from torch_appearance.rings.dendro import (detect_core_boundaries, detect_section_boundaries,
+                                           detect_transect_boundaries)
+from torch_appearance.rings.disc import detect_disc_boundaries
+
+from .command import CommandParser, check_output_file, fail
+
+PROG = "ta-detect-rings"
+
+
+def parse_args(argv=None):
+    p = CommandParser(PROG, __doc__)
+    p.add_argument("image", help="core scan or photo (sRGB PNG/JPEG/TIFF/BMP/WebP or linear EXR; truncated or corrupt "
+                                  "files are refused)")
+    p.add_argument("--out", required=True, help="output CSV")
+    p.add_argument("--overlay", default=None, help="optional overlay PNG with the detected boundaries")
+    p.add_argument("--bark", choices=("left", "right", "top", "bottom"), default=None,
+                   help="core mode: side with the bark (default: right for wide, bottom for tall images)")
+    p.add_argument("--transect", action="append", default=None,
+                   help="transect mode: X0,Y0,X1,Y1 in pixels, pith -> bark; disc mode (with --pith): X,Y, the "
+                        "transect's bark-side end (repeat for several transects)")
+    p.add_argument("--pith", default=None, help="disc mode: pith position X,Y in pixels")
+    p.add_argument("--angles", default=None,
+                   help="disc mode: transect angles in degrees, comma-separated (from +x towards +y, clockwise on "
+                        "screen: 0 right, 90 down); default 0,90,180,270 when no --transect is given")
+    p.add_argument("--edge", action="store_true",
+                   help="disc mode: report the disc edge (outer end of the last ring) as the last boundary")
+    p.add_argument("--half-width", type=int, default=16,
+                   help="disc mode: half-width of the strip filtered around each transect, px (default: %(default)s)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--dpi", type=float, default=None, help="scan resolution (pixel size 25.4 / dpi mm)")
+    size.add_argument("--pixel-size-mm", type=float, default=None, help="pixel size in mm")
+    p.add_argument("--width-px", type=int, default=32, help="core mode: uniform core width (default: %(default)s)")
+    p.add_argument("--mode", choices=("core", "section"), default="core",
+                   help="core (also transect with --transect) or section (microscopy); default: %(default)s")
+    p.add_argument("--cell-px", type=float, default=8.0,
+                   help="section mode: cell diameter in px (default: %(default)s)")
+    args = p.parse_args(argv)
+    check_output_file(p, "--out", args.out)
+    check_output_file(p, "--overlay", args.overlay)
+    return args
+
+
+def overlay_png(rgb, points, transect=None, polyline=False):
+    """uint8 BGR-encoded PNG bytes of the image with boundary ticks (red) and the transect (cyan), or the boundary
+    polyline (red) when ``polyline``."""
+    img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    h, w = img.shape[:2]
+    if polyline:
+        if len(points) >= 2:
+            cv2.polylines(img, [np.round(np.asarray(points)).astype(np.int32)], False, (0, 0, 255), 1)
+        points = []
+    if transect is not None:
+        x0, y0, x1, y1 = transect
+        cv2.line(img, (int(round(x0)), int(round(y0))), (int(round(x1)), int(round(y1))), (255, 255, 0), 1)
+    horizontal = w >= h
+    for i, (x, y) in enumerate(points):
+        if transect is None:
+            a = (int(round(x)), 0) if horizontal else (0, int(round(y)))
+            b = (int(round(x)), h - 1) if horizontal else (w - 1, int(round(y)))
+            cv2.line(img, a, b, (0, 0, 255), 1)
+        else:
+            cv2.circle(img, (int(round(x)), int(round(y))), 3, (0, 0, 255), 1)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("could not encode the overlay PNG")
+    return buf.tobytes()
+
+
+_COLOURS = [(0, 0, 255), (0, 200, 0), (255, 128, 0), (255, 0, 255), (0, 200, 255), (255, 255, 0), (128, 0, 255),
+            (0, 128, 255)]
+
+
+def disc_overlay_png(rgb, res):
+    """PNG bytes of the disc with each transect (its own colour), a tick across it at every boundary (a circle at
+    the edge) and its number at the outer end; the pith is a white cross."""
+    img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    h, w = img.shape[:2]
+    thick = max(1, int(round(max(h, w) / 1500)))
+    tick = 4 * thick + 2
+    c = res.pith
+    for k, (tr, end) in enumerate(zip(res.transects, res.ends)):
+        col = _COLOURS[k % len(_COLOURS)]
+        cv2.line(img, (int(round(c[0])), int(round(c[1]))), (int(round(end[0])), int(round(end[1]))), col, thick)
+        th = np.radians(res.angles_deg[k])
+        n = np.array([-np.sin(th), np.cos(th)])
+        for (x, y), kind in zip(tr.points, tr.info.get("kind", [])):
+            if kind == "edge":
+                cv2.circle(img, (int(round(x)), int(round(y))), tick, col, thick)
+            else:
+                a, b = np.array([x, y]) - tick * n, np.array([x, y]) + tick * n
+                cv2.line(img, tuple(int(round(t)) for t in a), tuple(int(round(t)) for t in b), col, thick)
+        pos = (int(np.clip(end[0], 0, w - 30)), int(np.clip(end[1], 15, h - 5)))
+        cv2.putText(img, str(k), pos, cv2.FONT_HERSHEY_SIMPLEX, 0.5 * thick, col, thick)
+    cx, cy = int(round(c[0])), int(round(c[1]))
+    cv2.drawMarker(img, (cx, cy), (255, 255, 255), cv2.MARKER_CROSS, 4 * tick, thick)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("could not encode the overlay PNG")
+    return buf.tobytes()
+
+
+def _numbers(text, name, count=None):
+    try:
+        vals = [float(t) for t in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated numbers; got {text!r}") from None
+    if count is not None and len(vals) != count:
+        raise ValueError(f"{name} must be {count} numbers; got {text!r}")
+    if not all(np.isfinite(vals)):
+        raise ValueError(f"{name} must be finite numbers; got {text!r}")
+    return vals
+
+
+def run_disc(args, rgb):
+    """Disc mode: returns the exit code (writes the CSV and the overlay)."""
+    try:
+        pith = _numbers(args.pith, "--pith (X,Y)", 2)
+        angles = _numbers(args.angles, "--angles") if args.angles is not None else None
+        ends = [_numbers(t, "--transect in disc mode (the end point X,Y)", 2) for t in (args.transect or [])]
+    except ValueError as e:
+        return fail(PROG, str(e))
+    from tqdm import tqdm
+
+    with tqdm(total=(len(angles or []) + len(ends)) or 4, desc="transects", unit="transect",
+              disable=None) as bar:
+        try:
+            res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
+                                         half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,
+                                         progress=lambda k, n: bar.update(1))
+            png = disc_overlay_png(rgb, res) if args.overlay else None
+        except ValueError as e:
+            return fail(PROG, str(e))
+    rows = []
+    for k, tr in enumerate(res.transects):
+        for i, ((x, y), kind, r, wp, wm) in enumerate(zip(tr.points, tr.info["kind"], tr.info["radius_px"],
+                                                          tr.widths_px, tr.widths_mm)):
+            rows.append(dict(transect=k, angle_deg=f"{res.angles_deg[k]:.2f}", index=i, kind=kind, x_px=f"{x:.2f}",
+                             y_px=f"{y:.2f}", radius_px=f"{r:.2f}",
+                             width_px="" if not np.isfinite(wp) else f"{wp:.2f}",
+                             width_mm="" if not np.isfinite(wm) else f"{wm:.4f}"))
+    write_csv(args.out, rows, ["transect", "angle_deg", "index", "kind", "x_px", "y_px", "radius_px", "width_px",
+                               "width_mm"])
+    if png is not None:
+        atomic_write_bytes(args.overlay, png)
+    counts = ", ".join(str(len(tr.points)) for tr in res.transects)
+    print(f"{len(rows)} boundaries on {len(res.transects)} transects ({counts}); filtered "
+          f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
+          f"image) -> {args.out}")
+    return 0
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    if args.dpi is not None and not args.dpi > 0:
+        return fail(PROG, f"--dpi must be > 0; got {args.dpi}")
+    if args.pixel_size_mm is not None and not args.pixel_size_mm > 0:
+        return fail(PROG, f"--pixel-size-mm must be > 0; got {args.pixel_size_mm}")
+    disc = args.pith is not None
+    if not disc and (args.angles is not None or args.edge):
+        return fail(PROG, "--angles / --edge need disc mode (--pith X,Y)")
+    if disc and (args.mode == "section" or args.bark is not None):
+        return fail(PROG, "--pith (disc mode) does not combine with --mode section or --bark")
+    if not disc and args.transect is not None and len(args.transect) > 1:
+        return fail(PROG, "several --transect need disc mode: give the pith with --pith X,Y and each transect's end X,Y")
+    try:
+        rgb = read_image(args.image, space="srgb", name="image")  # decoded fully: truncated files are refused
+    except (OSError, ValueError) as e:
+        return fail(PROG, f"cannot read image {args.image!r}: {e}")
+    if disc:
+        return run_disc(args, rgb)
+    transect = None
+    if args.transect is not None:
+        try:
+            transect = tuple(float(t) for t in args.transect[0].split(","))
+            if len(transect) != 4:
+                raise ValueError
+        except ValueError:
+            return fail(PROG, f"--transect must be X0,Y0,X1,Y1 (four numbers); got {args.transect[0]!r}")
+    if args.mode == "section" and (transect is not None or args.bark is not None):
+        return fail(PROG, "--transect / --bark do not apply to --mode section")
+    try:
+        if args.mode == "section":
+            sec = detect_section_boundaries(rgb, cell_px=args.cell_px)
+            rows = [dict(index=i, x_px=f"{x:.2f}", y_px=f"{y:.2f}") for i, (x, y) in enumerate(sec.points)]
+            png = overlay_png(rgb, sec.points, polyline=True) if args.overlay else None
+    except ValueError as e:
+        return fail(PROG, str(e))
+    if args.mode == "section":
+        write_csv(args.out, rows, ["index", "x_px", "y_px"])
+        if png is not None:
+            atomic_write_bytes(args.overlay, png)
+        print(f"boundary polyline of {len(rows)} points -> {args.out}")
+        return 0
+    try:
+        if transect is not None:
+            res = detect_transect_boundaries(rgb, transect, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm)
+        else:
+            h, w = rgb.shape[:2]
+            bark = args.bark or ("right" if w >= h else "bottom")
+            res = detect_core_boundaries(rgb, bark=bark, width_px=args.width_px, dpi=args.dpi,
+                                         pixel_size_mm=args.pixel_size_mm)
+        rows = [dict(index=i, x_px=f"{x:.2f}", y_px=f"{y:.2f}",
+                     width_px="" if not np.isfinite(wp) else f"{wp:.2f}",
+                     width_mm="" if not np.isfinite(wm) else f"{wm:.4f}")
+                for i, ((x, y), wp, wm) in enumerate(zip(res.points, res.widths_px, res.widths_mm))]
+        png = overlay_png(rgb, res.points, transect) if args.overlay else None
+    except ValueError as e:
+        return fail(PROG, str(e))
+    write_csv(args.out, rows, ["index", "x_px", "y_px", "width_px", "width_mm"])
+    if png is not None:
+        atomic_write_bytes(args.overlay, png)
+    print(f"{len(rows)} boundaries -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

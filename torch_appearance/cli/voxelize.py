@@ -1,0 +1,133 @@
+"""Voxelise a textured mesh for printing: occupancy, exact SDF band, surface texels with normals and colours.
+
+Loads MODEL (OBJ + MTL + texture, GLB/GLTF, PLY, STL; ``--texture`` gives or replaces its colour image), scales it
+to ``--height-mm`` (or by ``--scale``), voxelises it at ``--dpi`` (isotropic voxels of 25.4/dpi mm) and writes to
+``--out``:
+
+    object.npz          the VoxelObject (torch_appearance.geometry.VoxelObject.load reads it)
+    summary.json        counts, timings, peak memory, watertightness, units guess, max texel-to-surface distance,
+                        preview_backend
+    texels_color.png    the texels from three sides (front-left above, back-right above, front-right below; z up,
+                        front = -y), coloured by their target colour (sRGB); only when the mesh has colours
+    texels_normal.png   the same, coloured by their normals (0.5 + 0.5 n)
+    sdf_slice.png       the SDF through the middle of the object (xz plane), with its zero level
+
+The texel pictures are rendered offscreen with pyvista/VTK (EGL or OSMesa where there is no X display); where that
+is impossible they are matplotlib scatter plots instead, with a warning, and summary.json says which
+("preview_backend": "pyvista" or "matplotlib"; TA_PREVIEW_BACKEND=matplotlib forces the fallback). Progress goes to
+stderr (--quiet: none), the summary as one JSON line to stdout.
+
+Examples:
+    ta-voxelize model.obj --height-mm 30 --dpi 300 --shell-mm 2 --out results/voxelize
+    ta-voxelize model.ply --texture albedo.png --scale 1000 --out results/voxelize
+"""
+import inspect
+import json
+import os
+import resource
+import sys
+import time
+
+import numpy as np
+
+from torch_appearance import io as ta_io
+from torch_appearance.geometry import load_mesh, voxelize
+from torch_appearance.geometry.preview import write_previews
+
+from .command import CommandParser, check_output_folder, fail
+
+PROG = "ta-voxelize"
+
+
+def _accepts_keyword(fn, name):
+    try:
+        parameters = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return True
+    return name in parameters or any(p.kind is p.VAR_KEYWORD for p in parameters.values())
+
+
+class Progress:
+    """Step lines on stderr ("[voxelize 1.2 s] voxelising …"), unless quiet."""
+
+    def __init__(self, quiet=False):
+        self.quiet, self.t0 = quiet, time.perf_counter()
+
+    def __call__(self, message):
+        if not self.quiet:
+            print(f"[voxelize {time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr, flush=True)
+
+
+def main(argv=None):
+    p = CommandParser(PROG, __doc__)
+    p.add_argument("model", help="mesh file (OBJ + MTL + texture, GLB/GLTF, PLY, STL)")
+    p.add_argument("--texture", default=None, metavar="PATH",
+                   help="base-colour image (sRGB PNG/JPEG) for a mesh with UVs, e.g. an OBJ with vt lines but no "
+                        "MTL; it replaces any material the file has")
+    p.add_argument("--height-mm", type=float, default=None, help="scale to this z extent in mm")
+    p.add_argument("--scale", type=float, default=None, help="factor from file units to mm (instead of --height-mm)")
+    p.add_argument("--dpi", type=float, default=300.0, help="voxel pitch in DPI (default: %(default)s ≈ 0.0847 mm)")
+    p.add_argument("--shell-mm", type=float, default=None, help="depth of the printable shell in mm")
+    p.add_argument("--out", default="results/voxelize", help="output folder (default: %(default)s)")
+    p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    args = p.parse_args(argv)
+    check_output_folder(p, "--out", args.out)
+    if not args.dpi > 0:
+        p.error(f"--dpi: expected > 0, got {args.dpi}")
+    load_kwargs = dict(height_mm=args.height_mm, scale=args.scale)
+    if args.texture is not None:
+        if not _accepts_keyword(load_mesh, "texture"):
+            p.error("--texture: this version of torch_appearance.geometry.load_mesh takes no texture= yet")
+        load_kwargs["texture"] = args.texture
+    progress = Progress(args.quiet)
+    try:
+        t0 = time.perf_counter()
+        progress(f"loading {args.model}" + (f" with texture {args.texture}" if args.texture else "") + " …")
+        mesh, report = load_mesh(args.model, **load_kwargs)
+        t1 = time.perf_counter()
+        if report.get("hint"):
+            progress(f"hint: {report['hint']}")
+        size = 25.4 / args.dpi
+        extent = mesh.bounds[1] - mesh.bounds[0]
+        dims = " × ".join(str(int(round(e / size))) for e in extent)
+        progress(f"loaded {report.get('triangles')} triangles, colour {report.get('colour')}, {extent[0]:.1f} × "
+                 f"{extent[1]:.1f} × {extent[2]:.1f} mm (x × y × z); voxelising at {size:.4g} mm (about {dims} voxels) …")
+        obj = voxelize(mesh, size, shell_mm=args.shell_mm)
+        t2 = time.perf_counter()
+    except (ValueError, TypeError) as error:
+        return fail(PROG, error)
+    progress(f"voxelised in {t2 - t1:.1f} s: grid {' × '.join(map(str, obj.grid_shape))} (D×H×W), "
+             f"{len(obj.texel_voxels)} texels; writing object.npz …")
+    os.makedirs(args.out, exist_ok=True)
+    obj.save(os.path.join(args.out, "object.npz"))
+    centres = (obj.texel_voxels.numpy()[:, ::-1] + 0.5) * obj.voxel_size + np.array(obj.origin)
+    summary = {
+        "model": os.path.abspath(args.model), **report, "voxel_size_mm": obj.voxel_size,
+        "grid_dhw": list(obj.grid_shape), "inside_voxels": int(obj.occupancy.sum()),
+        "texels": int(len(obj.texel_voxels)), "shell_voxels": None if obj.shell is None else int(obj.shell.sum()),
+        "band_mm": obj.band_mm,
+        "max_texel_centre_to_surface_mm": float(np.linalg.norm(centres - obj.texel_points.numpy(), axis=1).max())
+        if len(centres) else None,
+        "load_s": t1 - t0, "voxelize_s": t2 - t1, "voxelize_info": obj.info,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "preview_backend": None,
+    }
+    if args.texture is not None:
+        summary["texture"] = os.path.abspath(args.texture)
+    summary_path = os.path.join(args.out, "summary.json")
+    ta_io.write_json(summary_path, summary)  # written now, so a failing preview leaves it behind
+    if not args.no_previews:
+        t3 = time.perf_counter()
+        result = write_previews(obj, args.out, progress=progress)
+        summary["preview_backend"] = result["backend"]
+        summary["preview_s"] = time.perf_counter() - t3
+        summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        ta_io.write_json(summary_path, summary)
+    progress(f"done: {args.out}")
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
