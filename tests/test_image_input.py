@@ -507,3 +507,28 @@ def test_lazily_opened_texture_is_decoded_strictly(good, monkeypatch):
     mesh.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1]], image=Image.open(io.BytesIO(data[:5000])))
     with pytest.raises(ValueError, match=r"model\.dae' holds a texture that cannot be decoded completely"):
         _load_strictly(mesh, "model.dae")
+
+
+@pytest.mark.parametrize("writer", ["opencv", "tifffile"])
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_float32_tiff_is_linear_as_stored(tmp_path, writer, channels):
+    """Floating-point TIFF (RGB as OpenCV, ImageJ and microscopy software write it; Pillow opens none with more
+    than one channel) is read as linear values exactly as stored, above 1 too; truncations of it are refused."""
+    import tifffile
+
+    rgb = (np.random.default_rng(channels).random((9, 13, channels)) * 3).astype(np.float32)
+    path = tmp_path / "float.tif"
+    if writer == "opencv":
+        stored = rgb if channels == 1 else np.concatenate([rgb[..., 2::-1], rgb[..., 3:]], axis=2)  # BGR(A)
+        assert cv2.imwrite(str(path), stored[..., 0] if channels == 1 else stored)
+    else:
+        tifffile.imwrite(str(path), rgb[..., 0] if channels == 1 else rgb,
+                         photometric="minisblack" if channels == 1 else "rgb")
+    pixels, _ = ta_io.decode_image(str(path))
+    np.testing.assert_array_equal(pixels.reshape(rgb.shape), rgb)
+    data = path.read_bytes()
+    for cut in (len(data) // 2, len(data) - 64, 16):
+        bad = tmp_path / f"cut{cut}.tif"
+        bad.write_bytes(data[:cut])
+        with pytest.raises(ValueError, match="truncated or corrupt"):
+            ta_io.decode_image(str(bad))

@@ -24,6 +24,7 @@ import contextlib
 import functools
 import io as _stdio
 import json
+import logging
 import math
 import os
 import pathlib
@@ -311,8 +312,11 @@ def _decode_raster(data, path, name, fmt):
             with Image.open(_stdio.BytesIO(data)) as image:
                 image.load()
     except Exception as error:  # Pillow raises OSError, SyntaxError, UnidentifiedImageError, ... for broken files
-        raise ValueError(f"{name}: {path!r} is a truncated or corrupt {fmt} file; it cannot be decoded "
-                         f"completely ({type(error).__name__}: {_pillow_message(error)})") from None
+        tiff = _decode_tiff(data) if fmt == "TIFF" else None  # Pillow reads no RGB float TIFF: tifffile does
+        if tiff is None:
+            raise ValueError(f"{name}: {path!r} is a truncated or corrupt {fmt} file; it cannot be decoded "
+                             f"completely ({type(error).__name__}: {_pillow_message(error)})") from None
+        return tiff
     pixels = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if pixels is None:
         raise ValueError(f"{name}: cannot decode {path!r}: OpenCV refuses this {fmt} file (truncated or corrupt?)")
@@ -324,6 +328,34 @@ def _decode_raster(data, path, name, fmt):
     elif pixels.shape[2] in (3, 4):
         pixels = np.concatenate([pixels[..., 2::-1], pixels[..., 3:]], axis=2)  # B, G, R(, A) -> R, G, B(, A)
     return pixels, size, icc
+
+
+def _decode_tiff(data):
+    """(pixels, (W, H), ICC profile or None) of the first page of a TIFF that tifffile decodes completely (every strip
+    or tile read, the shape its header promises), else None. Pillow opens no multi-channel floating-point TIFF (as
+    written by OpenCV, ImageJ, microscopy software), tifffile does."""
+    import tifffile
+
+    quiet = logging.getLogger("tifffile")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)  # a broken file is reported once, by the caller, not also by tifffile's log
+    try:
+        with tifffile.TiffFile(_stdio.BytesIO(data)) as tif:
+            page = tif.pages[0]
+            expected, pixels = tuple(page.shape), page.asarray()
+            icc = page.tags.get("InterColorProfile")
+            icc = bytes(icc.value) if icc is not None else None
+    except Exception:  # tifffile raises ValueError, TiffFileError, IndexError, ... for broken files
+        return None
+    finally:
+        quiet.setLevel(level)
+    if pixels.size == 0 or tuple(pixels.shape) != expected or pixels.ndim not in (2, 3):
+        return None
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.shape[2] > 4:
+        return None
+    return np.ascontiguousarray(pixels), (pixels.shape[1], pixels.shape[0]), icc
 
 
 def decode_image(path, *, name="path"):
