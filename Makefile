@@ -46,19 +46,19 @@ demo-object: build
 
 # The tracer alone: renders the built-in ink slab (PNG + EXR + timings).
 render-demo: build
-	$(PY) scripts/demo.py --out results/render-demo
+	$(PY) scripts/examples/demo.py --out results/render-demo
 
 test: build
 	$(PY) -m pytest -n 2 --dist loadfile $(PYTEST_ARGS)
 
 bench: build
-	$(PY) scripts/bench_volpath.py
+	$(PY) scripts/bench/bench_volpath.py
 
 # Side by side with Mitsuba 3 (optional peer, never needed by the tests): its CPU backend needs Debian's libLLVM-15.
 bench-peer: build
 	$(PIP) install --quiet mitsuba==3.5.2 drjit==0.4.6
 	@ldconfig -p | grep -q 'libLLVM-15.so' || (apt-get update -q && apt-get install -y -q libllvm15)
-	DRJIT_LIBLLVM_PATH=$$(ldconfig -p | awk '/libLLVM-15.so/ {print $$NF; exit}') $(PY) scripts/bench_peer.py
+	DRJIT_LIBLLVM_PATH=$$(ldconfig -p | awk '/libLLVM-15.so/ {print $$NF; exit}') $(PY) scripts/bench/bench_peer.py
 
 clean:
 	rm -rf build $(BUILD_STAMP) torch_appearance/_C*.so results

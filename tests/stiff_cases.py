@@ -1,6 +1,6 @@
 """Stiff and extreme tracer cases: one function that renders a case and checks what physics guarantees.
 
-Used by tests/test_stiff_sweep.py (a sweep sized for the test budget) and scripts/stiff_sweep.py (the full sweep).
+Used by tests/test_stiff_sweep.py (a sweep sized for the test budget) and scripts/bench/stiff_sweep.py (the full sweep).
 """
 import math
 import warnings

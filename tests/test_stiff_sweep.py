@@ -1,5 +1,5 @@
 """Stiff and extreme cases (σ_t from 0 to 1e4 mm⁻¹, albedo 0 … 1, g = ±0.99, ior None/1+1e-6/1.5/3, one voxel or
-2.5 mm): finite, bounded, physically consistent outputs and gradients. The full sweep is scripts/stiff_sweep.py."""
+2.5 mm): finite, bounded, physically consistent outputs and gradients. The full sweep is scripts/bench/stiff_sweep.py."""
 import itertools
 
 import pytest

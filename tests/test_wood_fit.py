@@ -51,7 +51,7 @@ def test_synthetic_board_ring_scale(fitted):
     """The recovered ring scale s_r and the mean ring width over the board (1 / mean ∂G/∂r, which is what the
     photo constrains when a radial distortion absorbs part of the scale) are within 5 % of the truth. Seed 3 shows
     16 traced ring lines (9 distinct rings); on boards with 2–4 visible rings the scale is not identifiable to 5 %
-    (scripts/eval_wood_synthetic.py reports the spread over seeds)."""
+    (scripts/eval/eval_wood_synthetic.py reports the spread over seeds)."""
     board, summary, _ = fitted
     true_sr = board["params"]["ring_scale"]
     assert abs(summary["ring_scale_mm"] / true_sr - 1) < 0.05, (summary["ring_scale_mm"], true_sr)

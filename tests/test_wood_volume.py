@@ -128,7 +128,7 @@ def test_table_mapping_round_trip_on_our_tracer():
 
 def test_elek_polynomial_is_too_bright_on_our_tracer_above_half():
     """The reason the table is the default: under g = 0.4 and IOR 1.5 the polynomial's albedo for C = 0.75 renders
-    at about 0.87 (measured by scripts/make_albedo_table.py); assert well outside the noise (se ≈ 0.002)."""
+    at about 0.87 (measured by scripts/eval/make_albedo_table.py); assert well outside the noise (se ≈ 0.002)."""
     a = elek_albedo(torch.tensor(0.75, dtype=torch.float64))
     got = float(slab_colour(a, spp=40000, seed=5)[0])
     assert got > 0.82

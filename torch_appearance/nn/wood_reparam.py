@@ -422,7 +422,7 @@ def reparam_render(model, height, width, pixel_mm, *, spp=16, seed=0, sigma_px=0
 
     Limitation: the distortion textures are bilinear, so ∇G, and with it V, jumps across texel edges; div V by
     autograd has no delta there, which leaves a bias proportional to the jump of ∂m/∂(r, z) across the edge (not
-    seen at the precision of the tests and of ``scripts/wood_gradients.py``: max |z| < 3 for a distortion texel,
+    seen at the precision of the tests and of ``scripts/eval/wood_gradients.py``: max |z| < 3 for a distortion texel,
     and distortion fits are smooth).
 
     Args:

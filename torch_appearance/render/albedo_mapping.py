@@ -10,11 +10,11 @@ Two inverse mappings C → α:
 - ``"elek"``: the polynomial of Elek et al. 2017 (thesis eq. 1.38), regressed on their own renderer,
   α(C) = Σ_k c_k·(1 − (1 − (C − C_s)/(1 − C_s))^{d_k}).
 - ``"table"`` (default): C(α) measured with *this* tracer (thick slab, smooth dielectric boundary, HG phase) at
-  the α values of a stored table (``_albedo_table.py``, written by ``scripts/make_albedo_table.py``), joined by a
+  the α values of a stored table (``_albedo_table.py``, written by ``scripts/eval/make_albedo_table.py``), joined by a
   monotone cubic (PCHIP) in s = √(1 − α) (C is close to linear in s near α = 1, diffusion theory) with the exact
   end point C(α = 1) = 1, and inverted on a dense grid. Tables exist for IOR 1.5 and the ``g`` values in :data:`TABLE_G`.
 
-Round trip on our tracer (``scripts/make_albedo_table.py`` prints it; tests/test_wood_volume.py checks it), g = 0.4,
+Round trip on our tracer (``scripts/eval/make_albedo_table.py`` prints it; tests/test_wood_volume.py checks it), g = 0.4,
 IOR 1.5, ten colours (wood, greys, saturated): the polynomial gives CIEDE2000 mean 1.70, max 2.51 (too dark below
 C ≈ 0.5, too bright above: C = 0.8 renders at 0.88); the table mean 0.17, max 0.52. The table is the default.
 At g = 0 the polynomial misses by mean 3.9, max 5.9, at g = 0.8 by mean 10.3, max 14.7 (tables: 0.13/0.21 and
@@ -89,7 +89,7 @@ def _table(g, ior):
         if abs(tg - g) < 1e-9 and abs(tior - ior) < 1e-9:
             return table
     raise ValueError(f"g, ior: expected a tabulated pair, one of {sorted(_tables())} (make more with "
-                     f"scripts/make_albedo_table.py), got ({g:g}, {ior:g})")
+                     f"scripts/eval/make_albedo_table.py), got ({g:g}, {ior:g})")
 
 
 @functools.lru_cache(maxsize=8)

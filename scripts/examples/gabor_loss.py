@@ -18,8 +18,8 @@ scale against the iteration, and the loss against the ring scale around the trut
 log.csv (iteration, wall_s, loss, ring_scale_mm), result.json, target.png, start.png, fit.png (8-bit sRGB).
 
 Examples:
-    python scripts/example_gabor_loss.py --out /tmp/gabor_loss
-    python scripts/example_gabor_loss.py --start-factor 0.85 --distortion-mm 0.15 --noise 0.03 --out /tmp/g2
+    python scripts/examples/example_gabor_loss.py --out /tmp/gabor_loss
+    python scripts/examples/example_gabor_loss.py --start-factor 0.85 --distortion-mm 0.15 --noise 0.03 --out /tmp/g2
 """
 import argparse
 import math
@@ -27,12 +27,6 @@ import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:  # running from a checkout that is not installed
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 import torch
 

@@ -10,7 +10,7 @@ Prints a table (sensitivity, precision, F1, mean error in px, wall time in s) an
 read from DATA (default ../shared/data: rings_core_mtreering/ and rings_microscopy/), never copied.
 
 Example:
-    python scripts/eval_dendro_real.py --out /tmp/dendro_real.json
+    python scripts/eval/eval_dendro_real.py --out /tmp/dendro_real.json
 """
 import argparse
 import csv
@@ -19,12 +19,6 @@ import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 
 from torch_appearance.io import atomic_write_bytes, read_image, read_mask
@@ -32,7 +26,7 @@ from torch_appearance.rings.dendro import (boundary_f_measure, detect_core_bound
                                            mask_centerline, match_boundaries)
 
 PROG = "eval_dendro_real.py"
-DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
+DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "..", "shared", "data")
 CORE = ("rings_core_mtreering", "001.png", "001_borders_mtreering_watershed.csv")
 MICRO = ("rings_microscopy", [(f"input_0000{k}_preview.png", f"mask_0000{k}.png") for k in range(1, 6)])
 

@@ -27,9 +27,9 @@ table (phase RMS vs the photo's phase, SSIM, latewood contrast = 5-95 % luminanc
 and a "fit before stage 3" row to the montage.
 
 Examples:
-    python scripts/eval_wood_faces.py                                   # all 12 faces, default fit settings
-    python scripts/eval_wood_faces.py --faces CN03_A,H11_B --epochs 20 --color-epochs 5 --out /tmp/faces
-    python scripts/eval_wood_faces.py --data /path/to/wood_faces_mokume --pixel-size-mm 0.15
+    python scripts/eval/eval_wood_faces.py                                   # all 12 faces, default fit settings
+    python scripts/eval/eval_wood_faces.py --faces CN03_A,H11_B --epochs 20 --color-epochs 5 --out /tmp/faces
+    python scripts/eval/eval_wood_faces.py --data /path/to/wood_faces_mokume --pixel-size-mm 0.15
 """
 import argparse
 import math
@@ -37,12 +37,6 @@ import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 
 from torch_appearance import io as ta_io
@@ -50,7 +44,7 @@ from torch_appearance.pipelines.wood_fit import WoodFitConfig
 from torch_appearance.rings.dendro import boundary_f_measure
 
 PROG = "eval_wood_faces.py"
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DEFAULT_DATA = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "wood_faces_mokume"))
 ALL_FACES = [f"{cube}_{L}" for cube in ("CN03", "H11") for L in "ABCDEF"]
 _DEFAULTS = WoodFitConfig(photo="")

@@ -28,10 +28,10 @@ Outputs (atomic writes): ``OUT/synthetic.json`` (settings, rows, summary), ``OUT
 summary line), ``OUT/ring_scale.png`` (true vs fitted s_r and mean ring width with a ±5 % band).
 
 Examples:
-    python scripts/eval_wood_synthetic.py                                    # seeds 0-9, default fit settings
-    python scripts/eval_wood_synthetic.py --seeds 0,1 --epochs 20 --color-epochs 5 --out /tmp/wood_syn
-    python scripts/eval_wood_synthetic.py --seeds 0-4,7 --size 192 --pixel-size-mm 0.12
-    python scripts/eval_wood_synthetic.py --seeds 0-7 --pith-inside --out /tmp/wood_pith
+    python scripts/eval/eval_wood_synthetic.py                                    # seeds 0-9, default fit settings
+    python scripts/eval/eval_wood_synthetic.py --seeds 0,1 --epochs 20 --color-epochs 5 --out /tmp/wood_syn
+    python scripts/eval/eval_wood_synthetic.py --seeds 0-4,7 --size 192 --pixel-size-mm 0.12
+    python scripts/eval/eval_wood_synthetic.py --seeds 0-7 --pith-inside --out /tmp/wood_pith
 """
 import argparse
 import math
@@ -39,12 +39,6 @@ import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 
 from torch_appearance import io as ta_io

@@ -25,9 +25,9 @@ Every launch runs under a wall-clock ``--timeout``; on a failure or a timeout th
 killed (SIGTERM, then SIGKILL) so that no rank is left waiting on a dead peer.
 
 Examples:
-    python scripts/bench_distributed.py                                   # all four configurations
-    python scripts/bench_distributed.py --width-mm 6 --spp 8 --iterations 3 --configs 1proc-1thr,2nodes
-    python scripts/bench_distributed.py --rdzv c10d --json results/bench_distributed.json
+    python scripts/bench/bench_distributed.py                                   # all four configurations
+    python scripts/bench/bench_distributed.py --width-mm 6 --spp 8 --iterations 3 --configs 1proc-1thr,2nodes
+    python scripts/bench/bench_distributed.py --rdzv c10d --json results/bench_distributed.json
 """
 import argparse
 import json
@@ -39,7 +39,7 @@ import sys
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CONFIGS = ("1proc-1thr", "1proc-Nthr", "nproc", "2nodes")
 
 
@@ -84,7 +84,6 @@ def parse_args(argv=None):
 # ------------------------------------------------------------------------------------------------ worker
 def worker(args):
     """Run the steps in this process (one rank under torchrun, or alone); rank 0 writes ``args.worker``."""
-    sys.path.insert(0, ROOT)
     import torch
     import torch.distributed as dist
 
@@ -295,7 +294,6 @@ def main(argv=None):
           f"than 1e-3 after the last step (largest: {max(r['logits_max_abs_diff'] for r in rows):.3g}; Adagrad's "
           f"first step lr·g/(|g| + eps) turns round-off in gradients near 0 into steps of up to lr))")
     if args.json:
-        sys.path.insert(0, ROOT)
         from torch_appearance.io import write_json
         write_json(args.json, {"settings": {k: v for k, v in vars(args).items() if k != "worker"},
                                "grid_dhw": ref["grid_dhw"], "texels": ref["texels"], "rows": rows})

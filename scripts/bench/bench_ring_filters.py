@@ -8,20 +8,14 @@ wall time is printed (the machine may be shared). ``--save out.npz`` stores the 
 prints the largest absolute difference of every output against an earlier run (e.g. before a refactor).
 
 Examples:
-    python scripts/bench_ring_filters.py --size 1000 --save before.npz
-    python scripts/bench_ring_filters.py --size 1000 --compare before.npz
+    python scripts/bench/bench_ring_filters.py --size 1000 --save before.npz
+    python scripts/bench/bench_ring_filters.py --size 1000 --compare before.npz
 """
 import argparse
 import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:  # running from a checkout that is not installed
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 import torch
 

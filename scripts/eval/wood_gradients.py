@@ -22,22 +22,16 @@ Writes --out/gradients.png (first parameter: render, FD, reparameterised, naive,
 --out/gradients_<param>.png per parameter and --out/summary.json (statistics per parameter and estimator).
 
 Examples:
-    python scripts/wood_gradients.py --out results/wood_gradients
-    python scripts/wood_gradients.py --param ring_scale "rotation[0]" "translation[0]" "m_r[2,3]" --out results/wg
-    python scripts/wood_gradients.py --fit-dir results/board --out results/board_gradients --size 48 48
-    python scripts/wood_gradients.py --cylinder-radius-mm 6 --out results/wood_gradients_cylinder
+    python scripts/eval/wood_gradients.py --out results/wood_gradients
+    python scripts/eval/wood_gradients.py --param ring_scale "rotation[0]" "translation[0]" "m_r[2,3]" --out results/wg
+    python scripts/eval/wood_gradients.py --fit-dir results/board --out results/board_gradients --size 48 48
+    python scripts/eval/wood_gradients.py --cylinder-radius-mm 6 --out results/wood_gradients_cylinder
 """
 import argparse
 import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:  # running from a checkout that is not installed
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -68,7 +62,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="results/wood_gradients", help="output folder (default: %(default)s)")
-    p.add_argument("--fit-dir", default=None, help="a scripts/fit_wood.py run folder instead of the demo board")
+    p.add_argument("--fit-dir", default=None, help="a ta-fit-wood run folder instead of the demo board")
     p.add_argument("--param", nargs="+", default=["ring_scale"], metavar="SPEC",
                    help="parameters to differentiate: ring_scale, rotation[i], translation[i], m_r[row,col], "
                         "color_map[ring,bin,ch] (default: %(default)s)")

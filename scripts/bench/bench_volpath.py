@@ -64,10 +64,10 @@ and a bar chart of forward/backward seconds per scene is saved beside ``--out`` 
 
 Usage::
 
-    python scripts/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
-    python scripts/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
-    python scripts/bench_volpath.py --scenes print-slab,ink-slab --chromatic per_channel,hero --threads 2
-    python scripts/bench_volpath.py --scenes print-slab --slab-size 760 --walks scalar,avx2,avx512 --threads 2 --spp 4
+    python scripts/bench/bench_volpath.py --threads 1,8 --scenes ink-slab,achromatic --reps 3
+    python scripts/bench/bench_volpath.py --baseline fbb88c3 --reps 5     # the slab scenes, new / old
+    python scripts/bench/bench_volpath.py --scenes print-slab,ink-slab --chromatic per_channel,hero --threads 2
+    python scripts/bench/bench_volpath.py --scenes print-slab --slab-size 760 --walks scalar,avx2,avx512 --threads 2 --spp 4
 """
 import argparse
 import io
@@ -85,13 +85,7 @@ import zlib
 import numpy as np
 import torch
 
-try:
-    import torch_appearance
-except ModuleNotFoundError as error:  # running from a checkout that is not installed
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    import torch_appearance
+import torch_appearance
 from torch_appearance import io as ta_io
 from torch_appearance._ext import _C
 
@@ -381,7 +375,7 @@ def bench_scene(name, threads, args, chromatic="per_channel", ref_var=None):
 # --------------------------------------------------------------------------------------------------------------
 # old code against new code (--baseline)
 # --------------------------------------------------------------------------------------------------------------
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # Runs in a fresh interpreter: loads one build of the extension (two builds cannot share a process: pybind11
 # registers the option types globally), times one forward and one backward after a warm-up, prints JSON.

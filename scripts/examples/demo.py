@@ -18,7 +18,7 @@ then a backward pass of ``loss = image.mean()`` is timed. The run folder receive
 
 Usage::
 
-    python scripts/demo.py --out results/demo --spp 256 --seed 0
+    python scripts/examples/demo.py --out results/demo --spp 256 --seed 0
 """
 import argparse
 import importlib.metadata
@@ -30,13 +30,7 @@ import time
 import numpy as np
 import torch
 
-try:
-    import torch_appearance
-except ModuleNotFoundError as error:  # running from a checkout that is not installed
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    import torch_appearance
+import torch_appearance
 from torch_appearance import io as ta_io
 
 # Stratasys "Vero Opaque Rigid" inks as measured by Elek et al. 2017 (Nindel et al. 2021, Table 2):

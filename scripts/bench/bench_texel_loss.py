@@ -2,7 +2,7 @@
 """Benchmark the appearance loss (eq. 18) on an object's texels: dense grid path against sparse texel path.
 
 The mesh (default: Spot, ``tests/data/meshes/spot``) is scaled to each ``--heights-mm`` and voxelised at ``--dpi``
-as ``scripts/voxelize.py`` does; its texel positions and colours are cached in ``--out``'s folder
+as ``ta-voxelize`` does; its texel positions and colours are cached in ``--out``'s folder
 (``texels_<H>mm.npz``). For every height and variant a fresh worker process loads them, makes a prediction
 ``clamp(target + N(0, 0.05²))`` (fixed seed) and times
 
@@ -22,8 +22,8 @@ for every filtered volume).
 
 Usage::
 
-    python scripts/bench_texel_loss.py --heights-mm 10 --out results/bench_texel_loss/bench.json
-    python scripts/bench_texel_loss.py --heights-mm 10,25,40 --dense-max-mm 10 --threads 1
+    python scripts/bench/bench_texel_loss.py --heights-mm 10 --out results/bench_texel_loss/bench.json
+    python scripts/bench/bench_texel_loss.py --heights-mm 10,25,40 --dense-max-mm 10 --threads 1
 """
 import argparse
 import json
@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(HERE))
 SPOT = os.path.join(ROOT, "tests", "data", "meshes", "spot")
 
 from bench_volpath import _reset_peak_rss, _status_kb  # noqa: E402  (the same /proc memory probes)

@@ -15,7 +15,7 @@ sensitivity / precision / F1, writes them as JSON and (with --overlay) a PNG of 
 ticks) and the detections (red ticks) along every transect.
 
 Example:
-    python scripts/eval_disc.py --angles 0,45,90,135,180,225,270,315 --out /tmp/disc_eval.json --overlay /tmp/d.png
+    python scripts/eval/eval_disc.py --angles 0,45,90,135,180,225,270,315 --out /tmp/disc_eval.json --overlay /tmp/d.png
 """
 import argparse
 import json
@@ -24,12 +24,6 @@ import os
 import sys
 import time
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import cv2
 import numpy as np
 
@@ -38,7 +32,7 @@ from torch_appearance.rings.dendro import match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries
 
 PROG = "eval_disc.py"
-DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
+DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "..", "shared", "data")
 DISC = ("disc_urudendro_F02b", "F02b.png", "F02b_cstrd_detection.json")
 
 

@@ -29,13 +29,13 @@ Run it with the package on the path (PYTHONPATH=<checkout> or an installed torch
 several runs share a machine.
 
 Examples:
-    python scripts/study_print_optimizer.py baseline --study /tmp/study
-    python scripts/study_print_optimizer.py snr --state initial --out /tmp/study/snr/initial
-    python scripts/study_print_optimizer.py snr --state /tmp/study/ckpt/checkpoint.pt --out /tmp/study/snr/it25
-    python scripts/study_print_optimizer.py run --name adagrad_lr1_s4 --spp 4 --budget-s 240 --study /tmp/study
-    python scripts/study_print_optimizer.py run --name decorr_adam --estimator decorr --optimizer adam --lr 0.03 \\
+    python scripts/eval/study_print_optimizer.py baseline --study /tmp/study
+    python scripts/eval/study_print_optimizer.py snr --state initial --out /tmp/study/snr/initial
+    python scripts/eval/study_print_optimizer.py snr --state /tmp/study/ckpt/checkpoint.pt --out /tmp/study/snr/it25
+    python scripts/eval/study_print_optimizer.py run --name adagrad_lr1_s4 --spp 4 --budget-s 240 --study /tmp/study
+    python scripts/eval/study_print_optimizer.py run --name decorr_adam --estimator decorr --optimizer adam --lr 0.03 \\
         --spp 4 --budget-s 240 --study /tmp/study
-    python scripts/study_print_optimizer.py report --study /tmp/study
+    python scripts/eval/study_print_optimizer.py report --study /tmp/study
 """
 import argparse
 import csv
@@ -48,12 +48,6 @@ import time
 import numpy as np
 import torch
 
-try:
-    import torch_appearance  # noqa: F401
-except ModuleNotFoundError as error:  # running from a checkout that is not installed
-    if error.name != "torch_appearance":
-        raise
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from torch_appearance.color import rgb_to_lab
 from torch_appearance.nn.losses import AppearanceLoss
 from torch_appearance.nn.mixture import MaterialMixture

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Error against time of the chromatic estimators: one walk per channel ("per_channel") against one hero-channel
-walk with spectral MIS ("hero"), on the scenes of ``scripts/bench_volpath.py``.
+walk with spectral MIS ("hero"), on the scenes of ``scripts/bench/bench_volpath.py``.
 
 For each scene, estimator and spp in ``--spp``: one forward + backward (``loss = (image * w).sum()`` with the
 benchmark's fixed random weights), timed, and the RMSE of the image and of both gradients against one
@@ -15,7 +15,7 @@ scene and quantity), atomically.
 
 Usage::
 
-    python scripts/bench_chromatic_curve.py --scenes print-slab,ink-slab --spp 1,2,4,8,16 --threads 1 \\
+    python scripts/bench/bench_chromatic_curve.py --scenes print-slab,ink-slab --spp 1,2,4,8,16 --threads 1 \\
         --slab-size 96 --out results/bench/chromatic_curve.json
 """
 import argparse

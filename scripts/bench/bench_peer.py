@@ -43,9 +43,8 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import torch_appearance as ta  # noqa: E402
-from torch_appearance import io as ta_io  # noqa: E402
+import torch_appearance as ta
+from torch_appearance import io as ta_io
 
 
 def _load_mitsuba():
@@ -590,7 +589,7 @@ def main(argv=None):
 
     # ---- chromatic: both against the independent numpy reference
     if "chromatic" not in skip:
-        sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))
+        sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tests"))
         from reference_tracer import reference_render_texels
         cs, ca = make_scene("chromatic", 6, 4, seed=3)
         ref_mean, ref_se = reference_render_texels(cs.double().numpy(), ca.double().numpy(), voxel_size=0.1,
