@@ -30,8 +30,8 @@ def _problem():
 
 def _run(render):
     sigma_t, albedo, scene, s2, a2 = _problem()
-    slab = render(ta.render_texels, sigma_t, albedo, voxel_size=0.1, spp=3, seed=11, face="both")
-    obj = render(ta.render_scene, scene, s2, a2, spp=3, seed=12, seed_grad=13)
+    slab = render(ta.render_texels, sigma_t=sigma_t, albedo=albedo, voxel_size=0.1, spp=3, seed=11, face="both")
+    obj = render(ta.render_scene, scene, sigma_t=s2, albedo=a2, spp=3, seed=12, seed_grad=13)
     wslab = torch.linspace(0.5, 1.5, slab.numel(), dtype=slab.dtype).view_as(slab)
     wobj = torch.linspace(1.5, 0.5, obj.numel(), dtype=obj.dtype).view_as(obj)
     ((slab * wslab).sum() + (obj * wobj).sum()).backward()
@@ -90,7 +90,12 @@ def test_partition_shares_sum_to_the_image_and_are_checked():
     with pytest.raises(TypeError, match="partition"):
         ta.render_texels(sigma_t, albedo, voxel_size=0.1, partition=(0.0, 2))
     assert distributed.rank_and_world() == (0, 1)
-    assert distributed.render(ta.render_scene, scene, s2, a2, spp=2, seed=5).equal(full)
+    assert distributed.render(ta.render_scene, scene, sigma_t=s2, albedo=a2, spp=2, seed=5).equal(full)
+    # the medium is named, never guessed from positions: a positional tensor that takes a gradient is refused
+    with pytest.raises(TypeError, match="sigma_t=, albedo="):
+        distributed.render(ta.render_scene, scene, s2, a2, spp=2, seed=5)
+    with pytest.raises(ValueError, match="partition"):
+        distributed.render(ta.render_scene, scene, sigma_t=s2, albedo=a2, partition=(0, 1))
 
 
 def _print_worker(rank, world, store, out):

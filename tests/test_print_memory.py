@@ -157,12 +157,12 @@ def test_replay_floors_on_the_fly_equal_the_floored_copies(kind):
     gives bitwise the gradients of the same floors passed as explicit sampling grids (clamp_min copies)."""
     import torch_appearance as ta
     from torch_appearance.render import Scene, SDFBoundary, SurfaceTexels
-    from torch_appearance.render.scene import SlabScene, default_sigma_t_floor
+    from torch_appearance.render.scene import default_sigma_t_floor
     sigma_t, albedo = _floor_case(kind)
     if kind == "slab":
         def render(**k):
             return ta.render_texels(sigma_t, albedo, voxel_size=0.1, spp=3, seed=4, seed_grad=9, face="both", **k)
-        slab = SlabScene.create(0.1)
+        slab = Scene.slab(0.1)
         settings, edges = slab.settings, slab.voxel_size
     else:
         k, j, i = torch.meshgrid(*(torch.arange(9.0),) * 3, indexing="ij")

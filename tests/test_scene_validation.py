@@ -10,7 +10,8 @@ from torch_appearance._ext import _C
 from torch_appearance.geometry import sphere_sdf
 from torch_appearance.nn import SceneRenderer
 from torch_appearance.render import (BoxBoundary, ConstantEnvironment, DiscLight, EnvironmentMap, FaceTexels,
-                                     OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary, SurfaceTexels)
+                                     OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary, SurfaceTexels,
+                                     TraceJob)
 
 N, H, ORIGIN = 6, 0.1, (-0.3, -0.3, -0.3)
 SDF = sphere_sdf((N,) * 3, H, ORIGIN, (0, 0, 0), 0.2)
@@ -97,8 +98,17 @@ def scene(**kw):
      "sampling_sigma_t: expected > 0 wherever"),
     (lambda s, a: ta.render_scene(scene(sensor=SurfaceTexels(torch.tensor([[0, 0, 0.5]]), torch.tensor([[0, 0, 1.0]]))),
                                   s, a), ValueError, "points: expected texels inside the grid"),
+    (lambda s, a: ta.render_scene(scene(), s, a, chromatic="spectral"), ValueError, "chromatic: expected one of"),
+    (lambda s, a: ta.render_scene(scene(), s, a, partition=(3, 3)), ValueError, "partition: expected 0 <= rank"),
     (lambda s, a: SceneRenderer(scene(), spp=0), ValueError, "spp: expected"),
     (lambda s, a: SceneRenderer("scene"), TypeError, "scene: expected"),
+    (lambda s, a: SceneRenderer(scene(), gradient_seed="derived"), ValueError, "gradient_seed: expected one of"),
+    (lambda s, a: SceneRenderer.slab(0.1, face="side"), ValueError, "face: expected one of"),
+    (lambda s, a: TraceJob("scene"), TypeError, "scene: expected a torch_appearance.render.Scene"),
+    (lambda s, a: TraceJob(scene(), spp=2 ** 32), ValueError, "spp: expected < 2"),
+    (lambda s, a: TraceJob(scene(), partition=[0, True]), TypeError, r"partition: expected \(rank, world\)"),
+    (lambda s, a: ta.autograd.VolumePathTrace.apply(s, a, None, None, scene(), None), TypeError,
+     "job: expected a torch_appearance.render.TraceJob"),
 ])
 def test_render_scene_refuses_bad_input(call, exc, match):
     s, a = medium()
@@ -108,7 +118,7 @@ def test_render_scene_refuses_bad_input(call, exc, match):
 
 def with_piece(piece, **fields):
     """A SceneOptions whose `piece` (boundary, sensor, emitter) has `fields` changed."""
-    opt = scene().scene_options(3, 0, (N, N, N), torch.float32)
+    opt = TraceJob(scene(), spp=1).scene_options(3, 0, (N, N, N), torch.float32)
     sub = getattr(opt, piece)
     for k, v in fields.items():
         setattr(sub, k, v)
@@ -147,7 +157,7 @@ def test_cpp_checks_again(opt, match):
 
 def test_cpp_grad_output_checked():
     s, a = medium()
-    opt = scene().scene_options(3, 0, (N, N, N), torch.float32)
+    opt = TraceJob(scene(), spp=1).scene_options(3, 0, (N, N, N), torch.float32)
     with pytest.raises(RuntimeError, match="grad_output: expected 27 elements"):
         _C.scene_backward(torch.ones(5), s, a, s, a, True, True, opt)
     with pytest.raises(RuntimeError, match="grad_output: expected finite"):

@@ -17,7 +17,7 @@ Usage (on one machine with 2 processes: ``torchrun --nproc_per_node 2 script.py`
     import torch.distributed as dist
     from torch_appearance import distributed
     dist.init_process_group("gloo")
-    image = distributed.render(torch_appearance.render_scene, scene, sigma_t, albedo, spp=32, seed=it)
+    image = distributed.render(torch_appearance.render_scene, scene, sigma_t=sigma_t, albedo=albedo, spp=32, seed=it)
     loss(image).backward()          # sigma_t.grad / albedo.grad (and the parameters') equal on every rank
 """
 import torch
@@ -80,30 +80,47 @@ def reduce_gradient(x, group=None):
     return _ReduceGradient.apply(x, group)
 
 
-def render(render_fn, *args, group=None, **kwargs):
-    """Data-parallel ``render_fn`` (:func:`torch_appearance.render_scene` or :func:`torch_appearance.render_texels`).
+def render(render_fn, *args, sigma_t=None, albedo=None, group=None, **kwargs):
+    """Data-parallel ``render_fn``: :func:`torch_appearance.render_scene`, :func:`torch_appearance.render_texels`, or
+    the forward-only :func:`torch_appearance.render.render_scene_indexed`.
 
-    The medium arguments (the two tensors among ``args``/``kwargs`` named or placed as σ_t and albedo) must be the
-    same on every rank; so must every other argument (seed included). Returns the full image on every rank,
-    differentiable; without torch.distributed it is just ``render_fn(*args, **kwargs)``.
+    The medium is named, not guessed: ``sigma_t`` and ``albedo`` go by keyword, are passed to ``render_fn`` under
+    those names, and their gradients are summed over the ranks. Every argument must be the same on every rank (seed
+    included). Returns the full image on every rank, differentiable; without torch.distributed it is just
+    ``render_fn(*args, sigma_t=sigma_t, albedo=albedo, **kwargs)``.
 
     Args:
-        render_fn: ``render_scene(scene, sigma_t, albedo, ...)`` or ``render_texels(sigma_t, albedo, ...)``.
+        render_fn: ``render_scene(scene, sigma_t, albedo, ...)``, ``render_texels(sigma_t, albedo, ...)`` or any
+            function with the ``partition=(rank, world)`` keyword.
+        args: ``render_fn``'s positional arguments other than the medium (the scene; render_scene_indexed's index
+            and tables, which take no gradient).
+        sigma_t, albedo: the differentiable medium, (3, D, H, W) each; None for a forward-only ``render_fn``.
         group: optional process group.
+
+    Raises:
+        ValueError: ``partition`` given (it is set here, from the process group).
+        TypeError: a tensor that requires grad among ``args`` while grad mode is on (pass the medium by keyword,
+            or its gradient would not be summed over the ranks).
+
+    Example:
+        >>> import torch, torch_appearance as ta
+        >>> from torch_appearance import distributed
+        >>> sigma_t = torch.full((3, 2, 4, 4), 5.0, requires_grad=True)
+        >>> albedo = torch.full((3, 2, 4, 4), 0.8)
+        >>> distributed.render(ta.render_texels, sigma_t=sigma_t, albedo=albedo, voxel_size=0.1, spp=2).shape
+        torch.Size([4, 4, 3])
     """
-    rank, world = rank_and_world(group)
-    if world == 1:
-        return render_fn(*args, **kwargs)
+    for k, a in enumerate(args):
+        if isinstance(a, torch.Tensor) and a.requires_grad and torch.is_grad_enabled():
+            raise TypeError(f"args: expected the differentiable medium by keyword (sigma_t=, albedo=), got a tensor "
+                            f"that requires grad at position {k}")
     if "partition" in kwargs:
         raise ValueError("partition: set by torch_appearance.distributed.render from the process group; do not pass "
                          "it")
-    args = list(args)
-    first = 1 if args and not isinstance(args[0], torch.Tensor) else 0  # render_scene takes the scene first
-    for k in (first, first + 1):
-        if k < len(args):
-            args[k] = reduce_gradient(args[k], group)
-    for name in ("sigma_t", "albedo"):
-        if name in kwargs:
-            kwargs[name] = reduce_gradient(kwargs[name], group)
-    share = render_fn(*args, partition=(rank, world), **kwargs)
+    rank, world = rank_and_world(group)
+    medium = {name: (x if world == 1 else reduce_gradient(x, group))
+              for name, x in (("sigma_t", sigma_t), ("albedo", albedo)) if x is not None}
+    if world == 1:
+        return render_fn(*args, **medium, **kwargs)
+    share = render_fn(*args, **medium, partition=(rank, world), **kwargs)
     return _AllReduceSum.apply(share, group)

@@ -431,7 +431,7 @@ def build_baseline(rev):
 def compare_baseline(name, threads, args, old_so, sha):
     """new / old time ratios of one slab scene, old and new alternating in worker processes."""
     from torch_appearance.autograd.volpath import sampling_lanes
-    from torch_appearance.render.scene import SlabScene
+    from torch_appearance.render import Scene, TraceJob
     generator = torch.Generator().manual_seed(args.seed + zlib.crc32(name.encode()))
     sigma_t, albedo, default_spp, _ = make_scene(name, generator, args)
     voxel_size = SCENE_VOXEL.get(name, VOXEL_SIZE)
@@ -440,11 +440,11 @@ def compare_baseline(name, threads, args, old_so, sha):
     spp = args.spp if args.spp is not None else default_spp
     _, depth, height, width = sigma_t.shape
     weights = torch.rand((height, width, 3), generator=generator, dtype=torch.float64).to(torch.float32)
-    slab = SlabScene.create(voxel_size, g=args.g, ior=args.ior, spp=spp, seed=args.seed)
+    slab = TraceJob(Scene.slab(voxel_size, g=args.g, ior=args.ior), spp=spp, seed=args.seed)
     ref_s = sigma_t.clamp_min(slab.sigma_t_floor(sigma_t.shape)).contiguous()
-    ref_a = albedo.clamp_min(slab.settings.albedo_floor).contiguous()
+    ref_a = albedo.clamp_min(slab.albedo_floor).contiguous()
     options = dict(voxel_size=[voxel_size] * 3, face=0, g=args.g, ior=args.ior, environment=[1.0, 1.0, 1.0],
-                   spp=spp, seed=args.seed, max_depth=slab.settings.max_depth, rr_depth=slab.settings.rr_depth,
+                   spp=spp, seed=args.seed, max_depth=slab.scene.max_depth, rr_depth=slab.scene.rr_depth,
                    lanes=sampling_lanes(sigma_t))
     new_so = torch_appearance._C.__file__
     with tempfile.TemporaryDirectory() as tmp:

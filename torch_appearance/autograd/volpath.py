@@ -26,12 +26,13 @@ def sampling_lanes(ref_sigma_t):
 
 
 def walk_options(job, ref_sigma_t, seed, grid_shape, dtype, lanes=None):
-    """The C++ ``SceneOptions`` of ``job`` for a walk that samples ``ref_sigma_t``: three lanes in one walk for an
-    achromatic density; for a chromatic one, one walk per channel, or with ``job.chromatic == "hero"`` one
-    hero-channel walk with spectral MIS (``options.hero = 1``). ``lanes``: :func:`sampling_lanes` of the sampling
-    density when the caller knows it (e.g. of a grid the tracer floors as it reads)."""
+    """The C++ ``SceneOptions`` of ``job`` (a :class:`torch_appearance.render.TraceJob`) for a walk that samples
+    ``ref_sigma_t``: three lanes in one walk for an achromatic density; for a chromatic one, one walk per channel, or
+    with ``job.chromatic == "hero"`` one hero-channel walk with spectral MIS (``options.hero = 1``). ``lanes``:
+    :func:`sampling_lanes` of the sampling density when the caller knows it (e.g. of a grid the tracer floors as it
+    reads)."""
     lanes = sampling_lanes(ref_sigma_t) if lanes is None else lanes
-    hero = lanes == 1 and getattr(job, "chromatic", "per_channel") == "hero"
+    hero = lanes == 1 and job.chromatic == "hero"
     options = job.scene_options(3 if hero else lanes, seed, grid_shape, dtype)
     options.hero = int(hero)
     return options
@@ -65,14 +66,19 @@ def reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo, sigma_t
 class VolumePathTrace(torch.autograd.Function):
     """Radiance seen by a scene's sensor; differentiable in ``sigma_t`` and ``albedo``.
 
-    Inputs are validated by :func:`torch_appearance.render_texels` or :func:`torch_appearance.render_scene`, which
-    are the functions to call. ``job`` is a :class:`torch_appearance.render.SlabScene` or a scene with its per-call
-    settings (spp, seed, seed_grad); ``stats`` an optional dict that receives ``forward_s``, ``scatter_events``
-    and, after backward, ``backward_s``, ``backward_scatter_events``.
+    Inputs are validated by :func:`torch_appearance.render_scene` (or its slab form
+    :func:`torch_appearance.render_texels`), the function to call. ``job`` is the
+    :class:`torch_appearance.render.TraceJob` (scene, spp, seed, seed_grad, chromatic, partition) that builds the C++
+    options of the forward walk and of the gradient replay; ``stats`` an optional dict that receives ``forward_s``,
+    ``scatter_events`` and, after backward, ``backward_s``, ``backward_scatter_events``.
     """
 
     @staticmethod
     def forward(ctx, sigma_t, albedo, sampling_sigma_t, sampling_albedo, job, stats):
+        from ..render.trace_job import TraceJob  # render imports this module; the job type is looked up when used
+
+        if not isinstance(job, TraceJob):
+            raise TypeError(f"job: expected a torch_appearance.render.TraceJob, got {type(job).__name__}")
         sigma_t = sigma_t.contiguous()
         albedo = albedo.contiguous()
         ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
@@ -108,7 +114,7 @@ class VolumePathTrace(torch.autograd.Function):
         # the sampling medium: explicit references as given, else the parameters floored on the fly in C++
         # (max(σ_t, floor), max(α, floor): the same numbers as clamp_min, without two copies of the grids)
         ref_s, floor_s = _floored(sigma_t, samp_s, job.sigma_t_floor(sigma_t.shape))
-        ref_a, floor_a = _floored(albedo, samp_a, job.settings.albedo_floor)
+        ref_a, floor_a = _floored(albedo, samp_a, job.albedo_floor)
         options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
                                lanes=_floored_lanes(ref_s, floor_s))
         start = time.perf_counter()

@@ -97,7 +97,8 @@ class ObjectTarget:
         """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
         scene = self.scene if scene is None else scene
         seed_grad = seed if self.gradient_seed == "same" else None
-        return distributed.render(render_scene, scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=seed_grad)
+        return distributed.render(render_scene, scene, sigma_t=sigma_t, albedo=albedo, spp=spp, seed=seed,
+                                  seed_grad=seed_grad)
 
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)

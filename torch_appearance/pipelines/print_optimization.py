@@ -219,7 +219,7 @@ class SlabTarget:
 def _render_faces(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None):
     g = inks.g if cfg.g is None else cfg.g  # the inks' common HG g unless the run overrides it
     seed_grad = derive_seed_grad(seed) if cfg.gradient_seed == "independent" else None
-    image = distributed.render(render_texels, sigma_t, albedo,
+    image = distributed.render(render_texels, sigma_t=sigma_t, albedo=albedo,
                                voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                                face="both" if faces == 2 else "top", g=g, ior=cfg.ior, spp=spp, seed=seed,
                                seed_grad=seed_grad)

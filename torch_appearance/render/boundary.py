@@ -11,7 +11,7 @@ import torch
 
 from .checks import check_float_tensor, check_real
 
-__all__ = ["BoxBoundary", "SDFBoundary", "IndexMatched", "Dielectric"]
+__all__ = ["BoxBoundary", "SDFBoundary"]
 
 
 def _ior(value):
@@ -91,17 +91,3 @@ class SDFBoundary:
         opt.sdf = self.sdf.to(dtype).contiguous()
         return opt
 
-
-# ---- the slab pieces of render_texels (kept for SlabScene)
-@dataclass(frozen=True)
-class IndexMatched:
-    """No boundary optics: paths cross the slab faces unchanged."""
-
-
-@dataclass(frozen=True)
-class Dielectric:
-    """Smooth dielectric on all six faces: exact unpolarised Fresnel, total internal reflection."""
-    ior: float = 1.5
-
-    def __post_init__(self):
-        object.__setattr__(self, "ior", check_real("ior", self.ior, lo=1.0))

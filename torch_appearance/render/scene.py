@@ -3,10 +3,11 @@
 A scene holds everything but the medium grids (σ_t and albedo are the differentiable inputs): the voxel size and
 origin, the boundary (boundary.py), the sensor (sensor.py), the emitter (emitter.py), the phase function
 (phase.py) and the integrator settings. Each piece is a frozen dataclass that validates itself and flattens once
-to the C++ struct of the same role (``to_cpp``); :meth:`Scene.scene_options` assembles them.
+to the C++ struct of the same role (``to_cpp``).
 
-:class:`SlabScene` is the slab of :func:`render_texels` (box boundary, face texels, constant environment);
-:class:`Scene` is the general scene of :func:`render_scene`.
+:meth:`Scene.slab` is the slab of :func:`render_texels` (box boundary, face texels, constant environment); a
+:class:`torch_appearance.render.TraceJob` adds the per-call settings (spp, seeds, estimator, partition) and builds
+the C++ ``SceneOptions``.
 
 Conventions (DESIGN.md): lengths in mm, σ in mm⁻¹, linear RGB. A grid of D×H×W voxels with edges
 ``voxel_size`` = (sx, sy, sz) occupies origin + [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W, y ↔ H, z ↔ D); D is the
@@ -18,17 +19,17 @@ from typing import Optional, Tuple
 
 import torch
 
-from .boundary import BoxBoundary, Dielectric, IndexMatched, SDFBoundary
-from .checks import check_int, check_real, check_seed, check_vector3
+from .boundary import BoxBoundary, SDFBoundary
+from .checks import check_int, check_real, check_vector3
 from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
 from .phase import HenyeyGreenstein
-from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels, TexelSensor
+from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels
 
 __all__ = [
-    "Scene", "SlabScene", "PathSettings", "voxel_edges", "check_grid", "check_medium", "default_max_depth",
+    "Scene", "PathSettings", "voxel_edges", "check_grid", "check_medium", "default_max_depth",
     "default_rr_depth", "derive_seed_grad", "default_sigma_t_floor", "CHROMATIC", "check_chromatic",
     # the pieces, re-exported for older imports
-    "HenyeyGreenstein", "Dielectric", "IndexMatched", "ConstantEnvironment", "TexelSensor", "FACES",
+    "HenyeyGreenstein", "ConstantEnvironment", "FACES",
 ]
 
 #: Default interaction limit (scatterings + internal reflections). Path lengths in a dense white slab have a
@@ -41,102 +42,27 @@ default_rr_depth = 32
 
 @dataclass(frozen=True)
 class PathSettings:
-    """Integrator settings: seed, interaction limits and the sampling-density floors of the default reference.
+    """Integrator settings of a scene: interaction limits and the sampling-density floors of the default reference
+    (the per-call settings, spp, seeds and estimator, belong to :class:`torch_appearance.render.TraceJob`).
 
     ``max_depth`` counts interactions (scatterings plus internal reflections); paths beyond it contribute 0.
     ``rr_depth``: Russian roulette on the reference throughput starts after that many interactions.
-    ``sigma_t_floor`` (mm⁻¹, default 0.5 optical depths along the grid diagonal) and ``albedo_floor`` (default 0.05) bound the default
-    sampling density of the gradient replay from below, so σ_t → 0 voxels give no unbounded 1/σ_t terms and
-    albedo = 0 voxels still receive their derivative. The forward pass samples the parameters themselves.
-    ``chromatic`` is the estimator for a sampling density that differs between channels (see :data:`CHROMATIC`).
+    ``sigma_t_floor`` (mm⁻¹, default 0.5 optical depths along the grid diagonal) and ``albedo_floor`` (default
+    0.05) bound the default sampling density of the gradient replay from below, so σ_t → 0 voxels give no unbounded
+    1/σ_t terms and albedo = 0 voxels still receive their derivative. The forward pass samples the parameters
+    themselves.
     """
-    seed: int = 0
     max_depth: int = default_max_depth
     rr_depth: int = default_rr_depth
     sigma_t_floor: Optional[float] = None
     albedo_floor: float = 0.05
-    chromatic: str = "per_channel"
 
     def __post_init__(self):
-        check_seed("seed", self.seed)
         object.__setattr__(self, "max_depth", check_int("max_depth", self.max_depth, lo=1))
         object.__setattr__(self, "rr_depth", check_int("rr_depth", self.rr_depth, lo=0))
         if self.sigma_t_floor is not None:
             object.__setattr__(self, "sigma_t_floor", check_real("sigma_t_floor", self.sigma_t_floor, lo=0.0))
         object.__setattr__(self, "albedo_floor", check_real("albedo_floor", self.albedo_floor, lo=0.0, hi=1.0))
-        object.__setattr__(self, "chromatic", check_chromatic(self.chromatic))
-
-
-@dataclass(frozen=True)
-class SlabScene:
-    """A voxel slab seen by a texel sensor: everything but the medium grids (those are the differentiable inputs).
-
-    ``voxel_size`` is one edge length in mm (cubic voxels) or the three edges (x, y, z) in mm, e.g. a printer's
-    native 600 × 300 × 940 DPI; it is stored as the (x, y, z) tuple.
-    """
-    voxel_size: Tuple[float, float, float]
-    phase: HenyeyGreenstein = field(default_factory=HenyeyGreenstein)
-    boundary: object = field(default_factory=Dielectric)
-    emitter: ConstantEnvironment = field(default_factory=ConstantEnvironment)
-    sensor: TexelSensor = field(default_factory=TexelSensor)
-    settings: PathSettings = field(default_factory=PathSettings)
-    gradient_seed: Optional[int] = None  # seed of the gradient replay; None: the forward's seed
-
-    def __post_init__(self):
-        object.__setattr__(self, "voxel_size", voxel_edges(self.voxel_size))
-        if self.gradient_seed is not None:
-            object.__setattr__(self, "gradient_seed", check_seed("seed_grad", self.gradient_seed))
-        if not isinstance(self.boundary, (Dielectric, IndexMatched)):
-            raise TypeError(f"boundary: expected Dielectric or IndexMatched, got {type(self.boundary).__name__}")
-
-    @staticmethod
-    def create(voxel_size, *, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0, max_depth=None,
-               rr_depth=None, sigma_t_floor=None, albedo_floor=0.05, seed_grad=None, chromatic="per_channel"):
-        """The scene of :func:`torch_appearance.render_texels` from its keyword arguments (``ior=None``: index matched)."""
-        return SlabScene(
-            voxel_size=voxel_size,
-            phase=HenyeyGreenstein(g),
-            boundary=IndexMatched() if ior is None else Dielectric(ior),
-            emitter=ConstantEnvironment.from_value(environment),
-            sensor=TexelSensor(face, spp),
-            settings=PathSettings(seed=seed,
-                                  max_depth=default_max_depth if max_depth is None else max_depth,
-                                  rr_depth=default_rr_depth if rr_depth is None else rr_depth,
-                                  sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor,
-                                  chromatic=chromatic),
-            gradient_seed=seed_grad)
-
-    def sigma_t_floor(self, grid_shape):
-        """Density floor (mm⁻¹) of the default gradient sampling for a (…, D, H, W) grid (see
-        :func:`default_sigma_t_floor`)."""
-        return default_sigma_t_floor(self.settings, self.voxel_size, grid_shape)
-
-    # ---- what the autograd Function asks of a render job (see _TraceJob)
-    name = "render_texels"
-
-    @property
-    def spp(self):
-        return self.sensor.spp
-
-    @property
-    def seed(self):
-        return self.settings.seed
-
-    @property
-    def chromatic(self):
-        return self.settings.chromatic
-
-    @property
-    def seed_grad(self):
-        # by default render_texels replays the forward's own paths (its behaviour since the first wave)
-        return self.settings.seed if self.gradient_seed is None else self.gradient_seed
-
-    def scene_options(self, lanes, seed, grid_shape, dtype):
-        """The C++ ``SceneOptions``: box boundary, face texels, constant environment."""
-        boundary = BoxBoundary(self.boundary.ior if isinstance(self.boundary, Dielectric) else None)
-        return _assemble(self.voxel_size, (0.0, 0.0, 0.0), self.phase.g, boundary.to_cpp(grid_shape, dtype),
-                         FaceTexels(self.sensor.face).to_cpp(self, grid_shape, dtype), self.emitter.to_cpp(dtype),
-                         self.sensor.spp, seed, self.settings, lanes)
 
 
 #: Estimators for a sampling density that differs between the colour channels:
@@ -177,28 +103,6 @@ def derive_seed_grad(seed):
     """The default gradient seed of a forward seed: a fixed bijection of the 64-bit seeds (odd multiplier and
     offset, as in SplitMix64), so that the gradient replay draws paths independent of the forward's noise."""
     return (int(seed) * 0x9E3779B97F4A7C15 + 0x632BE59BD9B4E019) % 2 ** 64
-
-
-def _signed64(seed):
-    seed = int(seed) % 2 ** 64
-    return seed if seed < 2 ** 63 else seed - 2 ** 64  # the same 64 bits, as a signed int64
-
-
-def _assemble(voxel_size, origin, g, boundary, sensor, emitter, spp, seed, settings, lanes):
-    from .._ext import _C
-    opt = _C.SceneOptions()
-    opt.voxel_size = list(voxel_size)
-    opt.origin = list(origin)
-    opt.g = g
-    opt.boundary = boundary
-    opt.sensor = sensor
-    opt.emitter = emitter
-    opt.spp = spp
-    opt.seed = _signed64(seed)
-    opt.max_depth = settings.max_depth
-    opt.rr_depth = settings.rr_depth
-    opt.lanes = lanes
-    return opt
 
 
 _BOUNDARIES = (BoxBoundary, SDFBoundary)
@@ -261,6 +165,25 @@ class Scene:
                                 albedo_floor=self.albedo_floor)
         object.__setattr__(self, "settings", settings)
 
+    @classmethod
+    def slab(cls, voxel_size, *, face="top", g=0.4, ior=1.5, environment=1.0, max_depth=None, rr_depth=None,
+             sigma_t_floor=None, albedo_floor=0.05):
+        """The slab of :func:`torch_appearance.render_texels`: the grid at the origin, its box as the boundary
+        (smooth dielectric of index ``ior``, or index matched for ``ior=None``), the texels of ``face`` ("top",
+        "bottom" or "both") as the sensor and a constant environment of radiance ``environment`` (scalar or RGB).
+        ``max_depth``/``rr_depth`` None take :data:`default_max_depth`/:data:`default_rr_depth`.
+
+        Example:
+            >>> scene = Scene.slab(0.1, face="both", ior=None, environment=(1.0, 0.5, 0.25))
+            >>> scene.boundary, scene.sensor, scene.output_shape((4, 8, 6))
+            (BoxBoundary(ior=None), FaceTexels(face='both'), (2, 8, 6, 3))
+        """
+        return cls(voxel_size=voxel_size, boundary=BoxBoundary(ior), sensor=FaceTexels(face),
+                   emitter=ConstantEnvironment.from_value(environment), g=g,
+                   max_depth=default_max_depth if max_depth is None else max_depth,
+                   rr_depth=default_rr_depth if rr_depth is None else rr_depth,
+                   sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor)
+
     def extent(self, grid_shape):
         """(x, y, z) size of the grid box in mm for a (D, H, W) grid."""
         d, h, w = grid_shape
@@ -278,35 +201,6 @@ class Scene:
                              f"(D, H, W) = {tuple(grid_shape)} medium grid, got {tuple(self.boundary.sdf.shape)}")
         if isinstance(self.sensor, SurfaceTexels):
             self.sensor.check_inside(self.origin, self.extent(grid_shape))
-
-    def scene_options(self, lanes, seed, grid_shape, dtype):
-        """The C++ ``SceneOptions`` of this scene for a (D, H, W) grid of ``dtype``."""
-        return _assemble(self.voxel_size, self.origin, self.g, self.boundary.to_cpp(grid_shape, dtype),
-                         self.sensor.to_cpp(self, grid_shape, dtype), self.emitter.to_cpp(dtype), 1, seed,
-                         self.settings, lanes)
-
-
-@dataclass(frozen=True)
-class _TraceJob:
-    """A scene with the per-call settings of :func:`render_scene` (what the autograd Function needs)."""
-    scene: Scene
-    spp: int
-    seed: int
-    seed_grad: int
-    chromatic: str = "per_channel"
-    name: str = "render_scene"
-
-    @property
-    def settings(self):
-        return self.scene.settings
-
-    def sigma_t_floor(self, grid_shape):
-        return default_sigma_t_floor(self.scene.settings, self.scene.voxel_size, grid_shape)
-
-    def scene_options(self, lanes, seed, grid_shape, dtype):
-        opt = self.scene.scene_options(lanes, seed, grid_shape, dtype)
-        opt.spp = self.spp
-        return opt
 
 
 def voxel_edges(voxel_size):

@@ -10,9 +10,9 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from .checks import check_direction, check_float_tensor, check_int, check_real, check_spp, check_vector3
+from .checks import check_direction, check_float_tensor, check_int, check_real, check_vector3
 
-__all__ = ["FACES", "FaceTexels", "SurfaceTexels", "OrthographicCamera", "PerspectiveCamera", "TexelSensor"]
+__all__ = ["FACES", "FaceTexels", "SurfaceTexels", "OrthographicCamera", "PerspectiveCamera"]
 
 FACES = {"top": 0, "bottom": 1, "both": 2}
 
@@ -219,13 +219,3 @@ class PerspectiveCamera(_Camera):
         opt.tan_half_fov = math.tan(math.radians(self.fov_y_deg) / 2)
         return opt
 
-
-@dataclass(frozen=True)
-class TexelSensor:
-    """The sensor of :func:`render_texels`: :class:`FaceTexels` of ``face`` with ``spp`` samples per texel."""
-    face: str = "top"
-    spp: int = 16
-
-    def __post_init__(self):
-        _face(self.face)
-        object.__setattr__(self, "spp", check_spp(self.spp))

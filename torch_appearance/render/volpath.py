@@ -1,12 +1,13 @@
-"""The tracer's entry points, differentiable by path replay: ``render_texels`` (a voxel slab's face texels) and
-``render_scene`` (any :class:`Scene`: box or SDF boundary, surface texels or cameras, any emitter)."""
+"""The tracer's entry point, differentiable by path replay: ``render_scene`` (any :class:`Scene`: box or SDF
+boundary, surface texels or cameras, any emitter); ``render_texels`` is its short form for a voxel slab's face texels
+(:meth:`Scene.slab`), and ``render_scene_indexed`` its forward-only form for a palette medium."""
 
 import math
 
 import torch
 
-from .checks import check_seed, check_spp
-from .scene import Scene, SlabScene, _TraceJob, check_chromatic, check_grid, check_medium, derive_seed_grad
+from .scene import Scene, check_grid, check_medium
+from .trace_job import TraceJob
 
 __all__ = ["render_texels", "render_scene", "render_scene_indexed"]
 
@@ -48,7 +49,7 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         sampling_sigma_t: optional detached (3, D, H, W) sampling density, > 0 wherever ``sigma_t`` > 0.
         sampling_albedo: optional detached (3, D, H, W) sampling albedo, > 0 wherever ``albedo`` > 0.
         sigma_t_floor: density floor (mm⁻¹) of the default gradient sampling (default: 0.5 optical depths
-            along the grid diagonal, see :meth:`SlabScene.sigma_t_floor`).
+            along the grid diagonal, see :func:`torch_appearance.render.scene.default_sigma_t_floor`).
         albedo_floor: albedo floor of the default gradient sampling, in [0, 1] (default 0.05).
         stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes``, ``hero`` and, after backward,
             ``backward_s`` and ``backward_scatter_events``.
@@ -79,14 +80,12 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
         torch.Size([8, 8, 3])
         >>> img.mean().backward()   # fills sigma_t.grad and albedo.grad
     """
-    from ..autograd.volpath import VolumePathTrace
-
-    check_medium(sigma_t, albedo)
-    scene = SlabScene.create(voxel_size, face=face, g=g, ior=ior, environment=environment, spp=spp, seed=seed,
-                             max_depth=max_depth, rr_depth=rr_depth, sigma_t_floor=sigma_t_floor,
-                             albedo_floor=albedo_floor, seed_grad=seed_grad, chromatic=chromatic)
-    samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
-    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, partitioned(scene, partition), stats)
+    scene = Scene.slab(voxel_size, face=face, g=g, ior=ior, environment=environment, max_depth=max_depth,
+                       rr_depth=rr_depth, sigma_t_floor=sigma_t_floor, albedo_floor=albedo_floor)
+    seed_grad = seed if seed_grad is None else seed_grad  # documented default: replay the forward's own paths
+    return render_scene(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=seed_grad,
+                        sampling_sigma_t=sampling_sigma_t, sampling_albedo=sampling_albedo, stats=stats,
+                        partition=partition, chromatic=chromatic)
 
 
 def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
@@ -161,44 +160,11 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     """
     from ..autograd.volpath import VolumePathTrace
 
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
+    job = TraceJob(scene, spp=spp, seed=seed, seed_grad=seed_grad, chromatic=chromatic, partition=partition)
     check_medium(sigma_t, albedo)
     scene.check_grid_shape(tuple(sigma_t.shape[1:]))
-    spp = check_spp(spp)
-    seed = check_seed("seed", seed)
-    seed_grad = derive_seed_grad(seed) if seed_grad is None else check_seed("seed_grad", seed_grad)
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
-    job = _TraceJob(scene, spp, seed, seed_grad, check_chromatic(chromatic))
-    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, partitioned(job, partition), stats)
-
-
-class _Partitioned:
-    """A trace job restricted to one rank's share of the sensor elements (see ``partition``)."""
-
-    def __init__(self, job, rank, world):
-        self.job, self.rank, self.world = job, rank, world
-
-    def __getattr__(self, name):
-        return getattr(self.job, name)
-
-    def scene_options(self, lanes, seed, grid_shape, dtype):
-        opt = self.job.scene_options(lanes, seed, grid_shape, dtype)
-        opt.part_rank, opt.part_world = self.rank, self.world
-        return opt
-
-
-def partitioned(job, partition):
-    """``job`` restricted to ``partition`` = (rank, world), or unchanged for None / world 1."""
-    if partition is None:
-        return job
-    if (not isinstance(partition, (tuple, list)) or len(partition) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) for v in partition)):
-        raise TypeError(f"partition: expected (rank, world), two ints, got {partition!r}")
-    rank, world = partition
-    if not (world >= 1 and 0 <= rank < world):
-        raise ValueError(f"partition: expected 0 <= rank < world, got rank {rank} of world {world}")
-    return job if world == 1 else _Partitioned(job, rank, world)
+    return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
 
 
 def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, seed=0, partition=None):
@@ -224,8 +190,7 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
 
     from .._ext import _C
 
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene: expected a torch_appearance.render.Scene, got {type(scene).__name__}")
+    job = TraceJob(scene, spp=spp, seed=seed, seed_grad=seed, partition=partition, name="render_scene_indexed")
     if isinstance(index, np.ndarray):
         index = torch.from_numpy(np.ascontiguousarray(index))
     if not isinstance(index, torch.Tensor) or index.dtype != torch.uint8 or index.dim() != 3 or min(index.shape) < 1:
@@ -250,8 +215,6 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
     if top >= tables[0].shape[0]:
         raise ValueError(f"index: expected entries < P = {tables[0].shape[0]} (the tables' rows), got {top}")
     scene.check_grid_shape(tuple(index.shape))
-    spp = check_spp(spp)
-    seed = check_seed("seed", seed)
     # one walk for all channels when every entry in use is grey in σ_t (what sampling_lanes sees on dense grids)
     used = torch.zeros(tables[0].shape[0], dtype=torch.bool)
     flat = index.view(-1)
@@ -259,7 +222,6 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
         used |= torch.bincount(flat[start:start + (1 << 24)], minlength=len(used)).bool()
     st = tables[0][used]
     lanes = 3 if torch.equal(st[:, 0], st[:, 1]) and torch.equal(st[:, 0], st[:, 2]) else 1
-    job = partitioned(_TraceJob(scene, spp, seed, seed), partition)
-    options = job.scene_options(lanes, seed, tuple(index.shape), tables[0].dtype)
+    options = job.scene_options(lanes, job.seed, tuple(index.shape), tables[0].dtype)
     image, _ = _C.scene_forward_indexed(index, tables[0].t().contiguous(), tables[1].t().contiguous(), options)
     return image
