@@ -4,7 +4,7 @@ import itertools
 
 import pytest
 
-from stiff_cases import ALBEDOS, IORS, SIGMAS, run_case
+from torch_appearance.testing import ALBEDOS, IORS, SIGMAS, run_stiff_case as run_case
 
 CASES = list(itertools.product(SIGMAS, ALBEDOS, (-0.99, 0.99), IORS))
 

@@ -10,12 +10,10 @@ case failed. tests/test_stiff_sweep.py runs the part that fits the test budget.
 import argparse
 import itertools
 import json
-import os
 import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tests"))
-from stiff_cases import ALBEDOS, GS, IORS, SIGMAS, THICKNESS, run_case  # noqa: E402
+from torch_appearance.testing import ALBEDOS, GS, IORS, SIGMAS, THICKNESS, run_stiff_case as run_case
 
 
 def main(argv=None):
