@@ -55,7 +55,7 @@ class PrintConfig:
     remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
     view_size: int = 192  # objects: pixels per side of those renders
-    fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.fixed_fractions)
+    fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.print.fixed_fractions)
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
     out: str = "results/print"
     resume: bool = False

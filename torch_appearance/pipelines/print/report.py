@@ -84,6 +84,7 @@ def write_figures(folder, rows, cfg, target, inks, weights, final, baseline=None
     ta_io.save_figure(convergence_figure(rows, cfg.spp, cfg.eval_spp, baseline, remap, final),
                       os.path.join(folder, "convergence.png"))
     usage, depth_mm = target.ink_usage_by_depth(weights)
-    ta_io.save_figure(ink_usage_figure(usage, depth_mm, target.depth_reference, inks), os.path.join(folder, "ink_usage_by_depth.png"))
+    ta_io.save_figure(ink_usage_figure(usage, depth_mm, target.depth_reference, inks),
+                      os.path.join(folder, "ink_usage_by_depth.png"))
     for name, fig in target.figures(final["image"]):
         ta_io.save_figure(fig, os.path.join(folder, name))

@@ -36,7 +36,8 @@ FIT_FLAGS = {
     "q": ("--q", dict(type=int), "curved Gabor: points along each contour, 2q+1 (default: %(default)s)"),
     "distortion": ("--distortion", dict(choices=("radial", "azimuthal")), "(default: %(default)s)"),
     "coarse_to_fine": ("--coarse-to-fine", dict(type=int),
-                       "stage-1 distortion levels, coarse first (1: full texture from the start; default: %(default)s)"),
+                       "stage-1 distortion levels, coarse first (1: full texture from the start; "
+                       "default: %(default)s)"),
     "color_bins": ("--color-bins", dict(type=int), "lateness samples of the colour map (default: %(default)s)"),
     "contrast_match": ("--contrast-match", dict(action="store_true"),
                        "after stage 2, remap the colour map's luminance so that the fit's luminance histogram is the "
@@ -101,7 +102,8 @@ def parser(prog=PROG):
     p.add_argument("photo", help="photo of a planar board (PNG/JPG sRGB or linear EXR)")
     p.add_argument("--out", default=d.out, help="run folder (default: %(default)s)")
     size = p.add_mutually_exclusive_group()
-    size.add_argument("--pixel-size-mm", type=float, default=None, help=f"pixel pitch in mm (default: {d.pixel_size_mm})")
+    size.add_argument("--pixel-size-mm", type=float, default=None,
+                      help=f"pixel pitch in mm (default: {d.pixel_size_mm})")
     size.add_argument("--dpi", type=float, default=None, help="scan resolution (pixel size = 25.4 / dpi mm)")
     add_fit_arguments(p)
     p.add_argument("--no-preview", action="store_true", help="skip the pyvista cube preview")
