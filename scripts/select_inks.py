@@ -59,8 +59,8 @@ except ModuleNotFoundError as error:  # running from a checkout that is not inst
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from torch_appearance import io as ta_io
 from torch_appearance.fabrication.inks import INKS, InkSet
-from torch_appearance.pipelines.print_optimization import PrintConfig, build_target, optimize_print
-from torch_appearance.pipelines.print_cli import add_optimization_arguments, add_target_arguments, config_from_args
+from torch_appearance.pipelines.print import PrintConfig, build_target, optimize_print
+from torch_appearance.pipelines.print.cli import add_optimization_arguments, add_target_arguments, config_from_args
 
 DEFAULT_CANDIDATES = ("cyan", "cyan2", "magenta", "magenta2", "yellow", "yellow2", "orange")
 DEFAULT_FIXED = ("black", "white")
@@ -250,15 +250,10 @@ def _read_log(folder):
 
 def _final_loss(folder, target, gamma):
     """Appearance loss E of the run's final quantised render (``final.exr`` / ``final.npy``, at eval spp)."""
-    import numpy as np
     import torch
     from torch_appearance.nn.losses import AppearanceLoss
 
-    if target.kind == "slab":
-        stems = ["final", "final_bottom"][:target.faces]
-        texels = np.stack([ta_io.read_exr(os.path.join(folder, f"{s}.exr")) for s in stems])
-    else:
-        texels = np.load(os.path.join(folder, "final.npy"))
+    texels = target.load_texels(folder, "final")
     with torch.no_grad():
         loss, _ = target.appearance(AppearanceLoss(gamma=tuple(gamma)), torch.as_tensor(texels, dtype=torch.float32))
     return float(loss)

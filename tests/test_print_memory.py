@@ -14,8 +14,7 @@ import trimesh
 from torch_appearance.fabrication import InkSet, quantize_mixture
 from torch_appearance.fabrication.export import VOID
 from torch_appearance.geometry import voxelize
-from torch_appearance.pipelines import object_target
-from torch_appearance.pipelines.object_target import ObjectTarget
+from torch_appearance.pipelines.print import ObjectTarget, object_target
 
 
 def test_quantize_holds_no_float64_copy_of_the_volume():
@@ -210,16 +209,17 @@ def test_unconstrained_mixture_equals_the_constrained_path(parameterization):
 @pytest.mark.parametrize("grey", [True, False])
 def test_naive_extrusion_matches_in_blocks(grey, monkeypatch):
     """The naive extrusion's table matching in blocks of texels picks the same mixtures as over all texels."""
-    from torch_appearance.pipelines import print_optimization as po
+    from torch_appearance.pipelines.print import PrintConfig
+    from torch_appearance.pipelines.print import baselines
     rng = np.random.default_rng(6)
     target = rng.uniform(0.05, 0.9, size=(5, 7, 3)).astype(np.float32)
     if grey:
         target[:] = target[..., :1]
-    cfg = po.PrintConfig(thickness_mm=0.3, dpi=150.0, table_steps=2, inks=["cyan", "black", "white"])
+    cfg = PrintConfig(thickness_mm=0.3, dpi=150.0, table_steps=2, inks=["cyan", "black", "white"])
     inks = InkSet.from_names(cfg.inks)
-    whole, _ = po.naive_extrusion(target, inks, cfg, table_spp=2)
-    monkeypatch.setattr(po, "_MATCH_BLOCK", 4)
-    blocks, _ = po.naive_extrusion(target, inks, cfg, table_spp=2)
+    whole, _ = baselines.naive_extrusion(target, inks, cfg, table_spp=2)
+    monkeypatch.setattr(baselines, "_MATCH_BLOCK", 4)
+    blocks, _ = baselines.naive_extrusion(target, inks, cfg, table_spp=2)
     assert torch.equal(whole, blocks) and torch.unique(whole.flatten(1), dim=1).shape[1] > 2  # several mixtures
 
 

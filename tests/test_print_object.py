@@ -14,7 +14,7 @@ from torch_appearance.fabrication.export import VOID
 from torch_appearance.geometry import VoxelObject, voxelize
 from torch_appearance.nn import AppearanceLoss
 from torch_appearance.pipelines import PrintConfig, optimize_print
-from torch_appearance.pipelines.object_target import ObjectTarget
+from torch_appearance.pipelines.print import ObjectTarget
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -237,7 +237,7 @@ def test_remap_baseline_is_scored_beside_ours(tmp_path):
 def test_views_figure_without_offscreen_rendering(monkeypatch, tmp_path):
     """Where pyvista cannot render offscreen, views.png still shows the rendered print (no mesh pictures)."""
     import torch_appearance.geometry.preview as preview
-    from torch_appearance.pipelines.object_figures import views_figure
+    from torch_appearance.pipelines.print.object_figures import views_figure
 
     monkeypatch.setattr(preview, "_probe_result", (False, "test: no OpenGL"))
     obj = voxelize(trimesh.creation.icosphere(radius=1.0), 0.25, shell_mm=0.4)
@@ -254,7 +254,7 @@ def test_mesh_views_follow_each_camera():
     """The mesh pictures of a list of cameras equal those of each camera alone (no frame from the previous
     camera), and different cameras give different pictures."""
     from torch_appearance.geometry.preview import offscreen_rendering
-    from torch_appearance.pipelines.object_figures import mesh_views
+    from torch_appearance.pipelines.print.object_figures import mesh_views
 
     if not offscreen_rendering()[0]:
         pytest.skip("no offscreen OpenGL here")
@@ -357,7 +357,7 @@ def test_quantised_white_object_renders_like_its_continuous_mixture():
 
 
 def test_fill_void_at_surface_takes_the_inner_neighbour():
-    from torch_appearance.pipelines.object_target import fill_void_at_surface
+    from torch_appearance.pipelines.print.object_target import fill_void_at_surface
 
     # a 1-D column along x: printed inks 2, 0 then VOID; the surface (SDF 0) lies inside voxel 2 at x = 2.4
     indices = np.array([[[2, 0, VOID, VOID]]], dtype=np.uint8)

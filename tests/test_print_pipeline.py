@@ -11,9 +11,9 @@ from torch_appearance import io as ta_io
 from torch_appearance.fabrication.inks import InkSet
 from torch_appearance.nn.mixture import mix_inks
 from torch_appearance.pipelines import PrintConfig, optimize_print
-from torch_appearance.pipelines.print_optimization import (LOG_FIELDS, naive_extrusion, render_quantized,
-                                                           slab_texel_grid)
-from torch_appearance.pipelines.targets import ZEBRA_STRIPES, colorchecker_patches, load_target, zebra_target
+from torch_appearance.pipelines.print import LOG_FIELDS, slab_texel_grid
+from torch_appearance.pipelines.print.baselines import naive_extrusion, render_quantized
+from torch_appearance.pipelines.print.target_images import ZEBRA_STRIPES, colorchecker_patches, load_target, zebra_target
 from torch_appearance.testing import assert_z, seed_stats
 
 

@@ -1,4 +1,4 @@
-"""The 2.5D remapped baseline (pipelines/remap25d.py): a slab optimised in UV space wrapped around an object."""
+"""The 2.5D remapped baseline (pipelines/print/remap25d.py, pipelines/print/loop.py remap_baseline): a slab optimised in UV space wrapped around an object."""
 import os
 
 import numpy as np
@@ -9,8 +9,8 @@ import trimesh
 from torch_appearance.fabrication import InkSet
 from torch_appearance.geometry import load_mesh, voxelize
 from torch_appearance.pipelines import PrintConfig
-from torch_appearance.pipelines.object_target import ObjectTarget
-from torch_appearance.pipelines.remap25d import _slab_fixed, remap_baseline, slab_size, uv_target_image
+from torch_appearance.pipelines.print import ObjectTarget, remap_baseline
+from torch_appearance.pipelines.print.remap25d import _slab_fixed, slab_size, uv_target_image, wrap_slab_weights
 
 QUIET = dict(log=lambda *_: None)
 GLB = os.path.join(os.path.dirname(__file__), "data", "meshes", "BoxTextured.glb")
@@ -51,7 +51,7 @@ def test_slab_columns_map_onto_a_flat_face_identically():
     rng = np.random.default_rng(1)
     slab = rng.random((len(inks), ds, ny, nx)).astype(np.float32)
     slab /= slab.sum(0, keepdims=True)
-    weights, info = remap_baseline(target, inks, cfg, work_dir=None, slab_weights=slab, **QUIET)
+    weights, info = wrap_slab_weights(target, slab, inks, cfg.core_ink, **QUIET)
     d, hh, w = target.shape
     assert weights.shape == (len(inks), d, hh, w) and weights.dtype == torch.float32
     assert info["slab_hw"] == [ny, nx] and info["slab_depth"] == ds
@@ -96,8 +96,7 @@ def test_vertex_coloured_mesh_without_uvs_is_refused(tmp_path):
     with pytest.raises(ValueError, match="vertex colours but no UV layout"):
         remap_baseline(target, inks, PrintConfig(shell_mm=0.5, dpi=25.4 / 0.25), work_dir=tmp_path, **QUIET)
     with pytest.raises(ValueError, match="no UV layout"):  # even with a slab given: there is nothing to look up
-        remap_baseline(target, inks, PrintConfig(shell_mm=0.5, dpi=25.4 / 0.25), work_dir=tmp_path,
-                       slab_weights=np.full((len(inks), 2, 4, 4), 0.2, np.float32), **QUIET)
+        wrap_slab_weights(target, np.full((len(inks), 2, 4, 4), 0.2, np.float32), inks, "white", **QUIET)
     assert not any(tmp_path.iterdir())
 
 
@@ -181,7 +180,7 @@ def test_cropped_slab_remaps_like_the_full_slab():
     u, v ∈ [0.1, 0.9]: 40 × 40 of 50 × 50 texels), its pixels equal the full image's there, and remap_slab of the
     crop with its window gives the object exactly the weights that the full slab gives (full slab random outside
     the crop: unused); a window that does not fit is refused."""
-    from torch_appearance.pipelines.remap25d import remap_slab
+    from torch_appearance.pipelines.print.remap25d import remap_slab
 
     h = 0.1
     mesh = trimesh.creation.box((4.0, 4.0, 1.0))

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from torch_appearance import io as ta_io
 from torch_appearance.nn.wood import WoodModel
-from torch_appearance.pipelines.wood_fit import (WoodFitConfig, effective_ring_width, fit_wood, load_photo,
+from torch_appearance.pipelines.wood import (WoodFitConfig, effective_ring_width, fit_wood, load_photo,
                                                  model_boundaries)
 from torch_appearance.rings.synthetic import synthetic_board
 
@@ -131,7 +131,7 @@ def test_photometric_stage_recovers_a_shifted_board_only_with_boundary_gradients
     import copy
 
     from torch_appearance.nn.wood_reparam import pixel_samples, reparam_render
-    from torch_appearance.pipelines.wood_fit import photometric_stage, wrap
+    from torch_appearance.pipelines.wood import photometric_stage, wrap
 
     h = w = 24
     p = 0.2
@@ -166,7 +166,7 @@ def test_photometric_stage_recovers_a_shifted_board_only_with_boundary_gradients
 def test_luminance_histogram_match_restores_washed_out_latewood():
     """A colour map squeezed toward its mean (per-bin means over a slightly misregistered phase do this) is remapped
     so that the render's luminance distribution is the photo's: luminance per pixel within 0.01, contrast ratio ~1."""
-    from torch_appearance.pipelines.wood_fit import latewood_contrast, match_luminance_histogram
+    from torch_appearance.pipelines.wood import latewood_contrast, match_luminance_histogram
 
     board = synthetic_board(96, 96, seed=2, noise=0.0)
     model = board["model"]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from torch_appearance.pipelines.wood_fit import WoodFitConfig, _DistortionPyramid
+from torch_appearance.pipelines.wood import WoodFitConfig
+from torch_appearance.pipelines.wood.geometry_stage import _DistortionPyramid
 from torch_appearance.rings import (choose_pith_side, curved_gabor, estimate_board, initial_wood_model,
                                     lateness_profile_score, synthetic_board, trace_rings)
 from torch_appearance.rings.board import unwrap_phase

@@ -123,7 +123,8 @@ def _steps(args, torch):
     from torch_appearance import distributed
     from torch_appearance.nn.losses import AppearanceLoss
     from torch_appearance.nn.mixture import MaterialMixture
-    from torch_appearance.pipelines.print_optimization import PrintConfig, _iteration_seed, build_target
+    from torch_appearance.pipelines.print import PrintConfig, build_target
+    from torch_appearance.pipelines.print import iteration_seed as _iteration_seed
 
     cfg = PrintConfig(target="colorchecker", width_mm=args.width_mm, height_mm=args.width_mm,
                       thickness_mm=args.thickness_mm, dpi=args.dpi, spp=args.spp)

@@ -40,14 +40,13 @@ import time
 import numpy as np
 
 from torch_appearance import io as ta_io
-from torch_appearance.pipelines.wood_fit import WoodFitConfig
+from torch_appearance.pipelines.wood.cli import add_fit_arguments, config_from_args
 from torch_appearance.rings.dendro import boundary_f_measure
 
 PROG = "eval_wood_faces.py"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DEFAULT_DATA = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "wood_faces_mokume"))
 ALL_FACES = [f"{cube}_{L}" for cube in ("CN03", "H11") for L in "ABCDEF"]
-_DEFAULTS = WoodFitConfig(photo="")
 
 FIELDS = [  # (key, header, format)
     ("face", "face", "{}"),
@@ -119,7 +118,7 @@ def evaluate_face(data, face, out, args, log):
     """Fit one face and score it; returns (row, panels) where panels holds the montage images (or None)."""
     import torch
     from torch_appearance.nn.wood import WoodModel
-    from torch_appearance.pipelines.wood_fit import fit_wood, model_boundaries
+    from torch_appearance.pipelines.wood import fit_wood, model_boundaries
 
     photo, arl_path = face_paths(data, face)
     arl = np.rint(ta_io.read_image(arl_path, space="srgb", name="arl map")[..., 0] * 255).astype(np.uint8)
@@ -129,10 +128,7 @@ def evaluate_face(data, face, out, args, log):
     row = {"face": face, "photo": os.path.abspath(photo), "run_folder": os.path.abspath(folder),
            "arl_label_pixels": int(len(label))}
     panels = {"photo": rgb, "label": label}
-    cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=args.pixel_size_mm, epochs=args.epochs,
-                        color_epochs=args.color_epochs, preview=False, seed=0,
-                        photometric=args.photometric, photometric_estimator=args.photometric_estimator,
-                        contrast_match=args.contrast_match)
+    cfg = config_from_args(args, photo=photo, out=folder, pixel_size_mm=args.pixel_size_mm, preview=False, seed=0)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -244,21 +240,10 @@ def main(argv=None):
                                                                 "(default: all 12)")
     p.add_argument("--pixel-size-mm", type=float, default=0.2,
                    help="pixel pitch in mm; an ASSUMPTION, the dataset does not give it (default: %(default)s)")
-    p.add_argument("--epochs", type=int, default=_DEFAULTS.epochs, help="stage-1 (geometry) epochs "
-                                                                         "(default: %(default)s)")
-    p.add_argument("--color-epochs", type=int, default=_DEFAULTS.color_epochs, help="stage-2 (colour map) epochs "
-                                                                                     "(default: %(default)s)")
     p.add_argument("--tolerance-px", type=float, default=3.0, help="boundary F-measure tolerance in px "
                                                                    "(default: %(default)s)")
-    p.add_argument("--contrast-match", action="store_true",
-                   help="run the fit with --contrast-match (luminance remap of the colour map after stage 2) and "
-                        "report each face before and after it")
-    p.add_argument("--photometric", action="store_true",
-                   help="run the fit's stage 3 (photometric refinement through the reparameterised render) and "
-                        "report each face before and after it")
-    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
-                   help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
-                        "default: %(default)s)")
+    # the fit's own flags (with --contrast-match / --photometric: each face reported before and after)
+    add_fit_arguments(p, ["epochs", "color_epochs", "contrast_match", "photometric", "photometric_estimator"])
     p.add_argument("--out", default="results/wood_faces", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:

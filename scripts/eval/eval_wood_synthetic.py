@@ -42,10 +42,9 @@ import time
 import numpy as np
 
 from torch_appearance import io as ta_io
-from torch_appearance.pipelines.wood_fit import WoodFitConfig
+from torch_appearance.pipelines.wood.cli import add_fit_arguments, config_from_args
 
 PROG = "eval_wood_synthetic.py"
-_DEFAULTS = WoodFitConfig(photo="")
 BAND = 0.05  # relative ring-scale tolerance of the summary and the plot
 GOOD_PHASE_RMS = 0.3  # rad
 
@@ -124,7 +123,7 @@ def evaluate_seed(seed, args, log):
     import torch
     from scipy.spatial import cKDTree
     from torch_appearance.nn.wood import WoodModel
-    from torch_appearance.pipelines.wood_fit import effective_ring_width, fit_wood, model_boundaries
+    from torch_appearance.pipelines.wood import effective_ring_width, fit_wood, model_boundaries
     from torch_appearance.rings.synthetic import synthetic_board
 
     n, ps = args.size, args.pixel_size_mm
@@ -139,10 +138,7 @@ def evaluate_seed(seed, args, log):
            "rings_visible": len(set(board["boundary_levels"])), "distance_mm": prm["distance_mm"],
            "tilt_deg": prm["tilt_deg"], "in_plane_deg": prm["in_plane_deg"], "distortion_mm": prm["distortion_mm"],
            "ring_scale_true_mm": prm["ring_scale"], "ring_width_true_mm": width_true}
-    cfg = WoodFitConfig(photo=photo, out=folder, pixel_size_mm=ps, epochs=args.epochs,
-                        color_epochs=args.color_epochs, preview=False, seed=0, photometric=args.photometric,
-                        photometric_weight=args.photometric_weight, photometric_estimator=args.photometric_estimator,
-                        photometric_anchor=args.photometric_anchor)
+    cfg = config_from_args(args, photo=photo, out=folder, pixel_size_mm=ps, preview=False, seed=0)
     t0 = time.perf_counter()
     try:
         summary = fit_wood(cfg, progress=False, log=log)
@@ -259,21 +255,11 @@ def main(argv=None):
                                                   "(default: %(default)s)")
     p.add_argument("--size", type=int, default=256, help="board size in px, square (default: %(default)s)")
     p.add_argument("--pixel-size-mm", type=float, default=0.1, help="pixel pitch in mm (default: %(default)s)")
-    p.add_argument("--epochs", type=int, default=_DEFAULTS.epochs, help="stage-1 (geometry) epochs "
-                                                                         "(default: %(default)s)")
-    p.add_argument("--color-epochs", type=int, default=_DEFAULTS.color_epochs, help="stage-2 (colour map) epochs "
-                                                                                     "(default: %(default)s)")
     p.add_argument("--pith-inside", action="store_true",
                    help="boards cut 1.5-4 mm from the pith (pith and closed oval rings in the photo)")
-    p.add_argument("--photometric", action="store_true",
-                   help="run the fit's stage 3 (photometric, reparameterised render) and report before/after")
-    p.add_argument("--photometric-weight", type=float, default=_DEFAULTS.photometric_weight,
-                   help="weight of the CIELAB term in stage 3 (default: %(default)s)")
-    p.add_argument("--photometric-estimator", choices=("reparam", "naive"), default=_DEFAULTS.photometric_estimator,
-                   help="stage-3 gradients: reparameterised or naive fixed-sample autograd (for comparison; "
-                        "default: %(default)s)")
-    p.add_argument("--photometric-anchor", type=float, default=_DEFAULTS.photometric_anchor,
-                   help="stage-3 weight of the phase loss kept as an anchor, 0 = colour only (default: %(default)s)")
+    # the fit's own flags (with --photometric: stage 3, reported before/after)
+    add_fit_arguments(p, ["epochs", "color_epochs", "photometric", "photometric_weight", "photometric_estimator",
+                          "photometric_anchor"])
     p.add_argument("--out", default="results/wood_synthetic", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)
     try:

@@ -50,9 +50,16 @@ import torch
 
 from torch_appearance.color import rgb_to_lab
 from torch_appearance.nn.losses import AppearanceLoss
-from torch_appearance.nn.mixture import MaterialMixture
-from torch_appearance.pipelines import print_optimization as po
-from torch_appearance.pipelines.print_optimization import LOG_FIELDS, PrintConfig, build_target
+from torch_appearance.nn.mixture import MaterialMixture, mix_inks
+from torch_appearance.pipelines.print import LOG_FIELDS, PrintConfig, build_target, iteration_seed
+from torch_appearance.pipelines.print.baselines import quantize
+from torch_appearance.pipelines.print.run_folder import save_image, score
+
+def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed):
+    """Printer-resolution indices of ``weights`` and their rendered texels (as the print loop scores a result)."""
+    indices = quantize(target, weights, inks, cfg, quant_seed)
+    return indices, target.render_quantized(indices, inks, cfg.printer_dpi, spp, seed)
+
 
 EXTRA_FIELDS = ["cpu_s", "eval_s", "spp_used"]
 
@@ -100,7 +107,7 @@ def render_plain(target, model, spp, seed, criterion):
 
 def half_seeds(seed):
     """Two distinct seeds for the two half-spp renders of one iteration (first = the iteration seed)."""
-    return seed, po._iteration_seed(seed, 7)
+    return seed, iteration_seed(seed, 7)
 
 
 def render_two(target, model, spp, seed, criterion, estimator):
@@ -136,18 +143,18 @@ def cmd_baseline(args):
     path = os.path.join(args.study, "baseline.json")
     target = build_target(cfg, log=lambda *a: None)
     inks = target.inks
-    eval_seed, quant_seed = po._iteration_seed(cfg.seed, -1), po._iteration_seed(cfg.seed, -2)
+    eval_seed, quant_seed = iteration_seed(cfg.seed, -1), iteration_seed(cfg.seed, -2)
     t0 = time.perf_counter()
-    weights, table = po._naive_baseline(target, inks, cfg)
+    weights, table = target.naive_weights(inks, cfg)
     out = {"config": {"target": cfg.target, "width_mm": cfg.width_mm, "dpi": cfg.dpi, "grid_dhw": list(target.shape),
                       "eval_spp": cfg.eval_spp, "final_spp": args.final_spp}, "table": table, **build_info()}
     for spp in sorted({cfg.eval_spp, args.final_spp}):
-        _, img = po._quantize_and_render(target, weights, inks, cfg, spp, eval_seed, quant_seed)
-        out[f"quantized_spp{spp}"] = po._score(img[0], target.target[0])
+        _, img = _quantize_and_render(target, weights, inks, cfg, spp, eval_seed, quant_seed)
+        out[f"quantized_spp{spp}"] = score(img[0], target.target[0])
         with torch.no_grad():
-            s, a = po.mix_inks(weights, inks)
+            s, a = mix_inks(weights, inks)
             cont = target.render(s.contiguous(), a.contiguous(), spp, eval_seed)
-        out[f"continuous_spp{spp}"] = po._score(cont[0], target.target[0])
+        out[f"continuous_spp{spp}"] = score(cont[0], target.target[0])
     out["seconds"] = time.perf_counter() - t0
     np.save(os.path.join(args.study, "baseline_weights.npy"), weights.numpy())
     write_json(path, out)
@@ -163,7 +170,7 @@ def _grad_sample(target, model, spp, seed, criterion, mode, cfg, per_term=False,
         s, a = model()
         image = target.render(s, a, spp, seed)
         with torch.no_grad():
-            primal = target.render(s.detach(), a.detach(), adj_spp, po._iteration_seed(seed, 99))
+            primal = target.render(s.detach(), a.detach(), adj_spp, iteration_seed(seed, 99))
         x = primal.clone().requires_grad_(True)
         value, parts = criterion.forward_parts(target.to_grid(x), target.target_grid, target.mask)
         (adjoint,) = torch.autograd.grad(value, x)
@@ -242,7 +249,7 @@ def cmd_snr(args):
     n_inks, (d, h, w) = model.n_inks, target.shape
     # depth of every logit (0 = the top layer, the printed face)
     depth_index = np.broadcast_to((d - 1 - np.arange(d))[None, :, None, None], (n_inks, d, h, w)).reshape(-1)
-    base = po._iteration_seed(args.seed_base, 0)
+    base = iteration_seed(args.seed_base, 0)
     t0 = time.perf_counter()
     # reference: mean of ref_seeds independent-replay gradients at ref_spp
     ref_g, ref_rows = [], []
@@ -252,7 +259,7 @@ def cmd_snr(args):
         prev_json = json.load(open(os.path.join(os.path.dirname(args.skip_reference), "snr.json")))
         ref_rows = [prev_json["reference"]["loss"]] * len(ref_g)
     for k in range(0 if args.skip_reference else args.ref_seeds):
-        g, row, _ = _grad_sample(target, model, args.ref_spp, po._iteration_seed(base, 10_000 + k), criterion,
+        g, row, _ = _grad_sample(target, model, args.ref_spp, iteration_seed(base, 10_000 + k), criterion,
                                  "independent", cfg)
         ref_g.append(g)
         ref_rows.append(row)
@@ -275,7 +282,7 @@ def cmd_snr(args):
         for mode in args.modes:
             gs, rows, term_g = [], [], {"E1": [], "E2": [], "E3": []}
             for k in range(args.seeds):
-                g, row, terms = _grad_sample(target, model, spp, po._iteration_seed(base, k), criterion, mode, cfg,
+                g, row, terms = _grad_sample(target, model, spp, iteration_seed(base, k), criterion, mode, cfg,
                                              per_term=args.per_term and spp <= 8, adj_spp=args.adj_spp)
                 gs.append(g)
                 rows.append(row)
@@ -327,14 +334,14 @@ def cmd_run(args):
     criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
     model = MaterialMixture(inks, tuple(target.shape), parameterization=cfg.parameterization)
     if args.init == "naive":  # informed start: the naive extrusion's mixtures (logit of the clipped weights)
-        w0, _ = po._naive_baseline(target, inks, cfg)
+        w0, _ = target.naive_weights(inks, cfg)
         w0 = w0.double().clamp(args.init_floor, 1.0 - args.init_floor)
         w0 = w0 / w0.sum(0, keepdim=True)
         with torch.no_grad():
             model.logits.copy_(torch.log(w0) - torch.log1p(-w0))
     opt_cls = torch.optim.Adagrad if cfg.optimizer == "adagrad" else torch.optim.Adam
     optimizer = opt_cls(model.parameters(), lr=cfg.lr)
-    eval_seed, quant_seed = po._iteration_seed(cfg.seed, -1), po._iteration_seed(cfg.seed, -2)
+    eval_seed, quant_seed = iteration_seed(cfg.seed, -1), iteration_seed(cfg.seed, -2)
     config = {"name": args.name, "estimator": args.estimator, "optimizer": cfg.optimizer, "lr": cfg.lr,
               "spp": cfg.spp, "gradient_seed": cfg.gradient_seed, "budget_s": args.budget_s, "budget_clock": args.budget_clock, "init": args.init, "ema_beta": args.ema_beta if args.estimator == "ema" else None,
               "eval_every_s": args.eval_every_s, "eval_spp": cfg.eval_spp, "final_spp": args.final_spp,
@@ -350,7 +357,7 @@ def cmd_run(args):
     def eval_row(row):
         t = time.perf_counter()
         img = evaluate()
-        row.update(po._score(img[0], target.target[0]))
+        row.update(score(img[0], target.target[0]))
         with torch.no_grad():
             _, parts = criterion.forward_parts(target.to_grid(img), target.target_grid, target.mask)
         row.update({f"eval_{k}": float(v) for k, v in parts.items()})
@@ -396,7 +403,7 @@ def cmd_run(args):
 
     while clock() < args.budget_s:
         t_w, t_c = time.perf_counter(), time.process_time()
-        seed = po._iteration_seed(cfg.seed, it)
+        seed = iteration_seed(cfg.seed, it)
         if args.estimator == "ema":
             surrogate, loss, parts = ema_step(seed)
         else:
@@ -426,11 +433,11 @@ def cmd_run(args):
     summary = {**config, "iterations": it, "wall_s": opt_wall, "cpu_s": opt_cpu, "eval_s": eval_s,
                "seconds_per_iteration": opt_wall / max(it, 1)}
     for spp in sorted({cfg.eval_spp, args.final_spp}):
-        summary[f"optimized_spp{spp}"] = po._score(evaluate(spp)[0], target.target[0])
-        _, img = po._quantize_and_render(target, weights, inks, cfg, spp, eval_seed, quant_seed)
-        summary[f"final_spp{spp}"] = po._score(img[0], target.target[0])
+        summary[f"optimized_spp{spp}"] = score(evaluate(spp)[0], target.target[0])
+        _, img = _quantize_and_render(target, weights, inks, cfg, spp, eval_seed, quant_seed)
+        summary[f"final_spp{spp}"] = score(img[0], target.target[0])
         if spp == cfg.eval_spp:
-            po._save_image(folder, "final", img[0].numpy())
+            save_image(folder, "final", img[0].numpy())
     w = weights.double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
     summary["ink_usage_top_layer"] = dict(zip(inks.names, map(float, w[:, 0])))
     summary["ink_usage_mean"] = dict(zip(inks.names, map(float, w.mean(1))))

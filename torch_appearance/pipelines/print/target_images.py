@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from .. import io as ta_io
+from ... import io as ta_io
 
 __all__ = ["zebra_target", "colorchecker_target", "load_target", "BUILTIN_TARGETS", "ZEBRA_STRIPES"]
 

@@ -6,14 +6,15 @@ point, at the layer of its depth below the surface. Stretch of the UV map change
 thin parts see light from both sides, which the planar solution never modelled; the thesis measures CIEDE2000 15
 for the remapped vase against 10 for the native 3D solution.
 
-Steps (:func:`remap_baseline`):
+Steps (:func:`prepare_uv_slab`, the print loop, :func:`wrap_slab_weights`; the loop's
+:func:`~torch_appearance.pipelines.print.loop.remap_baseline` runs them in turn):
 
 1. **UV-space target.** The mesh's base-colour texture (linear RGB) resampled so that one slab texel covers about
    one voxel pitch square of surface (:func:`slab_size`). Pixels no UV triangle covers take the colour of the
    nearest covered pixel (the thesis "fills the borders using an inpainting algorithm": the planar optimisation
    should not see artificial contrast between islands and background, which it would compensate at the island
    borders).
-2. **Planar optimisation.** :func:`~torch_appearance.pipelines.print_optimization.optimize_print` of a slab as
+2. **Planar optimisation.** :func:`~torch_appearance.pipelines.print.optimize_print` of a slab as
    thick as the shell (``cfg.shell_mm``) with the run's inks, spp, iterations, seed and fixed ink fractions,
    written to ``work_dir/slab``; its ``mixture.npz`` holds the slab's weights (N, D_s, H_s, W_s).
 3. **Remap.** Per shell voxel: the closest surface point (libigl AABB tree), its UV by barycentric interpolation,
@@ -28,10 +29,10 @@ import time
 import numpy as np
 import torch
 
-from .. import io as ta_io
-from ..geometry.surface import barycentric
+from ... import io as ta_io
+from ...geometry.surface import barycentric
 
-__all__ = ["remap_baseline", "slab_size", "uv_target_image", "remap_slab", "MAX_SLAB_TEXELS"]
+__all__ = ["prepare_uv_slab", "wrap_slab_weights", "slab_size", "uv_target_image", "remap_slab", "MAX_SLAB_TEXELS"]
 
 #: Largest slab (texels, H_s·W_s) :func:`slab_size` asks for before it coarsens the slab (4 Mi ≈ 2048²: a 300-DPI
 #: slab of that size spans about 30 000 mm² of surface, e.g. a 15 cm vase).
@@ -109,7 +110,7 @@ def slab_size(mesh, voxel_size, max_texels=MAX_SLAB_TEXELS):
 
 def _uv_coverage(mesh, size):
     """(H, W) bool: texels whose centre lies in a (non-collapsed) UV triangle, tiled layouts included."""
-    from ..geometry.bake import uv_face_image
+    from ...geometry.bake import uv_face_image
 
     return uv_face_image(mesh, size) >= 0
 
@@ -117,7 +118,7 @@ def _uv_coverage(mesh, size):
 def _base_colour_texture(mesh, texture=None):
     """The mesh's base-colour texture as linear RGB (h, w, 3) float32 (``texture``: an image file for a mesh with
     UVs but no material image)."""
-    from ..color import srgb_to_linear
+    from ...color import srgb_to_linear
 
     material = getattr(mesh.visual, "material", None)
     image = getattr(material, "image", None)
@@ -126,7 +127,7 @@ def _base_colour_texture(mesh, texture=None):
     if image is None:
         if texture is None:
             raise ValueError("mesh: has UVs but no base-colour texture; attach one (texture=..., --texture)")
-        from .targets import load_target
+        from .target_images import load_target
         return load_target(texture, name="texture")
     srgb = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
     return np.asarray(srgb_to_linear(torch.from_numpy(srgb)), dtype=np.float32)
@@ -250,7 +251,7 @@ def _slab_fixed(specs, size, work_dir, window=None, mesh=None):
                 mask = ta_io.read_mask(term, name="fixed: mask image").astype(np.uint8) * 255
                 mask = cv2.resize(mask, (ws, hs), interpolation=cv2.INTER_NEAREST)
             elif term.startswith("material:"):
-                from ..geometry.bake import uv_face_image
+                from ...geometry.bake import uv_face_image
 
                 name = term[len("material:"):].strip()
                 names = list(mesh.metadata.get("material_names", [])) if mesh is not None else []
@@ -271,75 +272,85 @@ def _slab_fixed(specs, size, work_dir, window=None, mesh=None):
     return tuple(out)
 
 
-def remap_baseline(target, inks, cfg, *, work_dir, log=print, slab_weights=None, progress=False,
-                   max_texels=MAX_SLAB_TEXELS):
-    """The 2.5D remapped baseline of an object print (thesis part II §3.2).
+def prepare_uv_slab(target, cfg, *, work_dir, log=print, max_texels=MAX_SLAB_TEXELS):
+    """Steps 1 and the settings of step 2 of the 2.5D remapped baseline (thesis part II §3.2): the slab target in
+    the mesh's UV space, written to ``work_dir/uv_target.exr``, and the slab run's settings.
 
     Args:
-        target: an :class:`~torch_appearance.pipelines.object_target.ObjectTarget` whose ``mesh`` (the trimesh
-            mesh that was voxelised, mm) has UVs and a base-colour texture (or ``cfg.texture``).
-        inks: the run's :class:`~torch_appearance.fabrication.InkSet`.
-        cfg: the object run's :class:`~torch_appearance.pipelines.print_optimization.PrintConfig`; the slab run
-            keeps its inks, gamma, optimiser, spp, iterations, seed, printer DPI, table and fixed ink fractions
-            (:func:`_slab_fixed`); its voxel pitch is the object's, its thickness ``cfg.shell_mm``; an environment
-            map (objects only) is dropped: the slab is lit uniformly.
+        target: an :class:`~torch_appearance.pipelines.print.ObjectTarget` whose ``mesh`` (the trimesh mesh that
+            was voxelised, mm) has UVs and a base-colour texture (or ``cfg.texture``).
+        cfg: the object run's :class:`~torch_appearance.pipelines.print.PrintConfig`; the slab run keeps its inks,
+            gamma, optimiser, spp, iterations, seed, printer DPI, table and fixed ink fractions (:func:`_slab_fixed`);
+            its voxel pitch is the object's, its thickness ``cfg.shell_mm``; an environment map (objects only) is
+            dropped: the slab is lit uniformly.
         work_dir: folder for ``uv_target.exr`` and the slab's run folder ``slab/``.
-        log: one-line messages. slab_weights: optional (N, D_s, H_s, W_s) slab mixture that replaces steps 1–2
-            (tests). progress: the slab run's tqdm bar. max_texels: cap on the slab's H_s·W_s.
+        log: one-line messages. max_texels: cap on the slab's H_s·W_s.
+
+    Returns:
+        (the slab run's PrintConfig (``out`` = ``work_dir/slab``), info dict: the slab-size numbers, ``window`` (the
+        slab's crop of the UV square, for :func:`wrap_slab_weights`) and ``uv_target``).
+
+    Raises:
+        ValueError: the mesh has no UV layout (vertex/face colours) or no texture.
+    """
+    mesh = _uv_mesh(target)
+    h = float(target.obj.voxel_size)
+    work_dir = os.fspath(work_dir)
+    os.makedirs(work_dir, exist_ok=True)
+    image, info = uv_target_image(mesh, h, texture=cfg.texture, max_texels=max_texels, crop=True)
+    window = info["window"]
+    exr = os.path.join(work_dir, "uv_target.exr")
+    ta_io.write_exr(exr, image)
+    if info["scale"] < 1.0:
+        log(f"remap_baseline: the UV slab is capped at {max_texels} texels: one slab texel spans "
+            f"{1 / info['scale']:.2f} voxels of surface")
+    log(f"remap_baseline: UV-space slab {image.shape[0]}×{image.shape[1]} texels (the UV islands' bounding box "
+        f"in a {window[2]}×{window[3]} UV square; {info['mm_per_u']:.1f} × {info['mm_per_v']:.1f} mm "
+        f"per UV unit, {100 * info['covered_fraction']:.0f}% covered), {cfg.shell_mm} mm thick")
+    # an environment map lights objects only; fixed fractions carry over (texture-space masks resampled)
+    fixed = _slab_fixed(getattr(cfg, "fixed", ()), image.shape[:2], work_dir, window, mesh)
+    slab_cfg = dataclasses.replace(cfg, mesh=None, texture=None, envmap=None, fixed=fixed, target=exr,
+                                   bottom_target=None, thickness_mm=cfg.shell_mm, dpi=25.4 / h, width_mm=None,
+                                   height_mm=None, remap_baseline=False, naive_baseline=False, views=0,
+                                   out=os.path.join(work_dir, "slab"))
+    return slab_cfg, info
+
+
+def wrap_slab_weights(target, slab_weights, inks, core_ink, *, window=None, log=print):
+    """Step 3 of the 2.5D remapped baseline: a slab's mixture (N, D_s, H_s, W_s) wrapped around the object
+    (:func:`remap_slab`), deeper voxels ``core_ink``.
+
+    Args:
+        target: the :class:`~torch_appearance.pipelines.print.ObjectTarget` (its ``mesh`` has UVs).
+        slab_weights: (N, D_s, H_s, W_s) slab mixture for ``inks``. inks: the run's InkSet. core_ink: ink name.
+        window: (row0, col0, H_full, W_full) of a cropped slab (:func:`prepare_uv_slab`'s ``info["window"]``).
 
     Returns:
         ((N, D, H, W) float32 weights on the object's grid (each voxel's weights sum to 1), info dict: slab_hw,
-        slab_depth, the slab-size numbers, the slab run's CIEDE2000 (when run here), remap counts and seconds).
+        slab_depth, texels, remap counts and seconds).
 
     Raises:
-        ValueError: the mesh has no UV layout (vertex/face colours) or no texture; slab weights of the wrong inks.
+        ValueError: the mesh has no UV layout; slab weights of the wrong inks.
     """
-    from .print_optimization import optimize_print
-
-    mesh = getattr(target, "mesh", None)
-    if mesh is None:
-        raise ValueError("target: the object target keeps no mesh (target.mesh); the 2.5D baseline needs its UVs")
-    _uv_layout(mesh)  # refuse meshes without UVs before any work
-    h = float(target.obj.voxel_size)
+    _uv_mesh(target)
     core = np.zeros(len(inks), dtype=np.float32)
-    core[inks.index(cfg.core_ink)] = 1.0
-    info, window = {}, None
-    if slab_weights is None:
-        t0 = time.perf_counter()
-        work_dir = os.fspath(work_dir)
-        os.makedirs(work_dir, exist_ok=True)
-        image, size_info = uv_target_image(mesh, h, texture=cfg.texture, max_texels=max_texels, crop=True)
-        window = size_info["window"]
-        info.update(size_info)
-        exr = os.path.join(work_dir, "uv_target.exr")
-        ta_io.write_exr(exr, image)
-        if size_info["scale"] < 1.0:
-            log(f"remap_baseline: the UV slab is capped at {max_texels} texels: one slab texel spans "
-                f"{1 / size_info['scale']:.2f} voxels of surface")
-        log(f"remap_baseline: UV-space slab {image.shape[0]}×{image.shape[1]} texels (the UV islands' bounding box "
-            f"in a {window[2]}×{window[3]} UV square; {size_info['mm_per_u']:.1f} × {size_info['mm_per_v']:.1f} mm "
-            f"per UV unit, {100 * size_info['covered_fraction']:.0f}% covered), {cfg.shell_mm} mm thick")
-        # an environment map lights objects only; fixed fractions carry over (texture-space masks resampled)
-        fixed = _slab_fixed(getattr(cfg, "fixed", ()), image.shape[:2], work_dir, window, mesh)
-        slab_cfg = dataclasses.replace(cfg, mesh=None, texture=None, envmap=None, fixed=fixed, target=exr,
-                                       bottom_target=None, thickness_mm=cfg.shell_mm, dpi=25.4 / h, width_mm=None,
-                                       height_mm=None, remap_baseline=False, naive_baseline=False, views=0,
-                                       out=os.path.join(work_dir, "slab"))
-        summary = optimize_print(slab_cfg, progress=progress, log=log)
-        with np.load(os.path.join(slab_cfg.out, "mixture.npz")) as data:
-            slab_weights = data["weights"]
-            names = [str(x) for x in data["inks"]]
-        if names != list(inks.names):
-            raise ValueError(f"slab run: its mixture is for inks {names}, this run has {list(inks.names)}")
-        info.update(slab_dir=slab_cfg.out, uv_target=exr, slab_s=time.perf_counter() - t0,
-                    slab_final_dE00_mean=summary["final_quantized"]["dE00_mean"])
+    core[inks.index(core_ink)] = 1.0
     slab_weights = np.asarray(slab_weights, dtype=np.float32)
     if slab_weights.ndim != 4 or slab_weights.shape[0] != len(inks):
         raise ValueError(f"slab_weights: expected ({len(inks)}, D, H, W) for the inks {list(inks.names)}, got shape "
                          f"{slab_weights.shape}")
     weights, remap_info = remap_slab(target, slab_weights, core, window=window)
-    info.update(remap_info, slab_depth=int(slab_weights.shape[1]), slab_hw=list(slab_weights.shape[2:]),
-                texels=int(len(target.obj.texel_voxels)))
+    info = {**remap_info, "slab_depth": int(slab_weights.shape[1]), "slab_hw": list(slab_weights.shape[2:]),
+            "texels": int(len(target.obj.texel_voxels))}
     log(f"remap_baseline: {remap_info['shell_voxels']} shell voxels remapped from a {slab_weights.shape[1]}-layer "
         f"slab in {remap_info['remap_s']:.1f} s")
     return weights, info
+
+
+def _uv_mesh(target):
+    """The target's mesh, refused when it is missing or has no UV layout (before any work)."""
+    mesh = getattr(target, "mesh", None)
+    if mesh is None:
+        raise ValueError("target: the object target keeps no mesh (target.mesh); the 2.5D baseline needs its UVs")
+    _uv_layout(mesh)
+    return mesh

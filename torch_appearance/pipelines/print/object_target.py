@@ -1,5 +1,5 @@
 """A voxelised textured object as a print target (TOG 2021 §3.3, thesis part II): what the print-optimisation loop
-needs of an object, next to the slab target of :mod:`.print_optimization`.
+needs of an object: the same methods as the slab target of :mod:`.slab_target`.
 
 The object's surface is a smooth dielectric given by its SDF grid; the texel sensor shoots from the surface texels
 along the inward normal; only a shell of voxels within ``shell_mm`` of the surface carries mixture logits, deeper
@@ -7,19 +7,26 @@ voxels hold the core ink. The appearance losses see the texel colours at their v
 texel path (:class:`~torch_appearance.nn.losses.TexelFilters`): the same E1/E2/E3 as on the voxel grid
 (:meth:`VoxelObject.texels_to_grid`, masked to the texels) at a cost that follows the texels, not the bounding box.
 """
+import dataclasses
 import functools
 import io
 import os
+import time
 
 import numpy as np
 import torch
 
-from .. import distributed
-from .. import io as ta_io
-from ..fabrication.export import VOID
-from ..fabrication.quantize import micro_grid_pitch
-from ..render import ConstantEnvironment, Scene, SDFBoundary, SurfaceTexels
-from ..render.volpath import render_scene, render_scene_indexed
+from ... import distributed
+from ... import io as ta_io
+from ...fabrication.export import VOID
+from ...fabrication.quantize import micro_grid_pitch
+from ...metrics import delta_e_2000
+from ...render import ConstantEnvironment, EnvironmentMap, Scene, SDFBoundary, SurfaceTexels
+from ...render.volpath import render_scene_indexed
+from .baselines import naive_extrusion
+from .config import iteration_seed
+from .rendering import render, replay_seed
+from .run_folder import save_image
 
 __all__ = ["ObjectTarget", "fill_void_at_surface"]
 
@@ -44,6 +51,8 @@ class ObjectTarget:
         texel path, :meth:`appearance`, and never builds them).
     """
     kind = "object"
+    depth_reference = "the surface (shell voxels)"
+    mesh_report = None  # load_mesh's report of the mesh (set by from_config)
 
     def __init__(self, obj, *, ior=1.5, g=0.4, gradient_seed="same", emitter=None):
         if obj.texel_colors is None:
@@ -80,11 +89,36 @@ class ObjectTarget:
         target_grid, mask)`` to float rounding."""
         return criterion.forward_parts_texels(texels, self.target, self.positions)
 
+    @classmethod
+    def from_config(cls, cfg, inks, log=print):
+        """The object of ``cfg``: the mesh loaded, scaled to ``height_mm`` and voxelised with a shell of
+        ``shell_mm``, lit by ``envmap`` (default uniform white)."""
+        from ...geometry import load_mesh, voxelize
+
+        mesh, report = load_mesh(cfg.mesh, height_mm=cfg.height_mm, texture=cfg.texture)
+        t0 = time.perf_counter()
+        obj = voxelize(mesh, cfg.voxel_size, shell_mm=cfg.shell_mm)
+        inside, shell = int(obj.occupancy.sum()), int(obj.shell.sum())
+        if shell >= inside:
+            raise ValueError(f"shell_mm: a {cfg.shell_mm} mm shell takes every one of the object's {inside} voxels "
+                             f"(it is thicker than half the object's thickness); use a thinner shell")
+        log(f"optimize_print: {cfg.mesh}: {report['triangles']} triangles, grid {obj.grid_shape}, {inside} inside "
+            f"voxels, {shell} in the {cfg.shell_mm} mm shell, {len(obj.texel_voxels)} texels "
+            f"({time.perf_counter() - t0:.1f} s)")
+        emitter = None if cfg.envmap is None else EnvironmentMap.from_exr(cfg.envmap)
+        target = cls(obj, ior=cfg.ior, g=cfg.phase_g(inks), gradient_seed=cfg.gradient_seed, emitter=emitter)
+        target.mesh, target.mesh_report = mesh, report
+        return target
+
     def use_g(self, g):
         """Render with Henyey–Greenstein ``g`` (a run with another ink set may have another common g)."""
         if g != self.g:
             self.g = g
             self.scene = self._scene(self.obj.voxel_size, self.obj.sdf.float())
+
+    def use(self, inks, cfg):
+        """Render with the run's inks' common g (or ``cfg.g``): a target may be shared by runs with other inks."""
+        self.use_g(cfg.phase_g(inks))
 
     # ------------------------------------------------------------------------------------------ rendering
     def _scene(self, voxel_size, sdf):
@@ -96,9 +130,7 @@ class ObjectTarget:
     def render(self, sigma_t, albedo, spp, seed, scene=None):
         """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
         scene = self.scene if scene is None else scene
-        seed_grad = seed if self.gradient_seed == "same" else None
-        return distributed.render(render_scene, scene, sigma_t=sigma_t, albedo=albedo, spp=spp, seed=seed,
-                                  seed_grad=seed_grad)
+        return render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, self.gradient_seed))
 
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)
@@ -107,7 +139,21 @@ class ObjectTarget:
         """(prediction, target) pairs of (M, 3) colours that are scored (all texels)."""
         return texels, self.target
 
+    def extra_scores(self, texels):
+        """Every texel is scored (:meth:`scored`): nothing more."""
+        return {}
+
     # ------------------------------------------------------------------------------------------ baselines
+    def naive_weights(self, inks, cfg):
+        """The naive extrusion (N, D, H, W): the table of homogeneous slabs as thick as the shell matched per texel,
+        every shell voxel the mixture of its nearest texel, deeper voxels ``cfg.core_ink``; and the table's
+        description."""
+        table_cfg = dataclasses.replace(cfg, thickness_mm=cfg.shell_mm)
+        column, table = naive_extrusion(self.target.numpy()[:, None, :], inks, table_cfg)
+        core = np.zeros(len(inks))
+        core[inks.index(cfg.core_ink)] = 1.0
+        return self.extrude(column[:, 0, :, 0].numpy(), core), table
+
     def nearest_texel(self):
         """(S,) index of the texel nearest to each shell voxel (voxel centres, C order of the shell), cached."""
         if getattr(self, "_nearest", None) is None:
@@ -133,7 +179,7 @@ class ObjectTarget:
         """(D, H, W) float depth of the voxel centres below the surface, mm (0 outside)."""
         return self.obj.depth.numpy()
 
-    def uv_mask(self, image, name, spec):
+    def image_mask(self, image, name, spec):
         """(D, H, W) bool: shell voxels whose nearest texel's UV falls on a white pixel of a texture-space mask."""
         if self.obj.texel_uv is None:
             raise ValueError(f"fixed: {spec!r}: the mesh has no UVs, so a texture-space mask cannot be placed")
@@ -235,7 +281,7 @@ class ObjectTarget:
         enough that its bounding sphere fills the frame."""
         import math
 
-        from ..render import PerspectiveCamera
+        from ...render import PerspectiveCamera
 
         d, h, w = self.shape
         s = self.obj.voxel_size
@@ -261,8 +307,8 @@ class ObjectTarget:
         when the mesh has a UV layout, ``stem_uv.png`` baked into it."""
         import trimesh
 
-        from ..color import linear_to_srgb
-        from ..geometry.bake import bake_texels
+        from ...color import linear_to_srgb
+        from ...geometry.bake import bake_texels
 
         rgb = np.asarray(texels, np.float32).reshape(-1, 3)
         buffer = io.BytesIO()
@@ -277,11 +323,15 @@ class ObjectTarget:
         cloud = trimesh.PointCloud(self.obj.texel_points.numpy(), colors=colours)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.ply"), cloud.export(file_type="ply"))
 
+    def load_texels(self, folder, stem):
+        """(N, 3) float32 texels that :meth:`save_texels` wrote (``stem.npy``)."""
+        return np.load(os.path.join(folder, f"{stem}.npy"))
+
     def _has_uv_layout(self):
         """Whether the mesh's UV triangles cover pixels of the bake image (cached). A mesh coloured by materials
         only (an OBJ with Kd colours and no ``vt``) gets degenerate UVs from trimesh's material atlas: no layout."""
         if getattr(self, "_uv_layout", None) is None:
-            from ..geometry.bake import uv_face_image
+            from ...geometry.bake import uv_face_image
 
             self._uv_layout = (self.mesh is not None and getattr(self.mesh.visual, "uv", None) is not None
                                and bool((uv_face_image(self.mesh, self._bake_size()) >= 0).any()))
@@ -311,6 +361,37 @@ class ObjectTarget:
     def describe(self):
         return {"grid_dhw": list(self.shape), "texels": int(len(self.target)), "shell_voxels": int(self.support.sum()),
                 "inside_voxels": int(self.obj.occupancy.sum()), "voxel_size_mm": self.obj.voxel_size}
+
+    def inputs(self):
+        """What config.json records of the inputs beyond :meth:`describe`: the mesh's report."""
+        return {"mesh_report": self.mesh_report}
+
+    def save_inputs(self, folder):
+        """``object.npz``: the voxelisation (:meth:`VoxelObject.save`)."""
+        self.obj.save(os.path.join(folder, "object.npz"))
+
+    def figures(self, final_texels):
+        """The object's figure is ``views.png`` (:meth:`views`): nothing more."""
+        return []
+
+    def views(self, folder, indices, inks, cfg, seed, final_texels, log=print):
+        """``cfg.views`` camera renders of the quantised object (``view_k.exr``/``.png``) and ``views.png`` beside
+        the target texture on the mesh, coloured by the final texels' CIEDE2000; returns the seconds spent."""
+        if cfg.views == 0:
+            return 0.0
+        from .object_figures import views_figure
+
+        texel_de = np.asarray(delta_e_2000(torch.as_tensor(final_texels).double(), self.target.double()))
+        t0 = time.perf_counter()
+        cams = self.camera_views(cfg.views, cfg.view_size)
+        renders = []
+        for k, cam in enumerate(cams):
+            image = self.render_quantized(indices, inks, cfg.printer_dpi, cfg.eval_spp, iteration_seed(seed, -10 - k),
+                                          sensor=cam)
+            save_image(folder, f"view_{k}", image.numpy())
+            renders.append(image.numpy())
+        views_figure(os.path.join(folder, "views.png"), self, cams, renders, texel_de=texel_de, log=log)
+        return time.perf_counter() - t0
 
 
 def fill_void_at_surface(indices, corner_sdf, passes=4):

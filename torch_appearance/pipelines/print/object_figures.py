@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import torch
 
-from .. import io as ta_io
+from ... import io as ta_io
 
 __all__ = ["mesh_views", "views_figure"]
 
@@ -29,7 +29,7 @@ def mesh_views(mesh, cams, *, scalars=None, cmap="magma", clim=None):
     Returns:
         List of (rows, cols, 3) uint8 sRGB images, or None when offscreen rendering fails here (reason on stderr).
     """
-    from ..geometry.preview import offscreen_rendering
+    from ...geometry.preview import offscreen_rendering
 
     ok, why = offscreen_rendering()  # checked once in a child process: a VTK crash cannot end this run
     if not ok:
@@ -77,7 +77,7 @@ def mesh_views(mesh, cams, *, scalars=None, cmap="magma", clim=None):
 
 
 def _srgb8(linear):
-    from ..color import linear_to_srgb
+    from ...color import linear_to_srgb
 
     rgb = np.asarray(linear_to_srgb(torch.as_tensor(np.clip(linear, 0, 1)).double()))
     return np.round(rgb * 255).astype(np.uint8)

@@ -1,12 +1,37 @@
-"""Command-line pieces shared by the print scripts (scripts/optimize_print.py, scripts/select_inks.py): the target
-and optimisation flags of :class:`~torch_appearance.pipelines.PrintConfig`, and the config built from them."""
+"""The print optimisation's command line (:func:`main`, behind ``scripts/optimize_print.py``) and the pieces other
+print tools share (scripts/select_inks.py): the target and optimisation flags of :class:`PrintConfig`, and the
+config built from them.
+
+Optimise the ink arrangement of a printed slab or textured object so that its rendered look matches a target:
+ink mixtures → C++ path tracer (radiative backpropagation) → perceptual appearance loss (ΔE76², 3D SSIM, 3D Sobel)
+→ Adagrad/Adam; then probabilistic quantisation to the printer's native resolution, slice export, and an
+evaluation of the quantised volume against the target and against the naive-extrusion baseline (CIEDE2000). Writes
+a run folder (see --help of --out) and can resume.
+
+With --mesh (OBJ + MTL + texture, GLB/GLTF, PLY with vertex colours, ...) the object is scaled to --height-mm,
+voxelised at --dpi, and only a shell of --shell-mm below its surface is optimised (deeper voxels hold --core-ink);
+the surface is a smooth dielectric (--ior), the texels shoot inward from the surface.
+
+Examples:
+    python scripts/optimize_print.py --target colorchecker --iterations 200 --out results/colorchecker
+    python scripts/optimize_print.py --target zebra --gamma 1,3,1 --out results/zebra
+    python scripts/optimize_print.py --target photo.png --bottom-target back.exr --width-mm 20 --out results/mine
+    python scripts/optimize_print.py --mesh spot.obj --texture spot_texture.png --height-mm 20 --out results/spot
+    python scripts/optimize_print.py --out results/mine --resume     # continue an interrupted run
+"""
 import argparse
 import dataclasses
+import os
+import sys
 
-from ..fabrication.inks import INKS
-from .print_optimization import PrintConfig
+from ...fabrication.inks import DEFAULT_INKS, INKS
+from .config import PrintConfig
+from .loop import optimize_print
 
-__all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args"]
+__all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args", "ink_names_help",
+           "parser", "main"]
+
+PROG = "optimize_print.py"
 
 
 def float_tuple(n, name):
@@ -95,3 +120,59 @@ def config_from_args(args, **overrides):
         values["fixed"] = tuple(values["fixed"])
     values.update(overrides)
     return PrintConfig(**values)
+
+
+def parser(prog=PROG):
+    """The ``optimize_print`` argument parser: every flag names a :class:`PrintConfig` field, plus ``--threads``
+    and ``--quiet``."""
+    _, description, epilog = __doc__.split("\n\n", 2)
+    p = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_target_arguments(p)
+    p.add_argument("--inks", default=",".join(DEFAULT_INKS), help=f"{ink_names_help()} (default: %(default)s)")
+    add_optimization_arguments(p)
+    p.add_argument("--no-naive-baseline", dest="naive_baseline", action="store_false",
+                   help="skip the naive-extrusion baseline (a table of homogeneous renders and a quantised render)")
+    p.add_argument("--remap-baseline", action="store_true",
+                   help="objects: also score the 2.5D remapped baseline (a slab optimised in the mesh's UV space with "
+                        "the same settings, wrapped around the object by UV and depth; costs a second optimisation)")
+    p.add_argument("--views", type=int, default=PrintConfig.views,
+                   help="objects: camera renders of the quantised print (default: %(default)s)")
+    p.add_argument("--view-size", type=int, default=PrintConfig.view_size,
+                   help="objects: pixels per side of those renders (default: %(default)s)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    p.add_argument("--out", default=PrintConfig.out,
+                   help="run folder: config.json, log.csv, convergence.png, target/baseline/initial/optimized/final "
+                        "images (slabs: .exr+.png; objects: .npy, .ply and _uv.png), views.png (objects), "
+                        "ink_usage_by_depth.png, mixture.npz, quantized.npz, slices/, checkpoint.pt, summary.json "
+                        "(default: %(default)s)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv=None, prog=PROG):
+    """Run :func:`optimize_print` with the flags in ``argv`` (default ``sys.argv[1:]``); under ``torchrun``
+    (``WORLD_SIZE`` > 1) the renders are data-parallel over a gloo process group. Returns the exit status (2 for
+    refused input, with the message on stderr)."""
+    import torch
+
+    args = parser(prog).parse_args(argv)
+    if args.threads is not None:
+        if args.threads < 1:
+            raise SystemExit(f"--threads: expected >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    cfg = config_from_args(args)
+    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # started by torchrun: data-parallel rendering
+    if distributed:
+        import torch.distributed as dist
+        dist.init_process_group("gloo")
+    try:
+        optimize_print(cfg, progress=not args.quiet)
+    except (ValueError, TypeError) as error:
+        print(f"{prog}: error: {error}", file=sys.stderr)
+        return 2
+    finally:
+        if distributed:
+            dist.destroy_process_group()
+    return 0

@@ -18,7 +18,7 @@ import re
 import numpy as np
 import torch
 
-from ..nn.mixture import FixedFraction
+from ...nn.mixture import FixedFraction
 
 __all__ = ["parse_fixed", "fixed_fractions"]
 
@@ -57,13 +57,14 @@ def parse_fixed(spec):
 def _read_mask(path):
     """(H, W) bool: the mask image's grey value > 0.5 (:func:`torch_appearance.io.read_mask`; truncated or corrupt
     files are refused)."""
-    from .. import io as ta_io
+    from ... import io as ta_io
 
     return ta_io.read_mask(path, name="fixed: mask image")
 
 
 def _term_mask(target, term, spec):
-    """(D, H, W) bool of one mask term."""
+    """(D, H, W) bool of one mask term (the target places depth ranges, mask images and materials: its
+    ``voxel_depth``, ``image_mask`` and ``material_mask``)."""
     shape = tuple(target.shape)
     if term == "all":
         return np.ones(shape, dtype=bool)
@@ -75,17 +76,8 @@ def _term_mask(target, term, spec):
         depth = target.voxel_depth()
         return (depth >= a) & (depth < b)
     if term.startswith("material:"):
-        if target.kind == "slab":
-            raise ValueError(f"fixed: {spec!r}: material:NAME masks select parts of a mesh (--mesh); a slab has no "
-                             f"materials")
         return target.material_mask(term[len("material:"):].strip(), spec)
-    image = _read_mask(term)
-    if target.kind == "slab":
-        if image.shape != shape[1:]:
-            raise ValueError(f"fixed: {spec!r}: the mask {term!r} is {image.shape[1]}×{image.shape[0]} pixels, the "
-                             f"slab has {shape[2]}×{shape[1]} texels; expected the same size")
-        return np.broadcast_to(image[None], shape)
-    return target.uv_mask(image, term, spec)
+    return target.image_mask(_read_mask(term), term, spec)
 
 
 def fixed_fractions(target, specs, inks):

@@ -1,0 +1,145 @@
+"""The settings of one print optimisation (:class:`PrintConfig`), the ink set they name, and the run's seeds."""
+import math
+import os
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
+
+from ...fabrication.inks import DEFAULT_INKS, InkSet
+from ...fabrication.quantize import PRINTER_DPI
+from .fixed_fractions import parse_fixed
+
+__all__ = ["PrintConfig", "load_inks", "iteration_seed"]
+
+
+@dataclass
+class PrintConfig:
+    """Settings of one print optimisation run (every field is a flag of scripts/optimize_print.py).
+
+    Lengths in mm; ``dpi`` is the optimisation voxel pitch (300 DPI ≈ 0.0847 mm cubic voxels).
+
+    Example:
+        >>> cfg = PrintConfig(thickness_mm=1.0, dpi=300.0)
+        >>> cfg.validate()
+        >>> round(cfg.voxel_size, 4), cfg.depth
+        (0.0847, 12)
+    """
+    target: str = "colorchecker"
+    bottom_target: Optional[str] = None
+    thickness_mm: float = 1.0
+    dpi: float = 300.0
+    width_mm: Optional[float] = None
+    height_mm: Optional[float] = None
+    inks: Sequence[str] = DEFAULT_INKS
+    gamma: Tuple[float, float, float] = (1.0, 3.0, 1.0)
+    spp: int = 32
+    eval_spp: int = 256
+    eval_every: int = 25
+    iterations: int = 300
+    optimizer: str = "adagrad"
+    lr: float = 1.0
+    parameterization: str = "sigmoid"
+    seed: int = 0
+    gradient_seed: str = "same"  # "same": the replay retraces the forward's paths; "independent": seed_grad
+    ior: Optional[float] = 1.5
+    g: Optional[float] = None  # HG parameter; default: the inks' common g (0.4 for the built-in inks)
+    printer_dpi: Tuple[float, float, float] = PRINTER_DPI
+    table_steps: int = 6
+    mesh: Optional[str] = None  # a textured mesh: optimise the object instead of a slab (height_mm: its z extent)
+    texture: Optional[str] = None  # base-colour image for a mesh with UVs but no material
+    shell_mm: float = 2.0  # objects: optimised depth below the surface; deeper voxels hold core_ink
+    core_ink: str = "white"
+    init: str = "naive"  # "naive": start from the naive extrusion; "white": 97 % white everywhere (the paper)
+    estimator: str = "ema"  # "ema": loss gradient at the running mean of past renders; "plain": at this render
+    ema_beta: float = 0.98  # decay of that running mean (about 1/(1 − β) renders)
+    naive_baseline: bool = True  # score the naive extrusion (costs a table of homogeneous renders)
+    remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
+    views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
+    view_size: int = 192  # objects: pixels per side of those renders
+    fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.print.fixed_fractions)
+    envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
+    out: str = "results/print"
+    resume: bool = False
+
+    def validate(self):
+        """Raise ValueError/TypeError naming the field for anything out of range."""
+        def positive(name, value, integer=False):
+            ok = isinstance(value, int) if integer else isinstance(value, (int, float))
+            if not ok or isinstance(value, bool):
+                raise TypeError(f"{name}: expected {'an int' if integer else 'a number'}, got {type(value).__name__}")
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: expected > 0, got {value}")
+
+        for name in ("thickness_mm", "dpi", "lr", "shell_mm"):
+            positive(name, getattr(self, name))
+        for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size"):
+            positive(name, getattr(self, name), integer=True)
+        if isinstance(self.views, bool) or not isinstance(self.views, int) or self.views < 0:
+            raise ValueError(f"views: expected an int >= 0, got {self.views!r}")
+        for name in ("width_mm", "height_mm"):
+            if getattr(self, name) is not None:
+                positive(name, getattr(self, name))
+        if self.gradient_seed not in ("same", "independent"):
+            raise ValueError(f"gradient_seed: expected 'same' or 'independent', got {self.gradient_seed!r}")
+        if self.init not in ("white", "naive"):
+            raise ValueError(f"init: expected 'white' or 'naive', got {self.init!r}")
+        if self.estimator not in ("ema", "plain"):
+            raise ValueError(f"estimator: expected 'ema' or 'plain', got {self.estimator!r}")
+        if isinstance(self.ema_beta, bool) or not isinstance(self.ema_beta, (int, float)) or \
+                not 0.0 <= self.ema_beta < 1.0:
+            raise ValueError(f"ema_beta: expected a number in [0, 1), got {self.ema_beta!r}")
+        if self.optimizer not in ("adagrad", "adam"):
+            raise ValueError(f"optimizer: expected 'adagrad' or 'adam', got {self.optimizer!r}")
+        if len(tuple(self.gamma)) != 3 or min(self.gamma) < 0 or sum(self.gamma) <= 0:
+            raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
+        if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
+            raise ValueError(f"printer_dpi: expected three positive DPI values (x, y, z), got {self.printer_dpi!r}")
+        if self.remap_baseline and self.mesh is None:
+            raise ValueError("remap_baseline: the 2.5D remapped baseline is for objects (--mesh)")
+        if self.mesh is not None:
+            if self.height_mm is None:
+                raise ValueError("height_mm: an object print needs the object's height in mm (--height-mm)")
+            if self.envmap is not None and not os.path.isfile(self.envmap):
+                raise ValueError(f"envmap: no such file {self.envmap!r}")
+            if self.bottom_target is not None or self.width_mm is not None:
+                raise ValueError("mesh: bottom_target and width_mm are slab settings; an object takes its colours "
+                                 "from the mesh and its size from height_mm")
+        if isinstance(self.fixed, str) or not isinstance(self.fixed, Sequence):
+            raise TypeError(f"fixed: expected a sequence of INK=FRACTION:MASK strings, got {self.fixed!r}")
+        for spec in self.fixed:
+            parse_fixed(spec)
+        if self.mesh is None and self.envmap is not None:
+            raise ValueError("envmap: environment maps light object prints (--mesh); slabs use uniform light")
+        if self.voxel_size > self.thickness_mm * 1.0001:
+            raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
+                             f"got {self.thickness_mm}")
+
+    @property
+    def voxel_size(self):
+        return 25.4 / self.dpi
+
+    @property
+    def depth(self):
+        return max(1, int(round(self.thickness_mm / self.voxel_size)))
+
+    def phase_g(self, inks):
+        """The Henyey–Greenstein g of the run: ``g`` when set, else the inks' common g (ValueError if they
+        disagree)."""
+        return inks.g if self.g is None else self.g
+
+
+def load_inks(spec):
+    """An :class:`~torch_appearance.fabrication.InkSet` from ink names (a list or a comma-separated string) or a JSON
+    ink file."""
+    if isinstance(spec, str):
+        if spec.lower().endswith(".json"):
+            return InkSet.load_json(spec)
+        spec = [s.strip() for s in spec.split(",") if s.strip()]
+    return InkSet.from_names(list(spec))
+
+
+def iteration_seed(seed, iteration):
+    """A distinct 63-bit seed per iteration (SplitMix64 of the run seed and the iteration)."""
+    z = (int(seed) * 0x9E3779B97F4A7C15 + int(iteration) + 1) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return (z ^ (z >> 31)) >> 1

@@ -1,0 +1,338 @@
+"""Print appearance optimisation (Nindel et al., TOG 2021): the loop as a library function.
+
+Given a print target (a slab's face images, :class:`.SlabTarget`, or a textured object's surface texels,
+:class:`.ObjectTarget`), find per-voxel ink mixtures whose rendered (= predicted printed) look matches it, quantise
+to the printer's native resolution, and write a run folder (see :func:`optimize_print`). The loop only calls the
+target's methods (render, appearance, scores, baselines, outputs); it never asks which kind it holds.
+
+Data flow: ``MaterialMixture`` (learnable logits, N × D × H × W) → (σ_t, albedo) → ``target.render`` (C++ path
+tracer through :class:`~torch_appearance.nn.SceneRenderer`, radiative backpropagation) → ``target.appearance``
+(E1 ΔE76², E2 3D SSIM, E3 3D Sobel) → ``loss.backward()`` → Adagrad/Adam step. Every ``eval_every`` iterations a
+render at ``eval_spp`` with a fixed seed is scored with CIEDE2000. After the loop: probabilistic quantisation (one
+ink per printer micro-voxel) and an evaluation render of the *quantised* volume at the printer resolution.
+"""
+import dataclasses
+import os
+import time
+
+import numpy as np
+import torch
+
+from ... import distributed
+from ... import io as ta_io
+from ...fabrication.export import export_slices, save_index_volume
+from ...nn.losses import AppearanceLoss
+from ...nn.mixture import MaterialMixture
+from .baselines import quantize
+from .config import PrintConfig, iteration_seed, load_inks
+from .fixed_fractions import fixed_fractions
+from .object_target import ObjectTarget
+from .remap25d import MAX_SLAB_TEXELS, prepare_uv_slab, wrap_slab_weights
+from .report import write_figures
+from .run_folder import CHECKPOINT, LOG_FIELDS, npz_bytes, save_torch, score
+from .slab_target import SlabTarget
+
+__all__ = ["optimize_print", "build_target", "remap_baseline"]
+
+
+def build_target(cfg: PrintConfig, log=print):
+    """The print target of ``cfg`` (a :class:`SlabTarget`, or with ``cfg.mesh`` an :class:`ObjectTarget`), to share
+    between runs that differ only in inks or optimiser settings (``optimize_print(cfg, target=...)``)."""
+    cfg.validate()
+    inks = load_inks(cfg.inks)
+    _check_core_ink(cfg, inks)
+    return (SlabTarget if cfg.mesh is None else ObjectTarget).from_config(cfg, inks, log)
+
+
+def _check_core_ink(cfg, inks):
+    if cfg.mesh is not None and cfg.core_ink.lower() not in [n.lower() for n in inks.names]:
+        raise ValueError(f"core_ink: {cfg.core_ink!r} is not in the ink set {list(inks.names)}")
+
+
+def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
+    """Run one print optimisation of a slab or, with ``cfg.mesh``, of a textured object, and write ``cfg.out``.
+
+    Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (iteration, wall_s, loss, E1, E2,
+    E3, dE00_mean, dE00_p95, dE76_mean, seed); ``convergence.png``; ``ink_usage_by_depth.png``; the texel colours
+    of ``target``, ``baseline`` (naive extrusion, quantised), ``initial``, ``optimized`` (continuous mixture) and
+    ``final`` (quantised result): for a slab linear-RGB ``.exr`` images of the top face with PNG previews (and
+    ``*_bottom`` for two-sided targets) and ``dE00_heatmap.png``; for an object ``.npy`` (N, 3) linear RGB and a
+    coloured point cloud ``.ply`` at the texels' surface points, and ``object.npz`` (the voxelisation);
+    ``mixture.npz`` (weights N×D×H×W, ink names, voxel size); ``quantized.npz`` (uint8 material indices at the
+    printer resolution, 255 = void outside an object); ``slices/`` (one PNG per printer layer +
+    ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation; ``cfg.resume`` continues from
+    it); ``summary.json``.
+
+    Args:
+        cfg: the settings. progress: show a tqdm bar. log: where one-line messages go.
+        target: optional prebuilt target from :func:`build_target` for the same geometry settings (a run with
+            other inks or optimiser settings reuses the voxelisation and the scene).
+
+    Returns:
+        The summary dict (also written to ``summary.json``).
+    """
+    cfg.validate()
+    rank, world = distributed.rank_and_world()
+    folder = cfg.out
+    ckpt_path = os.path.join(folder, CHECKPOINT)
+    if os.path.exists(ckpt_path) and not cfg.resume:
+        raise ValueError(f"out: {folder!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
+                         f"continue it or choose another folder")
+    inks = load_inks(cfg.inks)
+    if cfg.g is None:
+        inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
+    if target is None:
+        target = build_target(cfg, log)
+    else:
+        _check_core_ink(cfg, inks)
+    target.use(inks, cfg)  # the run's inks (their g) and settings
+    constraints, fixed = fixed_fractions(target, cfg.fixed, inks)
+    if rank != 0:
+        # under torchrun every rank runs the same loop (the renders are collective); only rank 0 writes the run
+        # folder, the others write to a private temporary one that is removed at the end
+        import tempfile
+        folder = tempfile.mkdtemp(prefix=f"optimize_print_rank{rank}_")
+        progress, log = False, (lambda *args, **kwargs: None)
+    os.makedirs(folder, exist_ok=True)  # only once the inputs are known to be good: no partial run folder
+    try:
+        return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world).run(progress)
+    finally:
+        if rank != 0:
+            import shutil
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def remap_baseline(target, inks, cfg, *, work_dir, log=print, progress=False, max_texels=MAX_SLAB_TEXELS):
+    """The 2.5D remapped baseline of an object print (thesis part II §3.2): a slab in the mesh's UV space
+    (:func:`.remap25d.prepare_uv_slab`) optimised by this loop in ``work_dir/slab`` and wrapped around the object
+    (:func:`.remap25d.wrap_slab_weights`).
+
+    Returns:
+        ((N, D, H, W) float32 weights on the object's grid, info dict: the slab-size numbers, the slab run's folder,
+        target, seconds and CIEDE2000, remap counts and seconds).
+    """
+    t0 = time.perf_counter()
+    slab_cfg, info = prepare_uv_slab(target, cfg, work_dir=work_dir, log=log, max_texels=max_texels)
+    summary = optimize_print(slab_cfg, progress=progress, log=log)
+    with np.load(os.path.join(slab_cfg.out, "mixture.npz")) as data:
+        slab_weights = data["weights"]
+        names = [str(x) for x in data["inks"]]
+    if names != list(inks.names):
+        raise ValueError(f"slab run: its mixture is for inks {names}, this run has {list(inks.names)}")
+    info.update(slab_dir=slab_cfg.out, uv_target=slab_cfg.target, slab_s=time.perf_counter() - t0,
+                slab_final_dE00_mean=summary["final_quantized"]["dE00_mean"])
+    weights, remap_info = wrap_slab_weights(target, slab_weights, inks, cfg.core_ink, window=info["window"], log=log)
+    info.update(remap_info)
+    return weights, info
+
+
+class _Run:
+    """One run of :func:`optimize_print` once its inputs are checked: the model, the optimiser and the log rows,
+    with the steps (start or resume, baselines, iterations, results) as methods; writes to ``folder``."""
+
+    def __init__(self, cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world):
+        self.cfg, self.target, self.inks, self.fixed = cfg, target, inks, fixed
+        self.folder, self.ckpt_path, self.log, self.world = folder, ckpt_path, log, world
+        self.shape = tuple(target.shape)
+        self.model = MaterialMixture(inks, self.shape, parameterization=cfg.parameterization, support=target.support,
+                                     core_ink=cfg.core_ink if target.support is not None else None, fixed=constraints)
+        optim_cls = torch.optim.Adagrad if cfg.optimizer == "adagrad" else torch.optim.Adam
+        self.optimizer = optim_cls(self.model.parameters(), lr=cfg.lr)
+        self.criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
+        self.rows, self.start, self.wall_offset = [], 0, 0.0
+        self.ema = {"sum": None, "count": 0}  # estimator "ema": running mean of the renders (checkpointed)
+        self.baseline, self.remap = None, None
+        self.eval_seed = iteration_seed(cfg.seed, -1)
+        self.quant_seed = iteration_seed(cfg.seed, -2)
+
+    def run(self, progress):
+        self.write_inputs()
+        if self.cfg.resume and os.path.exists(self.ckpt_path):
+            self.resume()
+        if not self.rows:
+            self.start_fresh()
+        if self.cfg.remap_baseline and self.remap is None:
+            self.remap = self.remap_baseline()
+        self.iterate(progress)
+        return self.finish()
+
+    # ---------------------------------------------------------------------------------------------- helpers
+    def evaluate(self, spp=None):
+        with torch.no_grad():
+            s, a = self.model()
+            return self.target.render(s, a, self.cfg.eval_spp if spp is None else spp, self.eval_seed)
+
+    def score(self, texels):
+        return score(*self.target.scored(texels))
+
+    def loss_row(self, texels):
+        with torch.no_grad():
+            loss, parts = self.target.appearance(self.criterion, texels)
+        return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
+
+    def quantized(self, weights, fixed=()):
+        """Printer-resolution indices of ``weights`` and their rendered texels at ``eval_spp``."""
+        indices = quantize(self.target, weights, self.inks, self.cfg, self.quant_seed, fixed)
+        return indices, self.target.render_quantized(indices, self.inks, self.cfg.printer_dpi, self.cfg.eval_spp,
+                                                     self.eval_seed)
+
+    # ---------------------------------------------------------------------------------------------- steps
+    def write_inputs(self):
+        cfg, target = self.cfg, self.target
+        ta_io.write_json(os.path.join(self.folder, "config.json"), {
+            **dataclasses.asdict(cfg), "inks": [dataclasses.asdict(i) for i in self.inks],
+            "voxel_size_mm": cfg.voxel_size, "kind": target.kind, **target.describe(), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "ranks": self.world, **target.inputs()})
+        target.save_inputs(self.folder)
+        target.save_texels(self.folder, "target", target.target)
+
+    def resume(self):
+        state = torch.load(self.ckpt_path, weights_only=False)
+        if tuple(state["grid_dhw"]) != self.shape or state["inks"] != list(self.inks.names):
+            raise ValueError(f"resume: the checkpoint in {self.folder!r} is for grid {state['grid_dhw']} and inks "
+                             f"{state['inks']}, this run has {list(self.shape)} and {list(self.inks.names)}")
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.rows, self.start, self.wall_offset = state["rows"], state["iteration"], state["wall_s"]
+        self.ema = state.get("ema", self.ema)
+        self.baseline, self.remap = state["baseline"], state.get("baseline_remap")
+        self.log(f"optimize_print: resuming {self.folder} at iteration {self.start}")
+
+    def start_fresh(self):
+        """The naive extrusion, quantised and scored the same way as the result; the warm start; row 0."""
+        cfg, target = self.cfg, self.target
+        base_w = None
+        if cfg.naive_baseline:
+            t0 = time.perf_counter()
+            base_w, table = target.naive_weights(self.inks, cfg)
+            _, base_img = self.quantized(base_w)
+            self.baseline = {"image": base_img.numpy(), **self.score(base_img), "table": table,
+                             "seconds": time.perf_counter() - t0}
+            target.save_texels(self.folder, "baseline", self.baseline["image"])
+        if cfg.init == "naive":  # warm start: the optimisation begins where the naive extrusion ends
+            self.model.set_weights(target.naive_weights(self.inks, cfg)[0] if base_w is None else base_w)
+        # the extrusion's (inks, D, H, W) weights are not kept through the optimisation (1.16 GB for Spot at 40 mm)
+        del base_w
+        initial = self.evaluate()
+        target.save_texels(self.folder, "initial", initial)
+        self.rows.append({"iteration": 0, "wall_s": 0.0, **self.loss_row(initial), **self.score(initial),
+                          "seed": self.eval_seed})
+
+    def remap_baseline(self):
+        """The 2.5D remapped baseline (:func:`remap_baseline`), quantised and scored as the result."""
+        t0 = time.perf_counter()
+        weights, info = remap_baseline(self.target, self.inks, self.cfg,
+                                       work_dir=os.path.join(self.folder, "remap25d"), log=self.log)
+        _, image = self.quantized(weights, self.fixed)
+        remap = {"image": image.numpy(), **self.score(image), "info": info, "seconds": time.perf_counter() - t0}
+        self.target.save_texels(self.folder, "baseline_remap", remap["image"])
+        return remap
+
+    def step(self, seed):
+        """One optimiser step on a render with ``seed``; returns the loss and its parts."""
+        cfg = self.cfg
+        sigma_t, albedo = self.model()
+        image = self.target.render(sigma_t, albedo, cfg.spp, seed)
+        if cfg.estimator == "ema":
+            # the loss's gradient with respect to the texel colours is taken at the running mean of the past
+            # renders and applied to this render: the adjoint no longer shares this render's noise (that
+            # correlation biases the plain estimator at low spp towards less noisy, not more accurate, media)
+            ema = self.ema
+            now = image.detach()
+            primal = now if ema["count"] == 0 else ema["sum"] / (1.0 - cfg.ema_beta ** ema["count"])
+            x = primal.clone().requires_grad_(True)
+            loss, parts = self.target.appearance(self.criterion, x)
+            (adjoint,) = torch.autograd.grad(loss, x)
+            ema["sum"] = (1.0 - cfg.ema_beta) * now + (0.0 if ema["sum"] is None else cfg.ema_beta * ema["sum"])
+            ema["count"] += 1
+            surrogate = (adjoint * image).sum()
+        else:
+            loss, parts = self.target.appearance(self.criterion, image)
+            surrogate = loss
+        self.optimizer.zero_grad(set_to_none=True)
+        surrogate.backward()
+        self.optimizer.step()
+        # the full (3, D, H, W) grids of this iteration (1.4 GB for Spot at 40 mm) are not kept alive through the
+        # evaluations, the quantisation and the next iteration's mixture
+        del sigma_t, albedo, image, surrogate
+        return loss, parts
+
+    def checkpoint(self, iteration, wall_s):
+        save_torch({"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "rows": self.rows,
+                    "iteration": iteration, "wall_s": wall_s, "baseline": self.baseline,
+                    "baseline_remap": self.remap, "ema": self.ema,
+                    "grid_dhw": list(self.shape), "inks": list(self.inks.names)},
+                   os.path.join(self.folder, CHECKPOINT))
+        ta_io.write_csv(os.path.join(self.folder, "log.csv"), self.rows, LOG_FIELDS)
+
+    def iterate(self, progress):
+        cfg = self.cfg
+        try:
+            from tqdm import tqdm
+            bar = tqdm(total=cfg.iterations, initial=self.start, disable=not progress, desc="optimize_print",
+                       unit="it")
+        except ImportError:  # pragma: no cover
+            bar = None
+        t_start = time.perf_counter() - self.wall_offset
+        last_eval = self.rows[-1] if self.rows else {}
+        for it in range(self.start, cfg.iterations):
+            seed = iteration_seed(cfg.seed, it)
+            loss, parts = self.step(seed)
+            row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
+            if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
+                row.update(self.score(self.evaluate()))
+                last_eval = row
+            row["wall_s"] = time.perf_counter() - t_start
+            self.rows.append(row)
+            if "dE00_mean" in row:
+                self.checkpoint(it + 1, row["wall_s"])
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
+        if bar is not None:
+            bar.close()
+        ta_io.write_csv(os.path.join(self.folder, "log.csv"), self.rows, LOG_FIELDS)
+
+    def finish(self):
+        """Results: continuous, quantised, exports, figures, views; the summary."""
+        cfg, target, inks, folder, rows = self.cfg, self.target, self.inks, self.folder, self.rows
+        optimized = self.evaluate()  # before the (N, D, H, W) weights exist: the two are not held together
+        target.save_texels(folder, "optimized", optimized)
+        weights = self.model.weights().detach()
+        indices, final_img = self.quantized(weights, self.fixed)
+        final = {"image": final_img.numpy(), **self.score(final_img)}
+        target.save_texels(folder, "final", final["image"])
+        final.update(target.extra_scores(final_img))
+        ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), npz_bytes(
+            weights=np.asarray(weights.numpy(), np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
+        save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
+        export_slices(indices, inks, os.path.join(folder, "slices"))
+        write_figures(folder, rows, cfg, target, inks, weights, final, self.baseline, self.remap)
+        view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, final["image"], log=self.log)
+
+        baseline, remap = self.baseline, self.remap
+        opt_rows = [r for r in rows if r["iteration"] > 0]
+        summary = {
+            "kind": target.kind,
+            "iterations": cfg.iterations,
+            "wall_s": rows[-1]["wall_s"],
+            "seconds_per_iteration": (rows[-1]["wall_s"] / max(1, len(opt_rows))) if opt_rows else None,
+            **target.describe(), "spp": cfg.spp, "eval_spp": cfg.eval_spp,
+            "final_quantized": {k: v for k, v in final.items() if k != "image"},
+            "optimized_continuous": self.score(optimized),
+            "baseline_naive_extrusion": None if baseline is None else
+            {k: v for k, v in baseline.items() if k != "image"},
+            "baseline_remap_25d": None if remap is None else {k: v for k, v in remap.items() if k != "image"},
+            "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
+            "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
+            "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
+            "parameters": int(self.model.logits.numel()), "views_s": view_seconds,
+        }
+        ta_io.write_json(os.path.join(folder, "summary.json"), summary)
+        naive_text = "" if baseline is None else \
+            f", naive extrusion {baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f}"
+        remap_text = "" if remap is None else f", 2.5D remapped {remap['dE00_mean']:.2f}/{remap['dE00_p95']:.2f}"
+        self.log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
+                 f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}{naive_text}{remap_text} "
+                 f"-> {folder}")
+        return summary

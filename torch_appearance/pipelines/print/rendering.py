@@ -1,0 +1,38 @@
+"""How the print targets render: a :class:`~torch_appearance.nn.SceneRenderer` per call, its sensor elements split
+over the ranks when the run is data-parallel (:mod:`torch_appearance.distributed`), and the slab's scene."""
+from ... import distributed
+from ...nn.renderer import SceneRenderer
+from ...render import BoxBoundary, ConstantEnvironment, FaceTexels, Scene
+from ...render.scene import derive_seed_grad
+from ...render.volpath import render_scene
+
+__all__ = ["replay_seed", "render", "slab_scene"]
+
+
+def replay_seed(seed, gradient_seed):
+    """The gradient replay's seed of an iteration's ``seed``: the forward's own (``gradient_seed="same"``, the
+    replay retraces its paths) or an independent one (``"independent"``, :func:`derive_seed_grad`)."""
+    return seed if gradient_seed == "same" else derive_seed_grad(seed)
+
+
+def render(scene, sigma_t, albedo, *, spp, seed, seed_grad):
+    """``SceneRenderer(scene, spp)(sigma_t, albedo, seed=seed, seed_grad=seed_grad)``: the sensor's linear RGB image,
+    differentiable. Under ``torch.distributed`` every rank traces its interleaved share of the sensor elements and
+    the image and the gradients are summed over the ranks (the same image as one process)."""
+    renderer = SceneRenderer(scene, spp=spp)
+    if distributed.rank_and_world()[1] == 1:
+        return renderer(sigma_t, albedo, seed=seed, seed_grad=seed_grad)
+    return distributed.render(render_scene, renderer.scene, sigma_t=sigma_t, albedo=albedo, spp=renderer.spp, seed=seed,
+                              seed_grad=seed_grad, chromatic=renderer.chromatic)
+
+
+def slab_scene(voxel_size, *, faces, g, ior):
+    """The scene of a slab print: the grid box (a smooth dielectric of index ``ior``, None: index matched) under
+    uniform white light, seen by the texels of its top face (``faces`` = 1) or of both faces (``faces`` = 2).
+
+    Example:
+        >>> slab_scene(0.0847, faces=2, g=0.4, ior=1.5).output_shape((12, 8, 6))
+        (2, 8, 6, 3)
+    """
+    return Scene(voxel_size=voxel_size, boundary=BoxBoundary(ior), sensor=FaceTexels("both" if faces == 2 else "top"),
+                 emitter=ConstantEnvironment(1.0), g=g)

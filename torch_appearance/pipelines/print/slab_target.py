@@ -1,0 +1,180 @@
+"""A slab as the print target: images of its top (and bottom) face, texel [j, i] = voxel column (j, i)."""
+import dataclasses
+import os
+
+import numpy as np
+import torch
+
+from ... import io as ta_io
+from .baselines import naive_extrusion, render_quantized, render_slab
+from .report import heatmap_figure
+from .run_folder import save_image, score
+from .target_images import load_target
+
+__all__ = ["SlabTarget", "slab_texel_grid"]
+
+
+def slab_texel_grid(faces_rgb, depth):
+    """Place face texel images on the voxel grid for the appearance losses.
+
+    Args:
+        faces_rgb: (F, H, W, 3) texel colours, F = 1 (top) or 2 (top, bottom).
+        depth: D, voxel layers of the slab (top face = layer D − 1, bottom face = layer 0).
+
+    Returns:
+        (3, D, H, W) grid (zeros off the faces) and the (D, H, W) bool texel mask.
+
+    Example:
+        >>> grid, mask = slab_texel_grid(torch.ones(2, 4, 5, 3), depth=3)
+        >>> grid.shape, mask.sum(dim=(1, 2)).tolist()
+        (torch.Size([3, 3, 4, 5]), [20, 0, 20])
+    """
+    f, h, w, _ = faces_rgb.shape
+    if f == 2 and depth < 2:
+        raise ValueError(f"thickness_mm: a two-sided target needs at least 2 voxel layers, got {depth}")
+    grid = faces_rgb.new_zeros(3, depth, h, w)
+    mask = torch.zeros(depth, h, w, dtype=torch.bool, device=faces_rgb.device)
+    layers = [depth - 1, 0][:f]
+    for k, layer in enumerate(layers):
+        grid = grid.index_copy(1, torch.tensor([layer]), faces_rgb[k].permute(2, 0, 1).unsqueeze(1))
+        mask[layer] = True
+    return grid, mask
+
+
+class SlabTarget:
+    """Face texel images of a slab as the optimisation target; the same methods as
+    :class:`~torch_appearance.pipelines.print.object_target.ObjectTarget`, so the loop never asks which it holds.
+
+    Args:
+        cfg: the run's :class:`~torch_appearance.pipelines.print.PrintConfig` (voxel pitch, thickness, IOR, g,
+            gradient seed). inks: the :class:`~torch_appearance.fabrication.InkSet`.
+        faces_target: one or two (H, W, 3) linear RGB images (top, bottom).
+
+    Attributes:
+        shape: (D, H, W). support: None (every voxel optimised). target: (F, H, W, 3) linear RGB, F = 1 (top) or
+        2 (top, bottom). target_grid, mask: the faces on the voxel grid for the losses.
+    """
+    kind = "slab"
+    support = None
+    depth_reference = "the top face"
+
+    def __init__(self, cfg, inks, faces_target):
+        self.cfg, self.inks = cfg, inks
+        self.target = torch.tensor(np.stack(faces_target))  # (F, H, W, 3)
+        self.faces = self.target.shape[0]
+        self.shape = (cfg.depth, *self.target.shape[1:3])
+        self.target_grid, self.mask = slab_texel_grid(self.target, cfg.depth)
+
+    @classmethod
+    def from_config(cls, cfg, inks, log=print):
+        """The slab of ``cfg``: top (and bottom) images sized by the image at the voxel pitch or by width/height."""
+        top = load_target(cfg.target, name="target")
+        size = None
+        if cfg.width_mm is not None or cfg.height_mm is not None:
+            h0, w0 = top.shape[:2]
+            width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
+            height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
+            size = (max(1, round(height / cfg.voxel_size)), max(1, round(width / cfg.voxel_size)))
+            top = load_target(cfg.target, size=size, name="target")
+        faces_target = [top]
+        if cfg.bottom_target is not None:
+            bottom = load_target(cfg.bottom_target, size=size, name="bottom_target")
+            if bottom.shape != top.shape:
+                raise ValueError(f"bottom_target: expected the size of the top target {top.shape[:2]}, "
+                                 f"got {bottom.shape[:2]} (pass width_mm/height_mm to resample both)")
+            faces_target.append(bottom)
+        return cls(cfg, inks, faces_target)
+
+    def use(self, inks, cfg):
+        """Render with the run's inks (their g) and settings (a target may be shared by runs with other inks)."""
+        self.inks, self.cfg = inks, cfg
+
+    # ------------------------------------------------------------------------------------------ rendering
+    def render(self, sigma_t, albedo, spp, seed):
+        """(F, H, W, 3) face texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
+        return render_slab(sigma_t, albedo, self.cfg, self.inks, self.faces, spp, seed)
+
+    def to_grid(self, texels):
+        return slab_texel_grid(texels, self.cfg.depth)[0]
+
+    def appearance(self, criterion, texels):
+        """``(E, {"E1", "E2", "E3"})`` of the face texels (F, H, W, 3) on the voxel grid (dense path: the faces
+        are whole layers, which the grid path filters with per-axis matrices)."""
+        return criterion.forward_parts(self.to_grid(texels), self.target_grid, self.mask)
+
+    def scored(self, texels):
+        """The top face is scored (the bottom face is reported separately, :meth:`extra_scores`)."""
+        return texels[0], self.target[0]
+
+    def extra_scores(self, texels):
+        """``{"bottom": scores}`` of a two-sided target's bottom face, else nothing."""
+        return {"bottom": score(texels[1], self.target[1])} if self.faces == 2 else {}
+
+    # ------------------------------------------------------------------------------------------ baselines
+    def naive_weights(self, inks, cfg):
+        """The naive extrusion (N, D, H, W) of the top face and the table's description."""
+        return naive_extrusion(self.target[0].numpy(), inks, cfg)
+
+    def quantized_void(self, indices):
+        """A slab has no void: ``indices`` unchanged."""
+        return indices
+
+    def render_quantized(self, indices, inks, printer_dpi, spp, seed):
+        """(F, H, W, 3) face texels of a printer-resolution index volume averaged back to the slab's texels."""
+        cfg = dataclasses.replace(self.cfg, printer_dpi=tuple(printer_dpi))
+        return render_quantized(indices, inks, cfg, self.shape[1:], self.faces, spp, seed)
+
+    # ------------------------------------------------------------------------------------------ masks
+    def voxel_depth(self):
+        """(D, H, W) depth of the voxel centres below the top face, mm."""
+        d, h, w = self.shape
+        depth = (d - 1 - np.arange(d) + 0.5) * self.cfg.voxel_size
+        return np.broadcast_to(depth[:, None, None], (d, h, w))
+
+    def image_mask(self, image, name, spec):
+        """(D, H, W) bool: the columns of the white texels of an (H, W) mask image of the slab's size."""
+        shape = tuple(self.shape)
+        if image.shape != shape[1:]:
+            raise ValueError(f"fixed: {spec!r}: the mask {name!r} is {image.shape[1]}×{image.shape[0]} pixels, the "
+                             f"slab has {shape[2]}×{shape[1]} texels; expected the same size")
+        return np.broadcast_to(image[None], shape)
+
+    def material_mask(self, name, spec):
+        raise ValueError(f"fixed: {spec!r}: material:NAME masks select parts of a mesh (--mesh); a slab has no "
+                         f"materials")
+
+    # ------------------------------------------------------------------------------------------ outputs
+    def describe(self):
+        return {"grid_dhw": list(self.shape), "faces": self.faces, "texels": self.faces * self.shape[1] * self.shape[2]}
+
+    def inputs(self):
+        """What config.json records of the inputs beyond :meth:`describe`: nothing for a slab."""
+        return {}
+
+    def save_inputs(self, folder):
+        """A slab's inputs are its target images (:meth:`save_texels`): nothing more."""
+
+    def save_texels(self, folder, stem, texels):
+        """``stem.exr`` + ``.png`` of the top face and ``stem_bottom`` of a bottom face."""
+        texels = texels.numpy() if isinstance(texels, torch.Tensor) else np.asarray(texels)
+        save_image(folder, stem, texels[0])
+        if self.faces == 2:
+            save_image(folder, f"{stem}_bottom", texels[1])
+
+    def load_texels(self, folder, stem):
+        """(F, H, W, 3) float32 texels that :meth:`save_texels` wrote (the ``.exr`` images)."""
+        stems = [stem, f"{stem}_bottom"][:self.faces]
+        return np.stack([ta_io.read_exr(os.path.join(folder, f"{s}.exr")) for s in stems])
+
+    def ink_usage_by_depth(self, weights):
+        """Mean ink fractions (N, D) per layer from the top face down; layer centres (D,) mm below it."""
+        w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
+        return w, (np.arange(w.shape[1]) + 0.5) * self.cfg.voxel_size
+
+    def figures(self, final_texels):
+        """``dE00_heatmap.png``: CIEDE2000 of the final (quantised) top face against the target."""
+        return [("dE00_heatmap.png", heatmap_figure(final_texels[0], self.target[0]))]
+
+    def views(self, folder, indices, inks, cfg, seed, final_texels, log=print):
+        """A slab has no camera views (its faces are the images); seconds spent: 0."""
+        return 0.0

@@ -1,0 +1,129 @@
+"""The wood fit's command line (:func:`main`, behind ``scripts/fit_wood.py``) and the one settings block the wood
+commands share (:func:`add_fit_arguments`, :func:`config_from_args`): every flag names a :class:`WoodFitConfig`
+field, with its default.
+
+Fit an anatomically meaningful procedural solid-wood texture to one photograph of a board.
+
+Curved Gabor filtering finds the growth rings and their phase, the board's location in the log is estimated from
+the traced rings, then a WoodModel (tree axis, ring scale, radial distortion, colour map) is fitted with a cyclic
+phase loss (stage 1) and a colour loss (stage 2); ``--photometric`` adds stage 3, geometry and colour map
+refined against the photo's colours through the reparameterised render. Writes a run folder: fit.png, phase.npy,
+fit_phase.npy, params.json, log.csv, convergence.png, orientation/magnitude/phase images, ring_overlay.png,
+board_estimate.json, model.json + model.pt, fit_vs_photo.png, phase_error.png, cube_preview.png, summary.json (with
+--photometric also fit_before_photometric.png and model_before_photometric.json + .pt).
+
+Examples:
+    python scripts/fit_wood.py board.png --pixel-size-mm 0.1 --out results/board
+    python scripts/fit_wood.py board.jpg --dpi 600 --epochs 300 --out results/board600
+    python scripts/fit_wood.py board.png --photometric --out results/board_photo
+"""
+import argparse
+import sys
+
+from .config import WoodFitConfig
+from .fit import fit_wood
+
+__all__ = ["add_fit_arguments", "config_from_args", "parser", "main", "FIT_FLAGS"]
+
+PROG = "fit_wood.py"
+
+#: The fit's flags: (flag, add_argument keywords, help); the defaults come from WoodFitConfig.
+FIT_FLAGS = {
+    "epochs": ("--epochs", dict(type=int), "stage-1 (phase) epochs (default: %(default)s)"),
+    "lr": ("--lr", dict(type=float), "stage-1 Adam learning rate (default: %(default)s)"),
+    "color_epochs": ("--color-epochs", dict(type=int), "stage-2 epochs (default: %(default)s)"),
+    "p": ("--p", dict(type=int), "curved Gabor: contours across the rings, 2p+1 (default: %(default)s)"),
+    "q": ("--q", dict(type=int), "curved Gabor: points along each contour, 2q+1 (default: %(default)s)"),
+    "distortion": ("--distortion", dict(choices=("radial", "azimuthal")), "(default: %(default)s)"),
+    "coarse_to_fine": ("--coarse-to-fine", dict(type=int),
+                       "stage-1 distortion levels, coarse first (1: full texture from the start; "
+                       "default: %(default)s)"),
+    "color_bins": ("--color-bins", dict(type=int), "lateness samples of the colour map (default: %(default)s)"),
+    "contrast_match": ("--contrast-match", dict(action="store_true"),
+                       "after stage 2, remap the colour map's luminance so that the fit's luminance histogram is the "
+                       "photo's (keeps latewood contrast that per-bin means wash out where the phase is slightly off)"),
+    "photometric": ("--photometric", dict(action="store_true"),
+                    "stage 3: refine geometry and colour map against the photo's colours (CIELAB L2) through the "
+                    "reparameterised render (correct ring-boundary gradients), coarse to fine"),
+    "photometric_epochs": ("--photometric-epochs", dict(type=int),
+                           "stage-3 Adam steps over all levels (default: %(default)s)"),
+    "photometric_levels": ("--photometric-levels", dict(type=int, nargs="+", metavar="F"),
+                           "stage-3 downsampling factors of the photo, coarse first (default: %(default)s)"),
+    "photometric_spp": ("--photometric-spp", dict(type=int),
+                        "stage-3 filter samples per pixel and step (default: %(default)s)"),
+    "photometric_weight": ("--photometric-weight", dict(type=float),
+                           "stage-3 weight of the CIELAB term, mean ΔE²/100 (default: %(default)s)"),
+    "photometric_anchor": ("--photometric-anchor", dict(type=float),
+                           "stage-3 weight of the stage-1 phase loss kept as an anchor, 0 = colour only "
+                           "(default: %(default)s)"),
+    "photometric_lr": ("--photometric-lr", dict(type=float),
+                       "stage-3 geometry step, ring widths per step (default: %(default)s)"),
+    "photometric_color_lr": ("--photometric-color-lr", dict(type=float),
+                             "stage-3 colour-map step, 0 = frozen (default: %(default)s)"),
+    "photometric_estimator": ("--photometric-estimator", dict(choices=("reparam", "naive")),
+                              "stage-3 gradients: reparameterised (boundary term included) or naive fixed-sample "
+                              "autograd, for comparison (default: %(default)s)"),
+    "max_size": ("--max-size", dict(type=int), "downscale photos larger than this many pixels"),
+    "device": ("--device", dict(), "torch device for the fit: cpu or cuda (default: %(default)s)"),
+    "seed": ("--seed", dict(type=int), None),
+}
+
+
+def add_fit_arguments(p, names=None, **defaults):
+    """Add the fit's flags (:data:`FIT_FLAGS`; only ``names`` when given) to the parser ``p``, their defaults from
+    :class:`WoodFitConfig` unless ``defaults`` overrides them (e.g. a shorter evaluation)."""
+    d = WoodFitConfig(photo="")
+    for name in (FIT_FLAGS if names is None else names):
+        flag, kwargs, help_text = FIT_FLAGS[name]
+        kwargs = dict(kwargs)
+        if kwargs.get("action") != "store_true":
+            default = defaults.get(name, getattr(d, name))
+            kwargs["default"] = list(default) if isinstance(default, tuple) else default
+        if help_text is not None:
+            kwargs["help"] = help_text
+        p.add_argument(flag, **kwargs)
+
+
+def config_from_args(args, **fields):
+    """The :class:`WoodFitConfig` of the fit flags in ``args`` (those that it has), with ``fields`` on top."""
+    values = {name: getattr(args, name) for name in FIT_FLAGS if hasattr(args, name)}
+    if "photometric_levels" in values:
+        values["photometric_levels"] = tuple(values["photometric_levels"])
+    values.update(fields)
+    return WoodFitConfig(**values)
+
+
+def parser(prog=PROG):
+    """The ``fit_wood`` argument parser."""
+    d = WoodFitConfig(photo="")
+    description, epilog = __doc__.split("\n\n", 2)[1], __doc__.split("\n\n", 2)[2]
+    p = argparse.ArgumentParser(prog=prog, description=description.split("\n\n")[0], epilog=epilog,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("photo", help="photo of a planar board (PNG/JPG sRGB or linear EXR)")
+    p.add_argument("--out", default=d.out, help="run folder (default: %(default)s)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--pixel-size-mm", type=float, default=None,
+                      help=f"pixel pitch in mm (default: {d.pixel_size_mm})")
+    size.add_argument("--dpi", type=float, default=None, help="scan resolution (pixel size = 25.4 / dpi mm)")
+    add_fit_arguments(p)
+    p.add_argument("--no-preview", action="store_true", help="skip the pyvista cube preview")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv=None, prog=PROG):
+    """Run :func:`fit_wood` with the flags in ``argv`` (default ``sys.argv[1:]``); returns the exit status (2 for
+    refused input, with the message on stderr)."""
+    args = parser(prog).parse_args(argv)
+    pixel = args.pixel_size_mm if args.pixel_size_mm is not None else (
+        25.4 / args.dpi if args.dpi else WoodFitConfig(photo="").pixel_size_mm)
+    if args.dpi is not None and args.dpi <= 0:
+        print(f"{prog}: error: --dpi: expected > 0, got {args.dpi}", file=sys.stderr)
+        return 2
+    cfg = config_from_args(args, photo=args.photo, out=args.out, pixel_size_mm=pixel, preview=not args.no_preview)
+    try:
+        fit_wood(cfg, progress=not args.quiet)
+    except (ValueError, TypeError) as error:
+        print(f"{prog}: error: {error}", file=sys.stderr)
+        return 2
+    return 0

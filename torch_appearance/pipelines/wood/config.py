@@ -1,0 +1,100 @@
+"""The settings of one wood fit (:class:`WoodFitConfig`) and the thresholds its summary reports against."""
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+__all__ = ["WoodFitConfig", "LOG_FIELDS", "POOR_FIT_PHASE_RMS", "MIN_RINGS_FOR_SCALE"]
+
+LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms", "photometric_loss"]
+POOR_FIT_PHASE_RMS = 0.8  # rad; fits above it are flagged (summary["fit_ok"] = False) and warned about
+# Fewer distinct rings than this on the board leave the ring scale poorly determined (the number of rings between
+# the pith and the board trades against the axis distance); measured on synthetic boards (eval_wood_synthetic.py):
+# s_r errors of 8-127 % with 2-4 visible rings, 3-7 % with 6-9.
+MIN_RINGS_FOR_SCALE = 6
+
+
+@dataclass
+class WoodFitConfig:
+    """Settings of one wood fit (every field is a flag of scripts/fit_wood.py)."""
+    photo: str
+    out: str = "results/wood"
+    pixel_size_mm: float = 0.1
+    epochs: int = 500
+    lr: float = 0.03
+    color_epochs: int = 200
+    color_lr: float = 0.05
+    p: int = 80
+    q: int = 80
+    distortion: str = "radial"
+    distortion_shape: tuple = (32, 64)
+    smoothness: float = 1.0  # weight of the distortion prior (squared texel-to-texel change, in ring widths)
+    color_bins: int = 32  # lateness samples of the colour map (a thin latewood line needs a few of its own)
+    coarse_to_fine: int = 3  # stage-1 distortion levels (1: the full texture from the start, as before)
+    # after stage 2: remap the colour map's luminance so that the fit's luminance histogram is the photo's (the
+    # per-bin photo means blur latewood into earlywood wherever the fitted phase is off by a fraction of a ring)
+    contrast_match: bool = False
+    # stage 3 (photometric): geometry + colour map against the photo's colours (CIELAB L2) through the
+    # reparameterised render (correct boundary gradients), coarse to fine over photometric_levels (downsampling
+    # factors of the photo), photometric_epochs Adam steps in all, split evenly over the levels
+    photometric: bool = False
+    photometric_epochs: int = 120
+    photometric_lr: float = 0.005  # geometry, in ring widths per step (as lr)
+    photometric_color_lr: float = 0.01  # colour map, linear RGB per step (0: frozen)
+    photometric_spp: int = 4
+    photometric_levels: tuple = (4, 2)
+    photometric_weight: float = 10.0  # multiplies the CIELAB term (mean ΔE² / 100)
+    photometric_anchor: float = 1.0  # weight of the stage-1 cyclic phase loss kept in stage 3 (0: colour only)
+    photometric_estimator: str = "reparam"  # "naive": fixed-sample autograd, no boundary term (for comparison)
+    device: str = "cpu"
+    max_size: Optional[int] = None
+    seed: int = 0
+    preview: bool = True
+
+    def validate(self):
+        if not (isinstance(self.pixel_size_mm, (int, float)) and math.isfinite(self.pixel_size_mm)
+                and self.pixel_size_mm > 0):
+            raise ValueError(f"pixel_size_mm: expected a finite value > 0, got {self.pixel_size_mm!r}")
+        for name in ("epochs", "color_epochs", "photometric_epochs"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 0:
+                raise ValueError(f"{name}: expected an int >= 0, got {v!r}")
+        for name in ("p", "q", "coarse_to_fine"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        for name in ("color_bins",):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 2:
+                raise ValueError(f"{name}: expected an int >= 2, got {v!r}")
+        for name in ("photometric", "contrast_match"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name}: expected a bool, got {type(getattr(self, name)).__name__}")
+        if not isinstance(self.photometric_spp, int) or self.photometric_spp < 2:
+            raise ValueError(f"photometric_spp: expected an int >= 2, got {self.photometric_spp!r}")
+        levels = self.photometric_levels
+        if (not isinstance(levels, (tuple, list)) or not levels
+                or any(isinstance(f, bool) or not isinstance(f, int) or f < 1 for f in levels)):
+            raise ValueError(f"photometric_levels: expected a non-empty sequence of ints >= 1 (downsampling factors, "
+                             f"coarse first), got {levels!r}")
+        if self.photometric_estimator not in ("reparam", "naive"):
+            raise ValueError(f"photometric_estimator: expected 'reparam' or 'naive', "
+                             f"got {self.photometric_estimator!r}")
+        for name in ("photometric_weight", "photometric_anchor"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite value >= 0, got {v!r}")
+        if not (isinstance(self.photometric_color_lr, (int, float)) and self.photometric_color_lr >= 0):
+            raise ValueError(f"photometric_color_lr: expected >= 0 (0: colour map frozen in stage 3), got "
+                             f"{self.photometric_color_lr!r}")
+        for name in ("lr", "color_lr", "photometric_lr"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ValueError(f"{name}: expected > 0, got {v!r}")
+        if self.distortion not in ("radial", "azimuthal"):
+            raise ValueError(f"distortion: expected 'radial' or 'azimuthal', got {self.distortion!r}")
+        if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):
+            raise ValueError(f"device: expected 'cpu' or 'cuda[:N]', got {self.device!r}")
+        if str(self.device).startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"device: {self.device!r} requested but CUDA is not available")
