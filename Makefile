@@ -33,13 +33,13 @@ build: $(BUILD_STAMP)
 # The main job on a built-in default: a small print optimisation of the ColorChecker slab (a few minutes).
 demo: build
 	rm -rf results/demo
-	$(PY) scripts/optimize_print.py --target colorchecker $(DEMO_ARGS) --out results/demo
+	$(VENV)/bin/ta-optimize-print --target colorchecker $(DEMO_ARGS) --out results/demo
 
 # The object job: a short print optimisation of the textured Spot model (public domain, in tests/data), with the
 # naive and 2.5D remapped baselines and camera renders of the quantised print (a few minutes on 2 cores).
 demo-object: build
 	rm -rf results/demo-object
-	$(PY) scripts/optimize_print.py --mesh tests/data/meshes/spot/spot_triangulated.obj \
+	$(VENV)/bin/ta-optimize-print --mesh tests/data/meshes/spot/spot_triangulated.obj \
 		--texture tests/data/meshes/spot/spot_texture.png --height-mm 8 --dpi 150 --shell-mm 1.5 --spp 8 \
 		--iterations 60 --eval-every 10 --eval-spp 64 --table-steps 4 --remap-baseline $(DEMO_ARGS) \
 		--out results/demo-object

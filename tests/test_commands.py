@@ -23,7 +23,7 @@ COMMANDS = _commands()
 
 
 def test_every_command_follows_the_naming_scheme():
-    assert len(COMMANDS) >= 5
+    assert len(COMMANDS) >= 8
     for name, target in COMMANDS.items():
         module, _, func = target.partition(":")
         assert name.startswith("ta-") and func == "main", (name, target)
@@ -45,6 +45,9 @@ def test_help_shows_an_example_from_any_folder(name, tmp_path):
 
 
 BAD = {
+    "ta-optimize-print": (["--threads", "0"], "--threads"),
+    "ta-select-inks": (["-k", "x"], "-k"),
+    "ta-fit-wood": (["photo.png", "--dpi", "0"], "--dpi"),
     "ta-voxelize": (["missing.obj", "--dpi", "0"], "--dpi"),
     "ta-render-object": (["--spp", "0"], "--spp"),
     "ta-render-wood-volume": (["--synthetic", "1", "--spp", "x"], "--spp"),

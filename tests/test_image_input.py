@@ -7,7 +7,7 @@ from known integer values; the expected floats are those integers over 2**bits -
 out from IEC 61966-2-1.
 """
 import contextlib
-import importlib.util
+import importlib
 import io
 import os
 import warnings
@@ -276,14 +276,7 @@ def test_corrupt_files_are_refused(tmp_path, good):
 # every command that reads images refuses them, before writing anything
 # ----------------------------------------------------------------------------------------------------------------
 def _load_script(script):
-    name = script[:-3]
-    try:
-        return importlib.import_module(f"torch_appearance.cli.{name}")
-    except ModuleNotFoundError:  # a tool not yet moved into torch_appearance.cli
-        spec = importlib.util.spec_from_file_location(f"_image_input_{name}", os.path.join(ROOT, "scripts", script))
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        return mod
+    return importlib.import_module(f"torch_appearance.cli.{script[:-3]}")
 
 
 @pytest.fixture(scope="module")
@@ -455,7 +448,7 @@ def test_optimize_print_refuses_truncated_jpeg_as_a_user_runs_it(tmp_path, good)
     folder.mkdir()
     path = _cut(good[".jpg"], folder / "photo.jpg", os.path.getsize(good[".jpg"]) // 2)
     out = tmp_path / "run"
-    result = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "optimize_print.py"), "--target", path,
+    result = subprocess.run([sys.executable, "-m", "torch_appearance.cli.optimize_print", "--target", path,
                              "--iterations", "1", "--out", str(out), "--quiet"],
                             capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": ROOT})
     assert result.returncode == 2, result.stderr[-2000:]

@@ -1,7 +1,6 @@
-"""scripts/select_inks.py (ink-set selection, paper Fig. 15) on a tiny slab: every combination run once on a shared
+"""ta-select-inks (ink-set selection, paper Fig. 15) on a tiny slab: every combination run once on a shared
 target, ranked by the final quantised CIEDE2000, finished runs skipped on a rerun, bad input → exit code 2."""
 import csv
-import importlib.util
 import json
 import os
 
@@ -14,10 +13,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 @pytest.fixture(scope="module")
 def cli():
-    spec = importlib.util.spec_from_file_location("select_inks_cli", os.path.join(ROOT, "scripts", "select_inks.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from torch_appearance.cli import select_inks
+    return select_inks
 
 
 def _user_inks(path, g=0.4):
@@ -115,7 +112,7 @@ def test_bad_input_exit_code_2(cli, tmp_path, capsys, extra, match):
             args += extra[i:i + 2]
     assert cli.main(args) == 2
     err = capsys.readouterr().err
-    assert err.startswith("select_inks.py: error: ") and match in err, err
+    assert err.startswith("ta-select-inks: error: ") and match in err, err
     assert not (tmp_path / "sel").exists()  # nothing written
 
 

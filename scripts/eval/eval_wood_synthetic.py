@@ -42,7 +42,7 @@ import time
 import numpy as np
 
 from torch_appearance import io as ta_io
-from torch_appearance.pipelines.wood.cli import add_fit_arguments, config_from_args
+from torch_appearance.cli.fit_wood import add_fit_arguments, config_from_args
 
 PROG = "eval_wood_synthetic.py"
 BAND = 0.05  # relative ring-scale tolerance of the summary and the plot

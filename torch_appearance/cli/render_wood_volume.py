@@ -28,7 +28,7 @@ def parse_args(argv=None):
     d = WoodVolumeConfig()
     s = d.shade
     p = CommandParser(PROG, __doc__)
-    p.add_argument("fit_dir", nargs="?", default=None, help="run folder of scripts/fit_wood.py (model.json, "
+    p.add_argument("fit_dir", nargs="?", default=None, help="run folder of ta-fit-wood (model.json, "
                    "model.pt, params.json)")
     p.add_argument("--synthetic", type=int, metavar="SEED", default=None,
                    help="use the synthetic board of this seed (rings.synthetic_board) instead of a fit")

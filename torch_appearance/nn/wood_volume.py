@@ -41,7 +41,7 @@ __all__ = ["WoodVolume", "wood_volume", "load_wood_fit", "FIT_FILES", "SIGMA_EAR
 #: Extinction of early and late wood (mm⁻¹), the wood paper §4.2.
 SIGMA_EARLY = 6.5
 SIGMA_LATE = 16.0
-#: Files of a ``scripts/fit_wood.py`` run folder that :func:`load_wood_fit` needs.
+#: Files of a ``ta-fit-wood`` run folder that :func:`load_wood_fit` needs.
 FIT_FILES = ("model.json", "model.pt", "params.json")
 
 
@@ -175,7 +175,7 @@ def wood_volume(model, grid_shape, voxel_size, origin=(0.0, 0.0, 0.0), *, world_
 
 
 def load_wood_fit(fit_dir):
-    """Load the fitted model of a ``scripts/fit_wood.py`` run folder.
+    """Load the fitted model of a ``ta-fit-wood`` run folder.
 
     Args:
         fit_dir: the run folder; it must hold ``model.json``, ``model.pt`` (:meth:`WoodModel.save`) and
@@ -190,13 +190,13 @@ def load_wood_fit(fit_dir):
     from .wood import WoodModel
 
     if not isinstance(fit_dir, (str, os.PathLike)) or str(fit_dir) == "":
-        raise TypeError(f"fit_dir: expected a path to a fit_wood.py run folder, got {fit_dir!r}")
+        raise TypeError(f"fit_dir: expected a path to a ta-fit-wood run folder, got {fit_dir!r}")
     if not os.path.isdir(fit_dir):
-        raise ValueError(f"fit_dir: expected a run folder of scripts/fit_wood.py, got {str(fit_dir)!r}, which is not "
+        raise ValueError(f"fit_dir: expected a run folder of ta-fit-wood, got {str(fit_dir)!r}, which is not "
                          f"a folder")
     missing = [f for f in FIT_FILES if not os.path.isfile(os.path.join(fit_dir, f))]
     if missing:
-        raise ValueError(f"fit_dir: expected a run folder of scripts/fit_wood.py holding {', '.join(FIT_FILES)}, "
+        raise ValueError(f"fit_dir: expected a run folder of ta-fit-wood holding {', '.join(FIT_FILES)}, "
                          f"got {str(fit_dir)!r} without {', '.join(missing)}")
     try:
         with open(os.path.join(fit_dir, "params.json"), encoding="utf-8") as fh:

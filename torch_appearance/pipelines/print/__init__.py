@@ -11,7 +11,7 @@
 * :mod:`.loop`: :func:`optimize_print`, :func:`build_target`, :func:`remap_baseline`;
 * :mod:`.report`: the run folder's figures (:class:`matplotlib.figure.Figure`), :mod:`.object_figures` the
   object's views; :mod:`.run_folder` its files and scores;
-* :mod:`.cli`: the command line (``scripts/optimize_print.py``) and the flags other print tools share.
+* the command line is :mod:`torch_appearance.cli.optimize_print` (``ta-optimize-print``).
 """
 from .config import PrintConfig, iteration_seed, load_inks
 from .loop import build_target, optimize_print, remap_baseline

@@ -13,7 +13,7 @@ __all__ = ["PrintConfig", "load_inks", "iteration_seed"]
 
 @dataclass
 class PrintConfig:
-    """Settings of one print optimisation run (every field is a flag of scripts/optimize_print.py).
+    """Settings of one print optimisation run (every field is a flag of ta-optimize-print).
 
     Lengths in mm; ``dpi`` is the optimisation voxel pitch (300 DPI ≈ 0.0847 mm cubic voxels).
 

@@ -6,7 +6,7 @@
   :mod:`.photometric_stage` (stage 3, reparameterised colour fit);
 * :mod:`.measures`: ring width, ring boundaries, latewood contrast, fit metrics;
 * :mod:`.report`: the run folder's images and figures (:class:`matplotlib.figure.Figure`);
-* :mod:`.cli`: the command line (``scripts/fit_wood.py``) and the fit flags the wood commands share.
+* the command line is :mod:`torch_appearance.cli.fit_wood` (``ta-fit-wood``), with the fit flags the wood commands share.
 """
 from .colour_stage import match_luminance_histogram
 from .config import LOG_FIELDS, WoodFitConfig

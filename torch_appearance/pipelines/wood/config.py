@@ -17,7 +17,7 @@ MIN_RINGS_FOR_SCALE = 6
 
 @dataclass
 class WoodFitConfig:
-    """Settings of one wood fit (every field is a flag of scripts/fit_wood.py)."""
+    """Settings of one wood fit (every field is a flag of ta-fit-wood)."""
     photo: str
     out: str = "results/wood"
     pixel_size_mm: float = 0.1

@@ -7,7 +7,7 @@ from the traced rings and the unwrapped phase residual) → stage 1 (:mod:`.geom
 E = wrap(J_φ − I_φ)² with Adam (lr 0.03, 500 epochs) over the board transform, ring scale and distortion, the
 distortion coarse to fine (3 levels, so no texel cell slips by a ring) → stage 2 (:mod:`.colour_stage`): colour map
 (32 lateness bins) with the geometry frozen → optional stage 3 (:mod:`.photometric_stage`) → run folder
-(:mod:`.report`, :mod:`.measures`). :mod:`.cli` is the command line (``scripts/fit_wood.py``).
+(:mod:`.report`, :mod:`.measures`). :mod:`torch_appearance.cli.fit_wood` is the command line (``ta-fit-wood``).
 """
 import copy
 import math

@@ -1,6 +1,6 @@
-"""The print optimisation's command line (:func:`main`, behind ``scripts/optimize_print.py``) and the pieces other
-print tools share (scripts/select_inks.py): the target and optimisation flags of :class:`PrintConfig`, and the
-config built from them.
+"""``ta-optimize-print``: the print optimisation's command line (:func:`main`), and the pieces other print tools
+share (``ta-select-inks``): the target and optimisation flags of :class:`PrintConfig`, and the config built from
+them.
 
 Optimise the ink arrangement of a printed slab or textured object so that its rendered look matches a target:
 ink mixtures → C++ path tracer (radiative backpropagation) → perceptual appearance loss (ΔE76², 3D SSIM, 3D Sobel)
@@ -13,25 +13,26 @@ voxelised at --dpi, and only a shell of --shell-mm below its surface is optimise
 the surface is a smooth dielectric (--ior), the texels shoot inward from the surface.
 
 Examples:
-    python scripts/optimize_print.py --target colorchecker --iterations 200 --out results/colorchecker
-    python scripts/optimize_print.py --target zebra --gamma 1,3,1 --out results/zebra
-    python scripts/optimize_print.py --target photo.png --bottom-target back.exr --width-mm 20 --out results/mine
-    python scripts/optimize_print.py --mesh spot.obj --texture spot_texture.png --height-mm 20 --out results/spot
-    python scripts/optimize_print.py --out results/mine --resume     # continue an interrupted run
+    ta-optimize-print --target colorchecker --iterations 200 --out results/colorchecker
+    ta-optimize-print --target zebra --gamma 1,3,1 --out results/zebra
+    ta-optimize-print --target photo.png --bottom-target back.exr --width-mm 20 --out results/mine
+    ta-optimize-print --mesh spot.obj --texture spot_texture.png --height-mm 20 --out results/spot
+    ta-optimize-print --out results/mine --resume     # continue an interrupted run
 """
 import argparse
 import dataclasses
 import os
 import sys
 
-from ...fabrication.inks import DEFAULT_INKS, INKS
-from .config import PrintConfig
-from .loop import optimize_print
+from ..fabrication.inks import DEFAULT_INKS, INKS
+from ..pipelines.print.config import PrintConfig
+from ..pipelines.print.loop import optimize_print
+from .command import CommandParser, check_output_folder, fail
 
 __all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args", "ink_names_help",
            "parser", "main"]
 
-PROG = "optimize_print.py"
+PROG = "ta-optimize-print"
 
 
 def float_tuple(n, name):
@@ -125,9 +126,7 @@ def config_from_args(args, **overrides):
 def parser(prog=PROG):
     """The ``optimize_print`` argument parser: every flag names a :class:`PrintConfig` field, plus ``--threads``
     and ``--quiet``."""
-    _, description, epilog = __doc__.split("\n\n", 2)
-    p = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = CommandParser(prog, __doc__.split("\n\n", 1)[1])
     add_target_arguments(p)
     p.add_argument("--inks", default=",".join(DEFAULT_INKS), help=f"{ink_names_help()} (default: %(default)s)")
     add_optimization_arguments(p)
@@ -157,10 +156,12 @@ def main(argv=None, prog=PROG):
     refused input, with the message on stderr)."""
     import torch
 
-    args = parser(prog).parse_args(argv)
+    p = parser(prog)
+    args = p.parse_args(argv)
+    check_output_folder(p, "--out", args.out)
     if args.threads is not None:
         if args.threads < 1:
-            raise SystemExit(f"--threads: expected >= 1, got {args.threads}")
+            p.error(f"--threads: expected >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     cfg = config_from_args(args)
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # started by torchrun: data-parallel rendering
@@ -170,9 +171,12 @@ def main(argv=None, prog=PROG):
     try:
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
-        print(f"{prog}: error: {error}", file=sys.stderr)
-        return 2
+        return fail(prog, error)
     finally:
         if distributed:
             dist.destroy_process_group()
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,4 +1,4 @@
-"""The wood fit's command line (:func:`main`, behind ``scripts/fit_wood.py``) and the one settings block the wood
+"""``ta-fit-wood``: the wood fit's command line (:func:`main`), and the one settings block the wood
 commands share (:func:`add_fit_arguments`, :func:`config_from_args`): every flag names a :class:`WoodFitConfig`
 field, with its default.
 
@@ -13,19 +13,19 @@ board_estimate.json, model.json + model.pt, fit_vs_photo.png, phase_error.png, c
 --photometric also fit_before_photometric.png and model_before_photometric.json + .pt).
 
 Examples:
-    python scripts/fit_wood.py board.png --pixel-size-mm 0.1 --out results/board
-    python scripts/fit_wood.py board.jpg --dpi 600 --epochs 300 --out results/board600
-    python scripts/fit_wood.py board.png --photometric --out results/board_photo
+    ta-fit-wood board.png --pixel-size-mm 0.1 --out results/board
+    ta-fit-wood board.jpg --dpi 600 --epochs 300 --out results/board600
+    ta-fit-wood board.png --photometric --out results/board_photo
 """
-import argparse
 import sys
 
-from .config import WoodFitConfig
-from .fit import fit_wood
+from ..pipelines.wood.config import WoodFitConfig
+from ..pipelines.wood.fit import fit_wood
+from .command import CommandParser, check_output_folder, fail
 
 __all__ = ["add_fit_arguments", "config_from_args", "parser", "main", "FIT_FLAGS"]
 
-PROG = "fit_wood.py"
+PROG = "ta-fit-wood"
 
 #: The fit's flags: (flag, add_argument keywords, help); the defaults come from WoodFitConfig.
 FIT_FLAGS = {
@@ -96,9 +96,7 @@ def config_from_args(args, **fields):
 def parser(prog=PROG):
     """The ``fit_wood`` argument parser."""
     d = WoodFitConfig(photo="")
-    description, epilog = __doc__.split("\n\n", 2)[1], __doc__.split("\n\n", 2)[2]
-    p = argparse.ArgumentParser(prog=prog, description=description.split("\n\n")[0], epilog=epilog,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = CommandParser(prog, __doc__.split("\n\n", 1)[1])
     p.add_argument("photo", help="photo of a planar board (PNG/JPG sRGB or linear EXR)")
     p.add_argument("--out", default=d.out, help="run folder (default: %(default)s)")
     size = p.add_mutually_exclusive_group()
@@ -114,16 +112,20 @@ def parser(prog=PROG):
 def main(argv=None, prog=PROG):
     """Run :func:`fit_wood` with the flags in ``argv`` (default ``sys.argv[1:]``); returns the exit status (2 for
     refused input, with the message on stderr)."""
-    args = parser(prog).parse_args(argv)
+    p = parser(prog)
+    args = p.parse_args(argv)
+    check_output_folder(p, "--out", args.out)
     pixel = args.pixel_size_mm if args.pixel_size_mm is not None else (
         25.4 / args.dpi if args.dpi else WoodFitConfig(photo="").pixel_size_mm)
     if args.dpi is not None and args.dpi <= 0:
-        print(f"{prog}: error: --dpi: expected > 0, got {args.dpi}", file=sys.stderr)
-        return 2
+        p.error(f"--dpi: expected > 0, got {args.dpi}")
     cfg = config_from_args(args, photo=args.photo, out=args.out, pixel_size_mm=pixel, preview=not args.no_preview)
     try:
         fit_wood(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
-        print(f"{prog}: error: {error}", file=sys.stderr)
-        return 2
+        return fail(prog, error)
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
