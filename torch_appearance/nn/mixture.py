@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..fabrication.inks import Ink, InkSet
-from ..render.checks import all_finite
+from ..checks import all_finite
 
 __all__ = ["MaterialMixture", "FixedFraction", "mix_inks"]
 

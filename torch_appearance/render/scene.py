@@ -20,7 +20,7 @@ from typing import Optional, Tuple
 import torch
 
 from .boundary import BoxBoundary, SDFBoundary
-from .checks import check_int, check_real, check_vector3
+from ..checks import check_int, check_real, check_vector3
 from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
 from .phase import HenyeyGreenstein
 from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels

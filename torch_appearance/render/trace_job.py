@@ -8,7 +8,7 @@
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
-from .checks import check_seed, check_spp
+from ..checks import check_seed, check_spp
 from .scene import Scene, check_chromatic, default_sigma_t_floor, derive_seed_grad
 
 __all__ = ["TraceJob", "check_partition"]
