@@ -185,8 +185,9 @@ def test_cli_bad_inputs(core_png, tmp_path, run_inproc):
     bad.write_bytes(b"not an image")
     cases = [((bad, "--out", out, "--overlay", ovl), "cannot read image"),
              ((tmp_path / "missing.png", "--out", out), "cannot read image"),
-             ((path, "--out", out, "--overlay", ovl, "--transect", "0,0,5000,10"), "outside the image"),
-             ((path, "--out", out, "--transect=-5,3,20,3"), "outside the image"),
+             ((path, "--out", out, "--overlay", ovl, "--transect", "0,0,5000,10"),
+              "transect end: expected (x, y) inside the image"),
+             ((path, "--out", out, "--transect=-5,3,20,3"), "transect start: expected (x, y) inside the image"),
              ((path, "--out", out, "--overlay", ovl, "--transect", "10,10,10,10"), "zero length"),
              ((path, "--out", out, "--transect", "1,2,3"), "four numbers"),
              ((path, "--out", out, "--dpi", "0"), "--dpi")]

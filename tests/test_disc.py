@@ -145,15 +145,15 @@ def test_transects_by_end_points(disc):
 
 def test_bad_input(disc):
     rgb, _ = disc
-    with pytest.raises(ValueError, match="pith .* outside the image"):
+    with pytest.raises(ValueError, match=r"pith: expected \(x, y\) inside the image"):
         detect_disc_boundaries(rgb, (-3.0, 20.0))
-    with pytest.raises(ValueError, match="pith .* outside the image"):
+    with pytest.raises(ValueError, match=r"pith: expected \(x, y\) inside the image"):
         detect_disc_boundaries(rgb, (10.0, 400.0))
-    with pytest.raises(ValueError, match="pith must be two numbers"):
+    with pytest.raises(ValueError, match=r"pith: expected two numbers \(x, y\)"):
         detect_disc_boundaries(rgb, (1.0, 2.0, 3.0))
     with pytest.raises(ValueError, match="zero length"):
         detect_disc_boundaries(rgb, PITH, ends=[PITH])
-    with pytest.raises(ValueError, match="outside the image"):
+    with pytest.raises(ValueError, match=r"ends\[0\]: expected \(x, y\) inside the image"):
         detect_disc_boundaries(rgb, PITH, ends=[(5000.0, 10.0)])
     with pytest.raises(ValueError, match="zero length"):  # pith on the border, ray pointing out of the image
         detect_disc_boundaries(rgb, (0.0, 50.0), angles_deg=[180.0])
@@ -213,7 +213,7 @@ def test_cli_disc_mode(disc_png, tmp_path):
 def test_cli_disc_bad_inputs(disc_png, tmp_path):
     path, _ = disc_png
     out, ovl = tmp_path / "o.csv", tmp_path / "o.png"
-    cases = [(("--pith", "400,10"), "outside the image"),
+    cases = [(("--pith", "400,10"), "pith: expected (x, y) inside the image"),
              (("--pith", "150,160", "--transect", "150,160"), "zero length"),
              (("--pith", "150,160", "--transect", "1,2,3,4"), "end point X,Y"),
              (("--pith", "150"), "--pith"),

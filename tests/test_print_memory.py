@@ -224,7 +224,7 @@ def test_naive_extrusion_matches_in_blocks(grey, monkeypatch):
 
 
 def test_all_finite_in_chunks():
-    from torch_appearance.render.checks import all_finite
+    from torch_appearance.checks import all_finite
     x = torch.rand(4, 5, 6)
     assert all_finite(x, chunk=7)
     for where, bad in ((0, math.nan), (-1, math.inf), (57, -math.inf)):

@@ -64,7 +64,7 @@ def test_micro_voxel_size_and_grid_shape():
     assert micro_grid_pitch((2, 3, 4), 1.0) == pytest.approx((4 / 94, 3 / 35, 2 / 74), rel=1e-15)
     # a grid finer than the printer still gets at least one micro voxel per axis
     assert micro_grid_shape((1, 1, 1), 0.001) == (1, 1, 1)
-    with pytest.raises(ValueError, match=r"voxel_size_mm: expected a finite value > 0 \(mm\), got -1.0"):
+    with pytest.raises(ValueError, match=r"voxel_size_mm: expected a finite value in \(0, inf\], got -1.0"):
         micro_grid_shape((1, 1, 1), -1.0)
     with pytest.raises(ValueError, match=r"printer_dpi: expected finite values > 0"):
         micro_voxel_size((600, 0, 940))
@@ -295,7 +295,7 @@ def test_index_volume_round_trip(tmp_path):
     assert inks_back == inks and dpi == (600.0, 300.0, 940.0)
     with np.load(path, allow_pickle=False) as archive:   # plain arrays, no pickles
         assert sorted(archive.files) == ["dpi", "indices", "inks_json"]
-    with pytest.raises(ValueError, match=r"path must end with .npz"):
+    with pytest.raises(ValueError, match=r"path: expected a path ending with \.npz, got '.*volume\.npy'"):
         save_index_volume(tmp_path / "volume.npy", indices, inks)
     with pytest.raises(ValueError, match=r"indices: expected values in \[0, 2\)"):
         save_index_volume(path, indices + 2, inks)

@@ -24,7 +24,8 @@ def medium(n=N):
 
 @pytest.mark.parametrize("make,exc,match", [
     (lambda: SDFBoundary([[1.0]]), TypeError, "sdf: expected a torch.Tensor"),
-    (lambda: SDFBoundary(torch.ones(3, 3, dtype=torch.int32)), TypeError, "sdf: expected a floating-point tensor"),
+    (lambda: SDFBoundary(torch.ones(3, 3, dtype=torch.int32)), TypeError,
+     "sdf: expected a floating-point dtype, got torch.int32"),
     (lambda: SDFBoundary(torch.ones(3, 3)), ValueError, r"sdf: expected shape \(D\+1, H\+1, W\+1\)"),
     (lambda: SDFBoundary(torch.ones(1, 3, 3)), ValueError, "sdf: expected shape"),
     (lambda: SDFBoundary(torch.where(SDF < 0, math.nan, SDF)), ValueError, "sdf: expected finite values"),

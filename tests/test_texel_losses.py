@@ -195,13 +195,13 @@ def test_bad_inputs_are_named():
         TexelFilters(torch.cat([pos, pos[:1]]))
     f = TexelFilters(pos)
     x = _colours(len(pos), 0)
-    with pytest.raises(ValueError, match="pred must have shape"):
+    with pytest.raises(ValueError, match="pred: expected shape"):
         texel_appearance_loss(x[:-1], x[:-1], f)
-    with pytest.raises(TypeError, match="same dtype"):
+    with pytest.raises(TypeError, match="target: expected the dtype of pred"):
         texel_appearance_loss(x, x.float(), f)
     bad = x.clone()
     bad[0, 0] = float("nan")
-    with pytest.raises(ValueError, match="target has 1 non-finite"):
+    with pytest.raises(ValueError, match="target: expected finite values, got 1 NaN/Inf"):
         texel_appearance_loss(x, bad, f)
     with pytest.raises(TypeError, match="filters"):
         texel_appearance_loss(x, x, pos)

@@ -14,32 +14,27 @@ The numerical work is done by :mod:`kornia.color`; this module adapts it to the 
 
 All functions are differentiable and keep dtype and device.
 """
-import torch
+import torch  # noqa: F401 (the docstring examples use it)
 from kornia.color import lab_to_rgb as _kornia_lab_to_rgb
 from kornia.color import linear_rgb_to_rgb as _kornia_linear_rgb_to_rgb
 from kornia.color import rgb_to_lab as _kornia_rgb_to_lab
 from kornia.color import rgb_to_linear_rgb as _kornia_rgb_to_linear_rgb
 
+from .checks import check_tensor, describe
+
 __all__ = ["linear_to_srgb", "srgb_to_linear", "rgb_to_lab", "lab_to_rgb"]
-
-
-def _check_float_tensor(name, value):
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    if not value.is_floating_point():
-        raise TypeError(f"{name} must have a floating-point dtype, got {value.dtype}")
 
 
 def _channel_dim(name, image, dim):
     """Normalise ``dim`` and check that ``image`` has 3 channels there."""
     if isinstance(dim, bool) or not isinstance(dim, int):
-        raise TypeError(f"dim must be an int, got {type(dim).__name__}")
+        raise TypeError(f"dim: expected an int, got {describe(dim)}")
     if image.dim() == 0 or not -image.dim() <= dim < image.dim():
-        raise ValueError(f"dim={dim} is out of range for {name} of shape {tuple(image.shape)}")
+        raise ValueError(f"dim: expected an axis of {name} of shape {tuple(image.shape)}, got {dim} (out of range)")
     dim = dim % image.dim()
     if image.shape[dim] != 3:
         raise ValueError(
-            f"{name} must have 3 colour channels at dim={dim}, got shape {tuple(image.shape)} "
+            f"{name}: expected 3 colour channels at dim={dim}, got shape {tuple(image.shape)} "
             f"(pass dim=-3 for (*, 3, H, W) images, dim=-1 for (..., 3))"
         )
     return dim
@@ -79,7 +74,7 @@ def linear_to_srgb(image):
         >>> linear_to_srgb(torch.tensor([0.0, 0.0031308, 0.5, 1.0], dtype=torch.float64))
         tensor([0.0000, 0.0404, 0.7354, 1.0000], dtype=torch.float64)
     """
-    _check_float_tensor("image", image)
+    check_tensor("image", image, "(..., 3) or (*, 3, H, W)", dtypes="floating")
     return _apply_elementwise(_kornia_linear_rgb_to_rgb, image)
 
 
@@ -99,7 +94,7 @@ def srgb_to_linear(image):
         >>> srgb_to_linear(torch.tensor([0.04045, 1.0], dtype=torch.float64))
         tensor([0.0031, 1.0000], dtype=torch.float64)
     """
-    _check_float_tensor("image", image)
+    check_tensor("image", image, "(..., 3) or (*, 3, H, W)", dtypes="floating")
     return _apply_elementwise(_kornia_rgb_to_linear_rgb, image)
 
 
@@ -126,7 +121,7 @@ def rgb_to_lab(image, *, dim=-1):
         tensor([[100.0000,  -0.0000,   0.0000],
                 [ 49.5000,  -0.0000,   0.0000]], dtype=torch.float64)
     """
-    _check_float_tensor("image", image)
+    check_tensor("image", image, "(..., 3) or (*, 3, H, W)", dtypes="floating")
     dim = _channel_dim("image", image, dim)
     return _apply_channels(lambda x: _kornia_rgb_to_lab(_kornia_linear_rgb_to_rgb(x)), image, dim)
 
@@ -151,9 +146,9 @@ def lab_to_rgb(image, *, dim=-1, clip=False):
         >>> lab_to_rgb(torch.tensor([100.0, 0.0, 0.0], dtype=torch.float64)).round(decimals=3)
         tensor([1., 1., 1.], dtype=torch.float64)
     """
-    _check_float_tensor("image", image)
+    check_tensor("image", image, "(..., 3) or (*, 3, H, W)", dtypes="floating")
     dim = _channel_dim("image", image, dim)
     if not isinstance(clip, bool):
-        raise TypeError(f"clip must be a bool, got {type(clip).__name__}")
+        raise TypeError(f"clip: expected a bool, got {describe(clip)}")
     rgb = _apply_channels(lambda x: _kornia_rgb_to_linear_rgb(_kornia_lab_to_rgb(x, clip=False)), image, dim)
     return rgb.clamp(0.0, 1.0) if clip else rgb

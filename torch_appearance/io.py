@@ -38,6 +38,7 @@ import numpy as np
 import OpenEXR
 import torch
 
+from .checks import check_choice, check_finite, check_path, describe
 from .color import linear_to_srgb, srgb_to_linear
 
 __all__ = ["read_image", "read_image_bytes", "read_mask", "decode_image", "strict_pillow", "IMAGE_FORMATS",
@@ -53,40 +54,23 @@ _FILE_MODE = 0o666 & ~_UMASK
 # --------------------------------------------------------------------------------------------------------------
 # argument checks
 # --------------------------------------------------------------------------------------------------------------
-def _check_path(name, path, suffixes=None):
-    if not isinstance(path, (str, os.PathLike)):
-        raise TypeError(f"{name} must be a str or os.PathLike, got {type(path).__name__}")
-    path = os.fspath(path)
-    if isinstance(path, bytes):
-        raise TypeError(f"{name} must be a str path, got bytes")
-    if not path:
-        raise ValueError(f"{name} must not be empty")
-    if suffixes is not None and not path.lower().endswith(suffixes):
-        raise ValueError(f"{name} must end with {' or '.join(suffixes)}, got {path!r}")
-    return path
-
-
 def _as_rgb_image(name, image):
     """Return ``image`` as a float64 ``(H, W, 3)`` NumPy array after checking type, shape and finiteness."""
     if isinstance(image, torch.Tensor):
         if image.is_complex() or image.dtype == torch.bool or not image.is_floating_point():
-            raise TypeError(f"{name} must have a floating-point dtype, got {image.dtype}")
+            raise TypeError(f"{name}: expected a floating-point dtype, got {image.dtype}")
         array = image.detach().to(device="cpu", dtype=torch.float64).numpy()
     elif isinstance(image, np.ndarray):
         if not np.issubdtype(image.dtype, np.floating):
-            raise TypeError(f"{name} must have a floating-point dtype, got {image.dtype}")
+            raise TypeError(f"{name}: expected a floating-point dtype, got {image.dtype}")
         array = image.astype(np.float64, copy=False)
     else:
-        raise TypeError(f"{name} must be a numpy.ndarray or torch.Tensor, got {type(image).__name__}")
+        raise TypeError(f"{name}: expected a numpy.ndarray or torch.Tensor of shape (H, W, 3), got {describe(image)}")
     if array.ndim != 3 or array.shape[2] != 3:
-        raise ValueError(f"{name} must have shape (H, W, 3), got {tuple(array.shape)}")
+        raise ValueError(f"{name}: expected shape (H, W, 3), got {tuple(array.shape)}")
     if array.shape[0] == 0 or array.shape[1] == 0:
-        raise ValueError(f"{name} must not be empty, got shape {tuple(array.shape)}")
-    finite = np.isfinite(array)
-    if not finite.all():
-        bad = int(array.size - np.count_nonzero(finite))
-        raise ValueError(f"{name} must be finite, got {bad} NaN/inf value(s)")
-    return array
+        raise ValueError(f"{name}: expected a non-empty image, got shape {tuple(array.shape)}")
+    return check_finite(name, array)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -102,9 +86,9 @@ def atomic_write_bytes(path, data):
         path: destination file (``str`` or ``os.PathLike``).
         data: the complete file content (``bytes``, ``bytearray`` or ``memoryview``).
     """
-    path = _check_path("path", path)
+    path = check_path("path", path)
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise TypeError(f"data must be bytes, got {type(data).__name__}")
+        raise TypeError(f"data: expected bytes, got {describe(data)}")
     directory = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
     try:
@@ -145,7 +129,7 @@ def write_exr(path, image):
     Example:
         >>> write_exr("render.exr", torch.rand(4, 5, 3))  # doctest: +SKIP
     """
-    path = _check_path("path", path, (".exr",))
+    path = check_path("path", path, (".exr",))
     array = _as_rgb_image("image", image)
     largest = float(np.abs(array).max())
     if largest > float(np.finfo(np.float32).max):
@@ -179,11 +163,11 @@ def write_png(path, image_linear, bits=8):
     Example:
         >>> write_png("render.png", torch.rand(4, 5, 3), bits=16)  # doctest: +SKIP
     """
-    path = _check_path("path", path, (".png",))
+    path = check_path("path", path, (".png",))
     if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)):
-        raise TypeError(f"bits must be the int 8 or 16, got {type(bits).__name__}")
+        raise TypeError(f"bits: expected the int 8 or 16, got {describe(bits)}")
     if bits not in (8, 16):
-        raise ValueError(f"bits must be 8 or 16, got {bits}")
+        raise ValueError(f"bits: expected 8 or 16, got {bits}")
     array = _as_rgb_image("image_linear", image_linear)
     srgb = linear_to_srgb(torch.from_numpy(array)).numpy()
     scale = float(2**bits - 1)
@@ -214,7 +198,7 @@ def read_png(path, linear=True):
         ValueError: the file cannot be decoded completely (truncated, corrupt, not an image).
     """
     if not isinstance(linear, bool):
-        raise TypeError(f"linear must be a bool, got {type(linear).__name__}")
+        raise TypeError(f"linear: expected a bool, got {describe(linear)}")
     return read_image(path, space="linear" if linear else "srgb")
 
 
@@ -391,8 +375,8 @@ def decode_image(path, *, name="path"):
 def _decode(path, name):
     """:func:`decode_image`, plus the embedded ICC profile (bytes or None)."""
     if not isinstance(name, str):
-        raise TypeError(f"name must be a str, got {type(name).__name__}")
-    path = _check_path(name, path)
+        raise TypeError(f"name: expected a str, got {describe(name)}")
+    path = check_path(name, path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{name}: no such file {path!r}")
     if os.path.isdir(path):
@@ -482,9 +466,10 @@ def read_image_bytes(data, *, source, space="linear", alpha="drop", name="image"
         as :func:`read_image`.
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise TypeError(f"data must be bytes, got {type(data).__name__}")
-    if not isinstance(source, str) or not isinstance(name, str):
-        raise TypeError(f"source and name must be str, got {type(source).__name__}, {type(name).__name__}")
+        raise TypeError(f"data: expected bytes, got {describe(data)}")
+    for arg, value in (("source", source), ("name", name)):
+        if not isinstance(value, str):
+            raise TypeError(f"{arg}: expected a str, got {describe(value)}")
     _check_conversion(space, alpha)
     return _convert(*_decode_data(bytes(data), source, name), source, name, space, alpha)
 
@@ -500,10 +485,8 @@ def _profile_description(icc):
 
 
 def _check_conversion(space, alpha):
-    if space not in ("linear", "srgb"):
-        raise ValueError(f"space must be 'linear' or 'srgb', got {space!r}")
-    if alpha not in ("drop", "mask"):
-        raise ValueError(f"alpha must be 'drop' or 'mask', got {alpha!r}")
+    check_choice("space", space, ("linear", "srgb"))
+    check_choice("alpha", alpha, ("drop", "mask"))
 
 
 @functools.lru_cache(maxsize=4)
@@ -564,7 +547,7 @@ def read_mask(path, *, name="mask", threshold=0.5):
         FileNotFoundError, ValueError: as :func:`read_image`.
     """
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
-        raise TypeError(f"threshold must be a finite number, got {threshold!r}")
+        raise TypeError(f"threshold: expected a finite number, got {threshold!r}")
     pixels, info = decode_image(path, name=name)
     scale = float(2 ** info["bits"] - 1) if info["encoding"] == "srgb" else 1.0
     if pixels.shape[2] >= 3:
@@ -591,7 +574,7 @@ def read_exr(path, *, name="path"):
         FileNotFoundError: ``path`` does not exist.
         ValueError: the file is not a readable EXR or lacks the ``R``, ``G``, ``B`` (or ``Y``) channels.
     """
-    path = _check_path(name, path)
+    path = check_path(name, path)
     if os.path.isfile(path):
         with open(path, "rb") as handle:
             if _sniff_format(handle.read(16)) != "OpenEXR":
@@ -629,7 +612,7 @@ def write_json(path, obj, *, indent=2):
         TypeError: ``obj`` holds a value that cannot be serialised.
         ValueError: ``obj`` holds NaN or infinity.
     """
-    path = _check_path("path", path)
+    path = check_path("path", path)
     try:
         text = json.dumps(obj, indent=indent, default=_json_default, allow_nan=False)
     except ValueError as error:

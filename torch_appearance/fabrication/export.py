@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from .. import io as _io
+from ..checks import check_path, describe
 from .inks import InkSet, ink_from_dict
 from .quantize import PRINTER_DPI, _check_dpi
 
@@ -56,14 +57,12 @@ def _check_indices(indices, n_inks=None):
 
 def _check_inks(inks):
     if not isinstance(inks, InkSet):
-        raise TypeError(f"inks: expected an InkSet, got {type(inks).__name__}")
+        raise TypeError(f"inks: expected an InkSet, got {describe(inks)}")
     return inks
 
 
 def _check_folder(folder):
-    if not isinstance(folder, (str, os.PathLike)):
-        raise TypeError(f"folder: expected a str or os.PathLike, got {type(folder).__name__}")
-    return os.fspath(folder)
+    return check_path("folder", folder)
 
 
 def _codes(rgb):
@@ -194,7 +193,7 @@ def save_index_volume(path, indices, inks, dpi=PRINTER_DPI):
     The archive holds ``indices`` (uint8, (Dz, Hy, Wx), layer 0 at the bottom), ``dpi`` (float64 (3,), x, y, z)
     and ``inks_json`` (the ink list as JSON text); it loads with ``allow_pickle=False``.
     """
-    path = _io._check_path("path", path, (".npz",))
+    path = check_path("path", path, (".npz",))
     inks = _check_inks(inks)
     indices = _check_indices(indices, len(inks))
     dpi = _check_dpi(dpi, "dpi")
@@ -214,7 +213,7 @@ def load_index_volume(path):
         FileNotFoundError: no such file.
         ValueError: the archive lacks an entry or holds invalid data.
     """
-    path = _io._check_path("path", path)
+    path = check_path("path", path)
     with np.load(path, allow_pickle=False) as archive:
         missing = [k for k in ("indices", "dpi", "inks_json") if k not in archive.files]
         if missing:

@@ -12,6 +12,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from ..checks import check_positive, is_real
+
 __all__ = ["PRINTER_DPI", "micro_voxel_size", "micro_grid_shape", "micro_grid_pitch", "source_index",
            "resample_nearest", "quantize_mixture", "hold_fixed_fractions", "index_volume_to_weights"]
 
@@ -26,7 +28,7 @@ def _check_dpi(printer_dpi, name="printer_dpi"):
     if isinstance(printer_dpi, (str, bytes)) or not isinstance(printer_dpi, (Sequence, np.ndarray)):
         raise TypeError(f"{name}: expected three numbers (x, y, z) in dots per inch, got {type(printer_dpi).__name__}")
     values = list(printer_dpi)
-    if len(values) != 3 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in values):
+    if len(values) != 3 or not all(is_real(v) for v in values):
         raise ValueError(f"{name}: expected three numbers (x, y, z) in dots per inch, got {printer_dpi!r}")
     values = tuple(float(v) for v in values)
     if not all(math.isfinite(v) and v > 0 for v in values):
@@ -35,11 +37,7 @@ def _check_dpi(printer_dpi, name="printer_dpi"):
 
 
 def _check_voxel_size(voxel_size_mm):
-    if isinstance(voxel_size_mm, bool) or not isinstance(voxel_size_mm, numbers.Real):
-        raise TypeError(f"voxel_size_mm: expected a real number (mm), got {type(voxel_size_mm).__name__}")
-    if not (math.isfinite(voxel_size_mm) and voxel_size_mm > 0):
-        raise ValueError(f"voxel_size_mm: expected a finite value > 0 (mm), got {voxel_size_mm!r}")
-    return float(voxel_size_mm)
+    return check_positive("voxel_size_mm", voxel_size_mm)
 
 
 def micro_voxel_size(printer_dpi=PRINTER_DPI):

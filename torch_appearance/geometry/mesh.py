@@ -5,7 +5,7 @@ import re
 
 import numpy as np
 
-from ..render.checks import check_real
+from ..checks import check_real
 
 __all__ = ["load_mesh"]
 

@@ -24,6 +24,8 @@ import uuid
 
 import numpy as np
 
+from ..checks import is_int
+
 __all__ = ["texel_rgb8", "render_texels", "render_texels_pyvista", "render_texels_matplotlib", "sdf_slice",
            "write_previews", "offscreen_rendering"]
 
@@ -157,9 +159,9 @@ def texel_rgb8(obj, what="color"):
 def _check_render_args(obj, values, views, size):
     n = int(len(obj.texel_points))
     if n == 0:
-        raise ValueError("obj: has no texels to render")
-    if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or not 1 <= views <= len(VIEWS):
-        raise ValueError(f"views: expected an int in 1..{len(VIEWS)}, got {views!r}")
+        raise ValueError("obj: expected a voxel object with texels to render, got one with 0 texels")
+    if not is_int(views) or not 1 <= views <= len(VIEWS):  # a ValueError for a wrong type too, as ever here
+        raise ValueError(f"views: expected an int in [1, {len(VIEWS)}], got {views!r}")
     if len(size) != 2 or not all(16 <= int(v) <= 8192 for v in size):
         raise ValueError(f"size: expected (width, height) in pixels, 16..8192, got {size!r}")
     return n, _as_rgb8(values, n), int(views)

@@ -6,7 +6,7 @@ corners of a (D, H, W) grid of voxels with edges ``voxel_size`` placed at ``orig
 """
 import torch
 
-from ..render.checks import check_int, check_real, check_vector3
+from ..checks import check_int, check_real, check_vector3
 from ..render.scene import voxel_edges
 
 __all__ = ["corner_points", "sphere_sdf", "torus_sdf", "box_sdf", "spherical_shell_sdf", "conical_shell_sdf"]

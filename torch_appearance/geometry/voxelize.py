@@ -19,7 +19,7 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
-from ..render.checks import check_int, check_real
+from ..checks import check_int, check_real
 from .surface import surface_attributes
 
 __all__ = ["VoxelObject", "voxelize", "MAX_GRID_BYTES"]

@@ -48,6 +48,7 @@ import torch
 from kornia.filters import get_gaussian_kernel1d
 from kornia.filters.kernels import get_sobel_kernel_3x3
 
+from ..checks import check_finite, check_odd_int, check_positive, check_tensor, describe, is_real
 from ..color import rgb_to_lab
 
 __all__ = [
@@ -88,36 +89,37 @@ _Texels = namedtuple("_Texels", "pred target mask positions count")
 # validation and preparation
 # ------------------------------------------------------------------------------------------------------------------
 def _check_volume(name, x, channels=3):
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.dtype not in _FLOAT_DTYPES:
-        raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")
-    if x.dim() not in (4, 5) or (channels is not None and x.shape[-4] != channels):
-        want = f"{channels}" if channels is not None else "C"
-        raise ValueError(f"{name} must have shape ({want}, D, H, W) or (B, {want}, D, H, W), got {tuple(x.shape)}")
+    want = f"{channels}" if channels is not None else "C"
+    shape_desc = f"({want}, D, H, W) or (B, {want}, D, H, W)"
+    check_tensor(name, x, shape_desc, ndim=(4, 5), dtypes=_FLOAT_DTYPES)
+    if channels is not None and x.shape[-4] != channels:
+        raise ValueError(f"{name}: expected shape {shape_desc}, got {tuple(x.shape)}")
     if x.dim() == 5 and x.shape[0] == 0:
-        raise ValueError(f"{name} has an empty batch: shape {tuple(x.shape)}")
+        raise ValueError(f"{name}: expected a batch of B >= 1, got shape {tuple(x.shape)}")
+
+
+def _check_like(names, pred, target):
+    """``target`` has the shape, dtype and device of ``pred`` (the loss pair's semantics)."""
+    if pred.shape != target.shape:
+        raise ValueError(f"{names[1]}: expected the shape of {names[0]} {tuple(pred.shape)}, "
+                         f"got {tuple(target.shape)}")
+    if pred.dtype != target.dtype:
+        raise TypeError(f"{names[1]}: expected the dtype of {names[0]} ({pred.dtype}), got {target.dtype}")
+    if pred.device != target.device:
+        raise ValueError(f"{names[1]}: expected the device of {names[0]} ({pred.device}), got {target.device}")
 
 
 def _check_pair(pred, target, channels=3, names=("pred", "target")):
     _check_volume(names[0], pred, channels)
     _check_volume(names[1], target, channels)
-    if pred.shape != target.shape:
-        raise ValueError(f"{names[0]} and {names[1]} must have the same shape, got {tuple(pred.shape)} and "
-                         f"{tuple(target.shape)}")
-    if pred.dtype != target.dtype:
-        raise TypeError(f"{names[0]} and {names[1]} must have the same dtype, got {pred.dtype} and {target.dtype}")
-    if pred.device != target.device:
-        raise ValueError(f"{names[0]} and {names[1]} must be on the same device, got {pred.device} and "
-                         f"{target.device}")
+    _check_like(names, pred, target)
 
 
 def _check_mask(mask, like):
     """Validate ``mask`` against the volume ``like`` (4D or 5D); return it as bool ``(Bm, 1, D, H, W)``."""
-    if not isinstance(mask, torch.Tensor):
-        raise TypeError(f"mask must be a torch.Tensor, got {type(mask).__name__}")
+    check_tensor("mask", mask, "(D, H, W) or (B, 1, D, H, W)")
     if mask.dtype.is_complex:
-        raise TypeError(f"mask must be bool or real with values in {{0, 1}}, got {mask.dtype}")
+        raise TypeError(f"mask: expected bool or real values in {{0, 1}}, got {mask.dtype}")
     spatial = tuple(like.shape[-3:])
     batch = like.shape[0] if like.dim() == 5 else 1
     if mask.dim() == 3 and tuple(mask.shape) == spatial:
@@ -127,16 +129,17 @@ def _check_mask(mask, like):
         pass
     else:
         allowed = f"{spatial}" + (f" or {(batch, 1) + spatial}" if like.dim() == 5 else "")
-        raise ValueError(f"mask must have shape {allowed} to match the colours of shape {tuple(like.shape)}, "
+        raise ValueError(f"mask: expected shape {allowed} to match the colours of shape {tuple(like.shape)}, "
                          f"got {tuple(mask.shape)}")
     if mask.device != like.device:
-        raise ValueError(f"mask must be on the colours' device {like.device}, got {mask.device}")
+        raise ValueError(f"mask: expected the colours' device {like.device}, got {mask.device}")
     if mask.dtype != torch.bool:
         if not bool(((mask == 0) | (mask == 1)).all()):
-            raise ValueError("mask must hold only 0 and 1 (or be bool), got other values")
+            raise ValueError("mask: expected only 0 and 1 (or bool), got other values")
         mask = mask != 0
     if not bool(mask.any()):
-        raise ValueError(f"mask selects no texels (all False, shape {tuple(mask.shape)}): the loss is undefined")
+        raise ValueError(f"mask: expected at least one texel (the loss is undefined without), got all False in "
+                         f"shape {tuple(mask.shape)}")
     return mask
 
 
@@ -164,7 +167,7 @@ def _sanitize(name, x, mask):
     x = torch.where(mask, x, x.new_zeros(()))
     bad = ~torch.isfinite(x.detach())
     if bool(bad.any()):
-        raise ValueError(f"{name} has {int(bad.sum())} non-finite values (NaN or inf) at texels where mask is True")
+        raise ValueError(f"{name}: expected finite values where mask is True, got {int(bad.sum())} NaN/Inf entries")
     return x
 
 
@@ -190,14 +193,8 @@ def _normalize_lab(lab):
 
 
 def _check_window(window_size, sigma):
-    if isinstance(window_size, bool) or not isinstance(window_size, int):
-        raise TypeError(f"window_size must be an int, got {type(window_size).__name__}")
-    if window_size < 1 or window_size % 2 == 0:
-        raise ValueError(f"window_size must be a positive odd int, got {window_size}")
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)):
-        raise TypeError(f"sigma must be a float, got {type(sigma).__name__}")
-    if not (math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be finite and > 0, got {sigma}")
+    check_odd_int("window_size", window_size)
+    check_positive("sigma", sigma)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -400,8 +397,8 @@ def masked_ssim3d(img1, img2, mask, window_size=11, sigma=1.5, c1=SSIM_C1, c2=SS
     _check_pair(img1, img2, channels=None, names=("img1", "img2"))
     _check_window(window_size, sigma)
     for name, value in (("c1", c1), ("c2", c2)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if not is_real(value) or not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     mask = _check_mask(mask, img1)
     squeeze = img1.dim() == 4
     if squeeze:
@@ -511,11 +508,11 @@ def _check_gamma(gamma):
     try:
         values = tuple(float(g) for g in gamma)
     except TypeError:
-        raise TypeError(f"gamma must be a sequence of 3 numbers, got {type(gamma).__name__}") from None
+        raise TypeError(f"gamma: expected a sequence of 3 numbers, got {describe(gamma)}") from None
     if len(values) != 3:
-        raise ValueError(f"gamma must have 3 weights (γ1, γ2, γ3), got {len(values)}")
+        raise ValueError(f"gamma: expected 3 weights (γ1, γ2, γ3), got {len(values)}")
     if not all(math.isfinite(g) and g >= 0 for g in values) or sum(values) <= 0:
-        raise ValueError(f"gamma must be finite, >= 0 and not all 0, got {values}")
+        raise ValueError(f"gamma: expected finite weights >= 0, not all 0, got {values}")
     return values
 
 
@@ -627,13 +624,8 @@ _ROW_CHUNK = 4096
 
 
 def _check_positions(positions):
-    if not isinstance(positions, torch.Tensor):
-        raise TypeError(f"positions must be a torch.Tensor, got {type(positions).__name__}")
-    if positions.dtype.is_floating_point or positions.dtype.is_complex or positions.dtype == torch.bool:
-        raise TypeError(f"positions must be an integer tensor of voxel indices, got {positions.dtype}")
-    if positions.dim() != 2 or positions.shape[1] != 3 or positions.shape[0] == 0:
-        raise ValueError(f"positions must have shape (N, 3) with N >= 1 (voxel indices z, y, x), got "
-                         f"{tuple(positions.shape)}")
+    shape_desc = "(N, 3) with N >= 1 (voxel indices z, y, x)"
+    check_tensor("positions", positions, shape_desc, ndim=2, last=3, dtypes="integer", nonempty=True)
 
 
 def _csr(crow, col, values, n):
@@ -709,7 +701,7 @@ class TexelFilters:
         self._keys, self.order = torch.sort(keys)
         if self.num_texels > 1 and bool((self._keys[1:] == self._keys[:-1]).any()):
             dup = int((self._keys[1:] == self._keys[:-1]).sum())
-            raise ValueError(f"positions must be distinct voxels, got {dup} duplicate(s) among {self.num_texels}")
+            raise ValueError(f"positions: expected distinct voxels, got {dup} duplicate(s) among {self.num_texels}")
         self._pos = pos[self.order]  # (N, 3) in sorted order
         self._cache = {}
 
@@ -815,27 +807,17 @@ class TexelFilters:
 
 
 def _check_texel_pair(pred, target, filters):
+    n = filters.num_texels
+    shape_desc = f"({n}, 3) or (B, {n}, 3) (one linear RGB colour per texel position)"
     for name, x in (("pred", pred), ("target", target)):
-        if not isinstance(x, torch.Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-        if x.dtype not in _FLOAT_DTYPES:
-            raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")
-        if x.dim() not in (2, 3) or x.shape[-1] != 3 or x.shape[-2] != filters.num_texels:
-            raise ValueError(f"{name} must have shape ({filters.num_texels}, 3) or (B, {filters.num_texels}, 3) "
-                             f"(one linear RGB colour per texel position), got {tuple(x.shape)}")
+        check_tensor(name, x, shape_desc, ndim=(2, 3), last=3, dtypes=_FLOAT_DTYPES)
+        if x.shape[-2] != n:
+            raise ValueError(f"{name}: expected shape {shape_desc}, got {tuple(x.shape)}")
         if x.dim() == 3 and x.shape[0] == 0:
-            raise ValueError(f"{name} has an empty batch: shape {tuple(x.shape)}")
-    if pred.shape != target.shape:
-        raise ValueError(f"pred and target must have the same shape, got {tuple(pred.shape)} and "
-                         f"{tuple(target.shape)}")
-    if pred.dtype != target.dtype:
-        raise TypeError(f"pred and target must have the same dtype, got {pred.dtype} and {target.dtype}")
-    if pred.device != target.device:
-        raise ValueError(f"pred and target must be on the same device, got {pred.device} and {target.device}")
+            raise ValueError(f"{name}: expected a batch of B >= 1, got shape {tuple(x.shape)}")
+    _check_like(("pred", "target"), pred, target)
     for name, x in (("pred", pred), ("target", target)):
-        bad = ~torch.isfinite(x.detach())
-        if bool(bad.any()):
-            raise ValueError(f"{name} has {int(bad.sum())} non-finite values (NaN or inf)")
+        check_finite(name, x)
 
 
 def _texel_columns(x, order):
@@ -874,7 +856,7 @@ def texel_appearance_loss(pred, target, filters, gamma=(1.0, 3.0, 1.0), return_p
         ['E1', 'E2', 'E3']
     """
     if not isinstance(filters, TexelFilters):
-        raise TypeError(f"filters must be a TexelFilters, got {type(filters).__name__}")
+        raise TypeError(f"filters: expected a TexelFilters, got {describe(filters)}")
     gamma = _check_gamma(gamma)
     _check_texel_pair(pred, target, filters)
     batch = 1 if pred.dim() == 2 else pred.shape[0]

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..checks import check_finite, check_tensor
 from ..fabrication.inks import Ink, InkSet
-from ..render.checks import all_finite
 
 __all__ = ["MaterialMixture", "FixedFraction", "mix_inks"]
 
@@ -48,19 +48,11 @@ def _as_inkset(name, inks):
 
 
 def _check_weights(name, weights, n_inks):
-    if isinstance(weights, np.ndarray):
-        weights = torch.from_numpy(weights)
-    if not isinstance(weights, torch.Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor or numpy.ndarray of shape (N, D, H, W), "
-                        f"got {type(weights).__name__}")
-    if not weights.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point dtype, got {weights.dtype}")
+    weights = check_tensor(name, weights, "(N, D, H, W)", dtypes="floating", numpy=True)
     if weights.dim() != 4 or weights.shape[0] != n_inks or min(weights.shape) < 1:
         raise ValueError(f"{name}: expected shape (N={n_inks}, D, H, W) with D, H, W >= 1, "
                          f"got {tuple(weights.shape)}")
-    w = weights.detach()
-    if not all_finite(w):  # in chunks: no |w| and bool copies of the volume
-        raise ValueError(f"{name}: expected finite values, got {int((~torch.isfinite(w)).sum())} NaN/Inf entries")
+    w = check_finite(name, weights.detach())  # in chunks: no |w| and bool copies of the volume
     if bool((w < 0).any()):
         raise ValueError(f"{name}: expected weights >= 0, got minimum {float(w.min()):g}")
     return weights

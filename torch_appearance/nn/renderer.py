@@ -4,7 +4,7 @@
 :func:`torch_appearance.render_texels`."""
 import torch
 
-from ..render.checks import check_seed, check_spp
+from ..checks import check_seed, check_spp
 from ..render.scene import Scene, check_chromatic
 from ..render.volpath import render_scene
 

@@ -47,6 +47,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from ..checks import check_finite, check_int, check_positive, check_tensor
+
 __all__ = ["WoodModel", "axis_angle_to_matrix", "matrix_to_axis_angle"]
 
 _DISTORTIONS = ("radial", "azimuthal")
@@ -57,44 +59,6 @@ _DTYPES = {"float32": torch.float32, "float64": torch.float64, "float16": torch.
 # Default colour map: early wood (light) → late wood (dark), linear RGB.
 _EARLY_RGB = (0.60, 0.42, 0.25)
 _LATE_RGB = (0.30, 0.17, 0.08)
-
-
-# --------------------------------------------------------------------------------------------------------------
-# Validation helpers
-# --------------------------------------------------------------------------------------------------------------
-def _positive_float(name, value):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name}: expected a positive real number, got {type(value).__name__}")
-    value = float(value)
-    if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name}: expected a finite value > 0, got {value!r}")
-    return value
-
-
-def _positive_int(name, value, minimum=1):
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"{name}: expected an integer >= {minimum}, got {type(value).__name__}")
-    value = int(value)
-    if value < minimum:
-        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value}")
-    return value
-
-
-def _as_tensor(name, value, shape_desc):
-    if isinstance(value, np.ndarray):
-        value = torch.from_numpy(value)
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor or numpy.ndarray of shape {shape_desc}, "
-                        f"got {type(value).__name__}")
-    if not value.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point dtype, got {value.dtype}")
-    return value
-
-
-def _check_finite(name, value):
-    if not bool(torch.isfinite(value.detach()).all()):
-        bad = int((~torch.isfinite(value.detach())).sum())
-        raise ValueError(f"{name}: expected finite values, got {bad} NaN/Inf entries")
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -114,7 +78,7 @@ def axis_angle_to_matrix(rotation: torch.Tensor) -> torch.Tensor:
         TypeError: ``rotation`` is not a floating-point tensor.
         ValueError: its last dimension is not 3.
     """
-    rotation = _as_tensor("rotation", rotation, "(..., 3)")
+    rotation = check_tensor("rotation", rotation, "(..., 3)", dtypes="floating", numpy=True)
     if rotation.dim() == 0 or rotation.shape[-1] != 3:
         raise ValueError(f"rotation: expected shape (..., 3), got {tuple(rotation.shape)}")
     wx, wy, wz = rotation.unbind(-1)
@@ -214,8 +178,8 @@ class WoodModel(nn.Module):
                  r_max_mm=None, z_range_mm=(-50.0, 50.0), tangential=False, dtype=torch.float32, *,
                  color_bins=16):
         super().__init__()
-        ring_scale_mm = _positive_float("ring_scale_mm", ring_scale_mm)
-        n_rings = _positive_int("n_rings", n_rings)
+        ring_scale_mm = check_positive("ring_scale_mm", ring_scale_mm)
+        n_rings = check_int("n_rings", n_rings, lo=1)
         if distortion is not None and distortion not in _DISTORTIONS:
             raise ValueError(f"distortion: expected one of {_DISTORTIONS} or None, got {distortion!r}")
         if (not isinstance(distortion_shape, (tuple, list)) or len(distortion_shape) != 2
@@ -224,7 +188,7 @@ class WoodModel(nn.Module):
         hd, wd = (int(s) for s in distortion_shape)
         if hd < 2 or wd < 2:
             raise ValueError(f"distortion_shape: expected (Hd, Wd) with both >= 2, got {(hd, wd)}")
-        r_max_mm = n_rings * ring_scale_mm if r_max_mm is None else _positive_float("r_max_mm", r_max_mm)
+        r_max_mm = n_rings * ring_scale_mm if r_max_mm is None else check_positive("r_max_mm", r_max_mm)
         if (not isinstance(z_range_mm, (tuple, list)) or len(z_range_mm) != 2
                 or any(isinstance(z, bool) or not isinstance(z, numbers.Real) for z in z_range_mm)):
             raise TypeError(f"z_range_mm: expected a pair of real numbers (z_min, z_max), got {z_range_mm!r}")
@@ -238,7 +202,7 @@ class WoodModel(nn.Module):
                              "got True")
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
-        color_bins = _positive_int("color_bins", color_bins, minimum=2)
+        color_bins = check_int("color_bins", color_bins, lo=2)
 
         self.n_rings = n_rings
         self.distortion = distortion
@@ -317,12 +281,12 @@ class WoodModel(nn.Module):
             TypeError / ValueError: wrong type, shape, non-finite values, or the texture does not exist.
         """
         def assign(name, param, value, shape):
-            value = _as_tensor(name, value, str(tuple(shape)))
+            value = check_tensor(name, value, str(tuple(shape)), dtypes="floating", numpy=True)
             if len(shape) == 4 and tuple(value.shape) == tuple(shape[-2:]):
                 value = value.reshape(shape)  # (Hd, Wd) texture given without the batch/channel axes
             if tuple(value.shape) != tuple(shape):
                 raise ValueError(f"{name}: expected shape {tuple(shape)}, got {tuple(value.shape)}")
-            _check_finite(name, value)
+            check_finite(name, value)
             param.copy_(value.to(param))
 
         if rotation is not None:
@@ -332,7 +296,7 @@ class WoodModel(nn.Module):
         if ring_scale_mm is not None:
             if isinstance(ring_scale_mm, torch.Tensor):
                 ring_scale_mm = float(ring_scale_mm.detach())
-            self.log_ring_scale.fill_(math.log(_positive_float("ring_scale_mm", ring_scale_mm)))
+            self.log_ring_scale.fill_(math.log(check_positive("ring_scale_mm", ring_scale_mm)))
         for name in ("m_r", "m_t"):
             value = m_r if name == "m_r" else m_t
             if value is None:
@@ -371,11 +335,11 @@ class WoodModel(nn.Module):
     # Geometry
     # ----------------------------------------------------------------------------------------------------------
     def _check_points(self, name, points, widths):
-        points = _as_tensor(name, points, f"(N, {' or '.join(map(str, widths))})")
+        points = check_tensor(name, points, f"(N, {' or '.join(map(str, widths))})", dtypes="floating", numpy=True)
         if points.dim() != 2 or points.shape[1] not in widths:
             raise ValueError(f"{name}: expected shape (N, {' or '.join(map(str, widths))}), "
                              f"got {tuple(points.shape)}")
-        _check_finite(name, points)
+        check_finite(name, points)
         return points.to(dtype=self.dtype, device=self.device)
 
     def board_to_tree(self, points: torch.Tensor) -> torch.Tensor:
@@ -544,9 +508,9 @@ class WoodModel(nn.Module):
         Raises:
             TypeError / ValueError: non-integer or non-positive ``height``/``width``, non-positive ``pixel_size_mm``.
         """
-        height = _positive_int("height", height)
-        width = _positive_int("width", width)
-        pixel_size_mm = _positive_float("pixel_size_mm", pixel_size_mm)
+        height = check_int("height", height, lo=1)
+        width = check_int("width", width, lo=1)
+        pixel_size_mm = check_positive("pixel_size_mm", pixel_size_mm)
         ys = torch.arange(height, dtype=self.dtype, device=self.device) * pixel_size_mm
         xs = torch.arange(width, dtype=self.dtype, device=self.device) * pixel_size_mm
         vv, uu = torch.meshgrid(ys, xs, indexing="ij")

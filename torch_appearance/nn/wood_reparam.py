@@ -46,7 +46,7 @@ import math
 
 import torch
 
-from ..render.checks import check_int, check_real, check_seed
+from ..checks import check_int, check_real, check_seed
 
 __all__ = ["CylinderView", "pixel_samples", "render_filtered", "ring_scale_gradient", "ring_scale_gradient_fd",
            "compare_ring_scale_gradients", "ESTIMATORS", "reparam_render", "parse_parameter", "parameter_gradient",

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from ..render.albedo_mapping import albedo_from_colour
-from ..render.checks import check_int, check_real, check_vector3
+from ..checks import check_int, check_real, check_vector3
 from ..render.scene import voxel_edges
 
 __all__ = ["WoodVolume", "wood_volume", "load_wood_fit", "FIT_FILES", "SIGMA_EARLY", "SIGMA_LATE"]

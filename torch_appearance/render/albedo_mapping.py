@@ -29,7 +29,7 @@ import functools
 import numpy as np
 import torch
 
-from .checks import check_int, check_real, check_seed
+from ..checks import check_int, check_real, check_seed
 
 __all__ = ["ELEK_C", "ELEK_D", "ELEK_CS", "TABLE_G", "elek_albedo", "albedo_from_colour", "colour_from_albedo",
            "slab_colour"]

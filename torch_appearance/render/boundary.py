@@ -9,7 +9,7 @@ from typing import Optional
 
 import torch
 
-from .checks import check_float_tensor, check_real
+from ..checks import check_float_tensor, check_real
 
 __all__ = ["BoxBoundary", "SDFBoundary"]
 

@@ -8,7 +8,7 @@ from typing import Tuple
 
 import torch
 
-from .checks import check_direction, check_float_tensor, check_real, check_rgb
+from ..checks import check_direction, check_float_tensor, check_real, check_rgb
 
 __all__ = ["ConstantEnvironment", "EnvironmentMap", "DiscLight"]
 

@@ -1,7 +1,7 @@
 """Phase function of the medium."""
 from dataclasses import dataclass
 
-from .checks import check_real
+from ..checks import check_real
 
 __all__ = ["HenyeyGreenstein"]
 

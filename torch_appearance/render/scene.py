@@ -19,8 +19,8 @@ from typing import Optional, Tuple
 
 import torch
 
+from ..checks import check_choice, check_int, check_real, check_tensor, check_vector3
 from .boundary import BoxBoundary, SDFBoundary
-from .checks import check_int, check_real, check_vector3
 from .emitter import ConstantEnvironment, DiscLight, EnvironmentMap
 from .phase import HenyeyGreenstein
 from .sensor import FACES, FaceTexels, OrthographicCamera, PerspectiveCamera, SurfaceTexels
@@ -75,11 +75,7 @@ CHROMATIC = ("per_channel", "hero")
 
 def check_chromatic(chromatic):
     """Validate the ``chromatic`` estimator name (see :data:`CHROMATIC`)."""
-    if not isinstance(chromatic, str):
-        raise TypeError(f"chromatic: expected one of {CHROMATIC}, got {type(chromatic).__name__}")
-    if chromatic not in CHROMATIC:
-        raise ValueError(f"chromatic: expected one of {CHROMATIC}, got {chromatic!r}")
-    return chromatic
+    return check_choice("chromatic", chromatic, CHROMATIC, kind=str)
 
 
 def default_sigma_t_floor(settings, voxel_size, grid_shape):
@@ -223,12 +219,7 @@ def check_grid(name, x, *, like=None, lo=0.0, hi=math.inf):
         TypeError: not a tensor, or not a floating dtype.
         ValueError: wrong shape, device, dtype or shape differing from ``like``, non-finite or out-of-range values.
     """
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor of shape (3, D, H, W), got {type(x).__name__}")
-    if x.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"{name}: expected dtype torch.float32 or torch.float64, got {x.dtype}")
-    if x.device.type != "cpu":
-        raise ValueError(f"{name}: expected a CPU tensor (the tracer runs on the CPU), got device {x.device}")
+    check_tensor(name, x, "(3, D, H, W)", dtypes=(torch.float32, torch.float64), cpu=True)
     if x.dim() != 4 or x.shape[0] != 3 or min(x.shape) < 1:
         raise ValueError(f"{name}: expected shape (3, D, H, W) with D, H, W >= 1, got {tuple(x.shape)}")
     if like is not None:

@@ -10,7 +10,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from .checks import check_direction, check_float_tensor, check_int, check_real, check_vector3
+from ..checks import check_direction, check_float_tensor, check_int, check_real, check_vector3
 
 __all__ = ["FACES", "FaceTexels", "SurfaceTexels", "OrthographicCamera", "PerspectiveCamera"]
 

@@ -8,7 +8,7 @@
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
-from .checks import check_seed, check_spp
+from ..checks import check_seed, check_spp, is_int
 from .scene import Scene, check_chromatic, default_sigma_t_floor, derive_seed_grad
 
 __all__ = ["TraceJob", "check_partition"]
@@ -19,7 +19,7 @@ def check_partition(partition):
     if partition is None:
         return None
     if (not isinstance(partition, (tuple, list)) or len(partition) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) for v in partition)):
+            or not all(is_int(v) for v in partition)):
         raise TypeError(f"partition: expected (rank, world), two ints, got {partition!r}")
     rank, world = partition
     if not (world >= 1 and 0 <= rank < world):

@@ -39,6 +39,7 @@ import numpy as np
 from scipy import ndimage, optimize, sparse
 from scipy.sparse import linalg as sparse_linalg
 
+from ..checks import check_finite, check_image_shape, check_positive, describe
 from .tracing import polyline_length, wrap_angle
 
 __all__ = ["BoardEstimate", "estimate_board", "resolve_phase_sign", "initial_wood_model", "find_centre_gap",
@@ -213,42 +214,19 @@ def _transform(psi, c, d0, tilt, image_shape, pixel_size_mm):
 # input checks
 # ----------------------------------------------------------------------------------------------------------------
 def _check_rings(rings):
+    """Ring polylines: a list of (K, 2) arrays of finite (x, y) pixel positions, as float64 arrays."""
     if not isinstance(rings, (list, tuple)):
-        raise TypeError(f"rings must be a list of (K, 2) arrays, got {type(rings).__name__}")
+        raise TypeError(f"rings: expected a list of (K, 2) arrays, got {describe(rings)}")
     out = []
     for i, p in enumerate(rings):
         try:
             a = np.asarray(p, dtype=np.float64)
         except (TypeError, ValueError):
-            raise TypeError(f"rings[{i}] must be a (K, 2) array of numbers, got {type(p).__name__}") from None
+            raise TypeError(f"rings[{i}]: expected a (K, 2) array of numbers, got {describe(p)}") from None
         if a.ndim != 2 or a.shape[1] != 2:
-            raise ValueError(f"rings[{i}] must have shape (K, 2), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"rings[{i}] has non-finite values")
-        out.append(a)
+            raise ValueError(f"rings[{i}]: expected shape (K, 2), got {a.shape}")
+        out.append(check_finite(f"rings[{i}]", a))
     return out
-
-
-def _check_shape(image_shape):
-    if not isinstance(image_shape, (tuple, list)) or len(image_shape) not in (2, 3):
-        raise TypeError(f"image_shape must be (H, W) or (H, W, C), got {image_shape!r}")
-    try:
-        h, w = int(image_shape[0]), int(image_shape[1])
-    except (TypeError, ValueError):
-        raise TypeError(f"image_shape must hold integers, got {image_shape!r}") from None
-    if h < 2 or w < 2:
-        raise ValueError(f"image_shape must be at least (2, 2), got {tuple(image_shape)}")
-    return h, w
-
-
-def _check_pixel_size(pixel_size_mm):
-    try:
-        ps = float(pixel_size_mm)
-    except (TypeError, ValueError):
-        raise TypeError(f"pixel_size_mm must be a number, got {type(pixel_size_mm).__name__}") from None
-    if not (math.isfinite(ps) and ps > 0):
-        raise ValueError(f"pixel_size_mm must be positive and finite, got {pixel_size_mm!r}")
-    return ps
 
 
 def _resample(poly, spacing):
@@ -380,8 +358,8 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
         TypeError, ValueError: bad argument types/shapes; fewer than three usable rings.
     """
     rings = _check_rings(rings)
-    h, w = _check_shape(image_shape)
-    ps = _check_pixel_size(pixel_size_mm)
+    h, w = check_image_shape("image_shape", image_shape, channels=True, min_size=2)
+    ps = check_positive("pixel_size_mm", pixel_size_mm)
     lengths = np.array([polyline_length(p) for p in rings])
     used = np.nonzero(lengths >= float(min_ring_length_px))[0]
     if len(used) < 3:
@@ -435,7 +413,7 @@ def estimate_board(rings, image_shape, pixel_size_mm, *, min_ring_length_px=10.0
         if hint.shape != (2,) or not np.isfinite(hint).all():
             raise ValueError(f"centre_hint_px: expected a finite (x, y) pair, got {centre_hint_px!r}")
         hint = hint * ps
-        tol = s_r0 if centre_tolerance_mm is None else _check_pixel_size(centre_tolerance_mm)
+        tol = s_r0 if centre_tolerance_mm is None else check_positive("centre_tolerance_mm", centre_tolerance_mm)
 
     def hint_c(psi_):   # offset c of the hinted point for axis angle ψ
         return float(-(hint[0] - centre[0]) * math.sin(psi_) + (hint[1] - centre[1]) * math.cos(psi_))

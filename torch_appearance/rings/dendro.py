@@ -72,6 +72,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from ..checks import check_point_in_image
 from .gabor import _dominant_period, curved_gabor
 from .orientation import _as_image
 from .tracing import trace_rings
@@ -330,16 +331,12 @@ def _check_transect(transect, shape):
     try:
         x0, y0, x1, y1 = (float(t) for t in transect)
     except (TypeError, ValueError):
-        raise ValueError(f"transect must be four numbers (x0, y0, x1, y1); got {transect!r}") from None
-    if not all(math.isfinite(t) for t in (x0, y0, x1, y1)):
-        raise ValueError(f"transect must be finite; got {transect!r}")
-    H, W = shape
-    for name, x, y in (("start", x0, y0), ("end", x1, y1)):
-        if not (0 <= x <= W - 1 and 0 <= y <= H - 1):
-            raise ValueError(f"transect {name} ({x:g}, {y:g}) lies outside the image (x in [0, {W - 1}], "
-                             f"y in [0, {H - 1}])")
+        raise ValueError(f"transect: expected four numbers (x0, y0, x1, y1), got {transect!r}") from None
+    check_point_in_image("transect start", (x0, y0), shape)
+    check_point_in_image("transect end", (x1, y1), shape)
     if math.hypot(x1 - x0, y1 - y0) < 2.0:
-        raise ValueError(f"transect has (nearly) zero length: ({x0:g}, {y0:g}) -> ({x1:g}, {y1:g})")
+        raise ValueError(f"transect: expected a length >= 2 px, got (nearly) zero length: ({x0:g}, {y0:g}) -> "
+                         f"({x1:g}, {y1:g})")
     return x0, y0, x1, y1
 
 

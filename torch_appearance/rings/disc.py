@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from ..checks import check_point_in_image
 from .dendro import RingBoundaries, _cycle_boundaries, _gabor_params, _pixel_size, hsv_value, ring_widths_mm
 from .gabor import curved_gabor
 from .orientation import orientation_field
@@ -85,19 +86,12 @@ def _number(value, name, lo=None, hi=None, *, integer=False):
         ok = value <= hi
     if not ok:
         rng = f" in [{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
-        raise ValueError(f"{name} must be {'an integer' if integer else 'a finite number'}{rng}; got {value!r}")
+        raise ValueError(f"{name}: expected {'an integer' if integer else 'a finite number'}{rng}, got {value!r}")
     return value
 
 
 def _check_pith(pith, shape):
-    try:
-        x, y = (float(t) for t in pith)
-    except (TypeError, ValueError):
-        raise ValueError(f"pith must be two numbers (x, y) in pixels; got {pith!r}") from None
-    H, W = shape
-    if not (math.isfinite(x) and math.isfinite(y) and 0 <= x <= W - 1 and 0 <= y <= H - 1):
-        raise ValueError(f"pith ({x:g}, {y:g}) lies outside the image (x in [0, {W - 1}], y in [0, {H - 1}])")
-    return np.array([x, y])
+    return np.array(check_point_in_image("pith", pith, shape))
 
 
 def transect_angles(n: int, start_deg: float = 0.0) -> np.ndarray:
@@ -345,15 +339,13 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         if e.ndim == 1 and e.size == 2:
             e = e[None]
         if e.ndim != 2 or e.shape[1] != 2 or not np.isfinite(e).all():
-            raise ValueError(f"ends must have shape (T, 2) of finite (x, y) pixels; got shape {e.shape}")
-        for x, y in e:
-            if not (0 <= x <= W - 1 and 0 <= y <= H - 1):
-                raise ValueError(f"transect end ({x:g}, {y:g}) lies outside the image (x in [0, {W - 1}], "
-                                 f"y in [0, {H - 1}])")
+            raise ValueError(f"ends: expected shape (T, 2) of finite (x, y) pixels, got shape {e.shape}")
+        for i, (x, y) in enumerate(e):
+            check_point_in_image(f"ends[{i}]", (x, y), (H, W))
             length = math.hypot(x - c[0], y - c[1])
             if length < 2.0:
-                raise ValueError(f"transect from the pith ({c[0]:g}, {c[1]:g}) to ({x:g}, {y:g}) has (nearly) zero "
-                                 f"length")
+                raise ValueError(f"ends[{i}]: expected a transect of length >= 2 px from the pith "
+                                 f"({c[0]:g}, {c[1]:g}), got ({x:g}, {y:g}) (nearly zero length)")
             dirs.append((math.degrees(math.atan2(y - c[1], x - c[0])) % 360.0, length))
     if not dirs:
         dirs = [(t, None) for t in transect_angles(4)]

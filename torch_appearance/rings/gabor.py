@@ -41,6 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..checks import check_tensor
 from .orientation import _as_image, _check_params, _tensor_orientation, orientation_from_phase
 
 __all__ = ["GaborResult", "curved_gabor", "curved_gabor_response", "CurvedGaborFilter"]
@@ -540,10 +541,7 @@ def _build_geometry(theta, frequency, normal, p: int, q: int, sigma_along, sigma
 
 def _check_response_image(image, shape: tuple[int, int]) -> tuple[torch.Tensor, bool]:
     """``(H, W)`` or ``(B, H, W)`` floating tensor -> ``(B, H, W)``, and whether a batch axis was given."""
-    if not isinstance(image, torch.Tensor):
-        raise TypeError(f"image: expected a torch.Tensor of shape (H, W) or (B, H, W), got {type(image).__name__}")
-    if not image.dtype.is_floating_point or image.is_complex():
-        raise TypeError(f"image: expected a real floating-point tensor (float32/float64), got {image.dtype}")
+    check_tensor("image", image, "(H, W) or (B, H, W)", dtypes="floating")
     if image.ndim not in (2, 3) or tuple(image.shape[-2:]) != tuple(shape):
         raise ValueError(f"image: expected shape {tuple(shape)} or (B, {shape[0]}, {shape[1]}) (the filter's "
                          f"geometry), got {tuple(image.shape)}")

@@ -21,6 +21,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..checks import is_int, is_real
+
 __all__ = ["orientation_field", "orientation_from_phase"]
 
 # Scharr derivative kernel d/dx, normalised so that a unit ramp has unit gradient.
@@ -117,11 +119,11 @@ def _tensor_orientation(channels: torch.Tensor, sigma_smooth: float, window: int
 
 
 def _check_params(sigma_smooth, window) -> tuple[float, int]:
-    if isinstance(sigma_smooth, bool) or not isinstance(sigma_smooth, (int, float)) or not math.isfinite(sigma_smooth) \
-            or sigma_smooth < 0:
-        raise ValueError(f"sigma_smooth must be a finite number >= 0 (pixels); got {sigma_smooth!r}")
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1 or window % 2 == 0:
-        raise ValueError(f"window must be an odd integer >= 1 (pixels); got {window!r}")
+    # ValueError for a wrong type too (as ever here): both are read as "a bad parameter value"
+    if not is_real(sigma_smooth) or not math.isfinite(sigma_smooth) or sigma_smooth < 0:
+        raise ValueError(f"sigma_smooth: expected a finite number >= 0 (pixels), got {sigma_smooth!r}")
+    if not is_int(window) or window < 1 or window % 2 == 0:
+        raise ValueError(f"window: expected an odd integer >= 1 (pixels), got {window!r}")
     return float(sigma_smooth), int(window)
 
 

@@ -21,7 +21,8 @@ import numbers
 import numpy as np
 import torch
 
-from ..nn.wood import WoodModel, _positive_float, _positive_int, matrix_to_axis_angle
+from ..checks import check_int, check_positive
+from ..nn.wood import WoodModel, matrix_to_axis_angle
 
 __all__ = ["synthetic_board"]
 
@@ -132,9 +133,9 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
     Raises:
         TypeError / ValueError: invalid sizes, pixel size, noise or overrides.
     """
-    height = _positive_int("height", height, minimum=2)
-    width = _positive_int("width", width, minimum=2)
-    pixel_size_mm = _positive_float("pixel_size_mm", pixel_size_mm)
+    height = check_int("height", height, lo=2)
+    width = check_int("width", width, lo=2)
+    pixel_size_mm = check_positive("pixel_size_mm", pixel_size_mm)
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
         raise TypeError(f"seed: expected an integer, got {type(seed).__name__}")
     if isinstance(noise, bool) or not isinstance(noise, numbers.Real) or not math.isfinite(noise) or noise < 0:
@@ -149,9 +150,9 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
     if ring_scale_mm is None:
         lo, hi = max(1.0, 8 * pixel_size_mm), min(4.0, 40 * pixel_size_mm)
         ring_scale_mm = float(rng.uniform(lo, hi)) if lo < hi else float(rng.uniform(1.0, 4.0))
-    s_r = _positive_float("ring_scale_mm", ring_scale_mm)
+    s_r = check_positive("ring_scale_mm", ring_scale_mm)
     d_lo, d_hi, t_lo, t_hi = (1.5, 4.0, 12.0, 20.0) if pith_inside else (5.0, 30.0, 4.0, 12.0)
-    distance = _positive_float("distance_mm", _range("distance_mm", distance_mm, rng, d_lo, d_hi))
+    distance = check_positive("distance_mm", _range("distance_mm", distance_mm, rng, d_lo, d_hi))
     tilt = _range("tilt_deg", tilt_deg, rng, t_lo, t_hi) * (1 if tilt_deg is not None else rng.choice([-1, 1]))
     in_plane = _range("in_plane_deg", in_plane_deg, rng, -10.0, 10.0)
     amp = 0.15 * s_r if distortion_mm is None else _range("distortion_mm", distortion_mm, rng, 0.0, 0.0)
