@@ -30,9 +30,9 @@ import torch
 from .. import io as ta_io
 from ..geometry.primitives import conical_shell_sdf
 from ..nn.wood_volume import SIGMA_EARLY, SIGMA_LATE, load_wood_fit, wood_volume
+from ..checks import check_int, check_real
 from ..render import (BoxBoundary, DiscLight, OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary,
                       render_scene)
-from ..render.checks import check_int, check_real
 
 __all__ = ["VeneerGeometry", "LampshadeGeometry", "veneer_scenes", "lampshade_scene", "lampshade_world_to_board",
            "WoodVolumeConfig", "render_wood_volume"]
