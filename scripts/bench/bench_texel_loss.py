@@ -39,7 +39,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
 SPOT = os.path.join(ROOT, "tests", "data", "meshes", "spot")
 
-from bench_volpath import _reset_peak_rss, _status_kb  # noqa: E402  (the same /proc memory probes)
+from torch_appearance.testing import reset_peak_rss as _reset_peak_rss, status_kb as _status_kb  # noqa: E402
 
 
 def _texels(args, height):

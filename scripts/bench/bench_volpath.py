@@ -214,26 +214,7 @@ def make_scene(name, generator, args):
 # --------------------------------------------------------------------------------------------------------------
 # memory
 # --------------------------------------------------------------------------------------------------------------
-def _status_kb(field):
-    """A ``kB`` field of /proc/self/status (Linux), or None."""
-    try:
-        with open("/proc/self/status") as handle:
-            for line in handle:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
-
-
-def _reset_peak_rss():
-    """Reset the kernel's peak-RSS mark (VmHWM) of this process; True when that worked."""
-    try:
-        with open("/proc/self/clear_refs", "w") as handle:
-            handle.write("5")
-        return True
-    except OSError:
-        return False
+from torch_appearance.testing import reset_peak_rss as _reset_peak_rss, status_kb as _status_kb  # noqa: E402
 
 
 def _maxrss_mb():
