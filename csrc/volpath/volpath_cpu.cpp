@@ -170,27 +170,6 @@ void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
   }
 }
 
-SceneOptions slab_scene(const TraceOptions& t) {
-  SceneOptions o;
-  o.voxel_size = t.voxel_size;
-  o.g = t.g;
-  o.boundary.kind = 0;
-  o.boundary.ior = t.ior;
-  o.sensor.kind = 0;
-  o.sensor.face = t.face;
-  o.emitter.kind = 0;
-  o.emitter.radiance = t.environment;
-  o.spp = t.spp;
-  o.seed = t.seed;
-  o.max_depth = t.max_depth;
-  o.rr_depth = t.rr_depth;
-  o.lanes = t.lanes;
-  o.hero = t.hero;
-  o.part_rank = t.part_rank;
-  o.part_world = t.part_world;
-  return o;
-}
-
 // Keeps the converted tensors alive while a Scene<T> points into them.
 struct SceneStorage {
   torch::Tensor sdf, points, normals, radius, map;
@@ -998,23 +977,6 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
     });
   });
   return {out, counts};
-}
-
-std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-                                                     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
-                                                     bool ratio, const TraceOptions& opt) {
-  TORCH_CHECK(opt.environment.size() == 3, "environment: expected 3 values, got ", opt.environment.size());
-  for (double e : opt.environment)
-    TORCH_CHECK(std::isfinite(e) && e >= 0, "environment: expected finite values >= 0, got ", e);
-  return scene_forward_cpu(sigma_t, albedo, ref_sigma_t, ref_albedo, ratio, slab_scene(opt));
-}
-
-std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
-    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const TraceOptions& opt) {
-  return scene_backward_cpu(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo, need_sigma_t, need_albedo,
-                            slab_scene(opt), 0.0, 0.0);
 }
 
 }  // namespace volpath
