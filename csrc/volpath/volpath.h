@@ -7,6 +7,17 @@
 //                                           from the Python dataclass of the same role).
 //   scene_forward_indexed_cpu               the forward of a palette medium (a quantised print).
 //
+// Files, one concern each (as nvdiffrast keeps one glue file per concern; the torch-free core is csrc/core/):
+//   checks.{h,cpp}          the input checks (TORCH_CHECK messages naming the argument, expected and received)
+//   scene_build.{h,cpp}     SceneOptions flattened into core::Scene<T>, the converted tensors kept alive
+//   threading.h             the static work split over threads, the process's share, per-chunk gradient buffers
+//                           and their reduction in chunk order (deterministic for a given thread count)
+//   simd_glue.{h,cpp}       the SIMD slab walk (slab_simd.h): which width runs, whether it serves a scene, its chunks
+//   replay.h                the scalar path replay of one path (tape, or the two-pass fallback)
+//   dispatch.h              runtime scene flags → template instance
+//   forward_cpu.cpp         the forward kernel and scene_forward_cpu, scene_forward_indexed_cpu
+//   backward_cpu.cpp        the backward kernel and scene_backward_cpu (forward and backward compile in parallel)
+//
 // Medium: a grid of D×H×W voxels with edges voxel_size = (sx, sy, sz) mm occupying
 // origin + [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W, y ↔ H, z ↔ D). Piecewise-constant σ_t (mm⁻¹) and single-scattering
 // albedo per voxel and RGB channel, Henyey–Greenstein phase g.
