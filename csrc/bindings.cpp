@@ -11,28 +11,11 @@
 #endif
 
 namespace py = pybind11;
-using ta::volpath::TraceOptions;
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "torch_appearance C++ core: differentiable heterogeneous-volume path tracer (see csrc/volpath/volpath.h)";
   m.attr("source_hash") = TA_SOURCE_HASH;
   m.attr("torch_version") = TA_TORCH_VERSION;
-
-  py::class_<TraceOptions>(m, "TraceOptions")
-      .def(py::init<>())
-      .def_readwrite("voxel_size", &TraceOptions::voxel_size)
-      .def_readwrite("face", &TraceOptions::face)
-      .def_readwrite("g", &TraceOptions::g)
-      .def_readwrite("ior", &TraceOptions::ior)
-      .def_readwrite("environment", &TraceOptions::environment)
-      .def_readwrite("spp", &TraceOptions::spp)
-      .def_readwrite("seed", &TraceOptions::seed)
-      .def_readwrite("max_depth", &TraceOptions::max_depth)
-      .def_readwrite("rr_depth", &TraceOptions::rr_depth)
-      .def_readwrite("lanes", &TraceOptions::lanes)
-      .def_readwrite("hero", &TraceOptions::hero)
-      .def_readwrite("part_rank", &TraceOptions::part_rank)
-      .def_readwrite("part_world", &TraceOptions::part_world);
 
   using ta::volpath::BoundaryOptions;
   using ta::volpath::EmitterOptions;
@@ -90,14 +73,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readonly("scatter_events", &ta::volpath::ForwardCounts::scatter_events)
       .def_readonly("truncated_paths", &ta::volpath::ForwardCounts::truncated_paths);
 
-  m.def("volpath_forward", &ta::volpath::forward_cpu, py::arg("sigma_t"), py::arg("albedo"),
-        py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("ratio"), py::arg("options"),
-        py::call_guard<py::gil_scoped_release>(),
-        "Texel radiance (F, H, W, 3) (or (H, W, 3) for one face) and ForwardCounts.");
-  m.def("volpath_backward", &ta::volpath::backward_cpu, py::arg("grad_output"), py::arg("sigma_t"),
-        py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
-        py::arg("need_albedo"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
-        "Radiative backpropagation by path replay: (grad_sigma_t, grad_albedo, scatter events).");
   m.def("scene_forward", &ta::volpath::scene_forward_cpu, py::arg("sigma_t"), py::arg("albedo"),
         py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("ratio"), py::arg("options"),
         py::call_guard<py::gil_scoped_release>(),

@@ -84,11 +84,17 @@ def test_non_contiguous_input_is_fine():
                                ta.render_texels(sigma, albedo, voxel_size=0.1, spp=4))
 
 
-def options(**kw):
-    opt = _C.TraceOptions()
+def options(boundary=None, sensor=None, emitter=None, **kw):
+    """A SceneOptions of the slab (box boundary, top face texels, constant environment), pieces overridden by dicts."""
+    opt = _C.SceneOptions()
     opt.voxel_size, opt.spp, opt.max_depth = [0.1, 0.1, 0.1], 1, 16
     for k, v in kw.items():
         setattr(opt, k, v)
+    for name, piece, overrides in (("boundary", _C.BoundaryOptions(), boundary), ("sensor", _C.SensorOptions(), sensor),
+                                   ("emitter", _C.EmitterOptions(), emitter)):
+        for k, v in (overrides or {}).items():
+            setattr(piece, k, v)
+        setattr(opt, name, piece)
     return opt
 
 
@@ -102,10 +108,11 @@ def options(**kw):
     (dict(options=options(spp=0)), "spp: expected"),
     (dict(options=options(voxel_size=[0.1, -1.0, 0.1])), "voxel_size: expected finite edges > 0"),
     (dict(options=options(voxel_size=[0.1, 0.1])), "voxel_size: expected 3 edges"),
-    (dict(options=options(face=7)), "face: expected"),
-    (dict(options=options(ior=0.5)), "ior: expected"),
+    (dict(options=options(sensor=dict(face=7))), "face: expected"),
+    (dict(options=options(boundary=dict(ior=0.5))), "ior: expected"),
     (dict(options=options(max_depth=0)), "max_depth: expected"),
-    (dict(options=options(environment=[1.0])), "environment: expected 3 values"),
+    (dict(options=options(emitter=dict(radiance=[1.0]))), "radiance: expected 3 values"),
+    (dict(options=options(emitter=dict(radiance=[1.0, -1.0, 1.0]))), r"radiance: expected finite values in \[0,"),
     (dict(options=options(lanes=3), ref_sigma_t=torch.rand(3, 2, 2, 2)), "lanes=3"),
 ])
 def test_cpp_checks_again(args, match):
@@ -115,15 +122,24 @@ def test_cpp_checks_again(args, match):
     kw.setdefault("ref_sigma_t", kw["sigma_t"])
     kw.setdefault("ref_albedo", kw["albedo"])
     with pytest.raises(RuntimeError, match=match):
-        _C.volpath_forward(kw["sigma_t"], kw["albedo"], kw["ref_sigma_t"], kw["ref_albedo"], False, kw["options"])
+        _C.scene_forward(kw["sigma_t"], kw["albedo"], kw["ref_sigma_t"], kw["ref_albedo"], False, kw["options"])
 
 
 def test_cpp_backward_checks_grad_output():
     s, a = torch.ones(3, 2, 2, 2), torch.ones(3, 2, 2, 2) * 0.5
     with pytest.raises(RuntimeError, match="grad_output: expected 12 elements"):
-        _C.volpath_backward(torch.ones(5), s, a, s, a, True, True, options())
+        _C.scene_backward(torch.ones(5), s, a, s, a, True, True, options())
     with pytest.raises(RuntimeError, match="grad_output: expected finite"):
-        _C.volpath_backward(torch.full((2, 2, 3), math.nan), s, a, s, a, True, True, options())
+        _C.scene_backward(torch.full((2, 2, 3), math.nan), s, a, s, a, True, True, options())
+
+
+def test_cpp_options_are_sound():
+    """The default options of the checks above render (so each failure above is the one named)."""
+    s, a = torch.ones(3, 2, 2, 2), torch.ones(3, 2, 2, 2) * 0.5
+    image, _ = _C.scene_forward(s, a, s, a, False, options())
+    assert image.shape == (2, 2, 3) and torch.isfinite(image).all()
+    gs, ga, _ = _C.scene_backward(torch.ones(2, 2, 3), s, a, s, a, True, True, options())
+    assert gs.shape == s.shape and ga.shape == a.shape
 
 
 def test_stale_or_mismatched_build_says_how_to_fix(tmp_path):

@@ -8,6 +8,7 @@
 //   RATIO       the walk is sampled from a reference medium that may differ from the parameters and carries the
 //               ratio weights f(θ)/p_ref. Off for the default forward pass (reference = parameters).
 //   ADJOINT     path replay of radiative backpropagation: deposit ∂/∂θ of the path contribution.
+//   RECORD      the walk records what its derivative needs in a tape (tape.h); the caller deposits after it ends.
 //   HERO        (LANES == 3, chromatic reference) hero-channel spectral MIS: one walk serves all three channels; it
 //               samples free flights with the reference density σ̂_h of a hero channel h (uniform per sample:
 //               h = (o + sample) mod 3 with a random offset o per sensor element) and weights each channel with
@@ -21,6 +22,7 @@
 //               weight is combined by log-sum-exp when the path escapes. The MIS weight depends on the detached
 //               reference only, so ∂V_c/∂θ is the non-hero formula below with V_c including the weight and σ̂ the
 //               hero's.
+//   Deposit     how a gradient deposit is added (adjoint.h): a plain add on the CPU, an atomic add on a GPU.
 //
 // Estimator (per channel c, for one path x sampled from the reference medium σ̂, α̂):
 //   V_c(x) = L_e,c(ω_escape) · Π_flights exp(−Σ_voxels (σ_c − σ̂)·ℓ) · Π_collisions (σ_c/σ̂) · (α_c / (p_s·q))
@@ -36,13 +38,25 @@
 // Both need the final V: the walk either records the events in a tape and deposits after it ends (RECORD, one walk,
 // tape.h) or is replayed twice, first for V, then depositing (ADJOINT; the fallback for paths longer than a tape).
 //
+// The walk is a sequence of steps on one PathState, each a function templated as trace_path is, so that a vector
+// walk can take the same steps lane by lane:
+//   start_at_sensor     the start at the sensor element (face texels: Sensor::generate_on_face, else
+//                       Sensor::generate), and the first Fresnel event of a face texel;
+//   fly                 one free flight inside the object through the voxels (VoxelDDA, dda.h) to a collision, the
+//                       surface or the grid's box, with the flight's weights and ∂/∂σ_t segments;
+//   collide             the collision: roulette, the collision's factors (and their ∂), the new direction;
+//   cross_from_inside   the boundary reached from inside: internal reflection, or refraction out of the object;
+//   enter_from_outside  outside the object: the flight to the next surface point and its Fresnel event, or escape.
+//
 // Random numbers (stream `channel` of rng.h: the walk's channel, 3 for a shared walk, 4 for a hero walk, whose hero
 // offset is drawn from stream 5): event 0 places the start (u0, u1) and decides the first Fresnel event (u2); each free flight
 // draws one event (u0 distance, u1 absorption or Fresnel at the end of the flight, u2 u3 the new direction); a
 // surface hit from outside after the first draws one more event (u0 Fresnel).
 #pragma once
 
+#include "core/adjoint.h"
 #include "core/boundary.h"
+#include "core/dda.h"
 #include "core/defs.h"
 #include "core/emitter.h"
 #include "core/medium.h"
@@ -68,7 +82,7 @@ struct Scene {
   int64_t rr_depth = 1;   // interactions before Russian roulette starts
 
   // Number of sensor elements (texels or pixels).
-  int64_t elements() const {
+  TA_HD int64_t elements() const {
     switch (sensor.kind) {
       case kFaceTexels: return (sensor.face == kFaceBoth ? 2 : 1) * medium.H * medium.W;
       case kSurfaceTexels: return sensor.count;
@@ -129,38 +143,19 @@ TA_HD inline bool find_entry(const Scene<T>& S, T p[3], const T d[3], int64_t id
     n[axis] = d[axis] > T(0) ? T(-1) : T(1);
     return true;
   } else {
-    // DDA through the cells, looking for f <= 0 in cells that may hold surface
-    T tnext[3], tdelta[3];
-    int64_t step[3];
-    for (int a = 0; a < 3; ++a) {
-      if (d[a] > T(0)) {
-        step[a] = 1;
-        tdelta[a] = M.voxel[a] / d[a];
-        tnext[a] = tmax(T(0), (T(idx[a] + 1) * M.voxel[a] - p[a]) / d[a]);
-      } else if (d[a] < T(0)) {
-        step[a] = -1;
-        tdelta[a] = -M.voxel[a] / d[a];
-        tnext[a] = tmax(T(0), (T(idx[a]) * M.voxel[a] - p[a]) / d[a]);
-      } else {
-        step[a] = 0;
-        tdelta[a] = tnext[a] = tinf<T>();
-      }
-    }
-    T t = 0;
+    // through the cells with the DDA, looking for f <= 0 in cells that may hold surface
+    VoxelDDA<T> dda(M, p, d, idx);
     for (;;) {
-      const int a = tnext[0] < tnext[1] ? (tnext[0] < tnext[2] ? 0 : 2) : (tnext[1] < tnext[2] ? 1 : 2);
-      if (S.sdf.cell[M.index(idx)] != kCellOutside) {
+      if (S.sdf.cell[dda.voxel()] != kCellOutside) {
         T th;
-        if (S.sdf.crossing(M, idx, p, d, t, tnext[a], T(-1), &th)) {
+        if (S.sdf.crossing(M, dda.idx, p, d, dda.t0, dda.t1, T(-1), &th)) {
+          for (int k = 0; k < 3; ++k) idx[k] = dda.idx[k];
           for (int k = 0; k < 3; ++k) p[k] += d[k] * th;
           S.sdf.normal(M, idx, p, d, n);
           return true;
         }
       }
-      t = tnext[a];
-      idx[a] += step[a];
-      if (idx[a] < 0 || idx[a] >= M.dim(a)) return false;
-      tnext[a] += tdelta[a];
+      if (!dda.next()) return false;
     }
   }
 }
@@ -216,345 +211,402 @@ TA_HD inline void escape(PathResult<T, LANES>& res, const T w[LANES], const T d[
   for (int k = 0; k < 3; ++k) res.direction[k] = d[k];
 }
 
-// One random walk of the path that starts at sensor element `elem`, sample `sample`.
-// `chan` is the channel for LANES == 1 (lanes map to channels 0..2 for LANES == 3).
-// With ADJOINT, `pass1` holds this path's result from a non-adjoint replay and `adj[l]` = grad_out·L_e/spp.
-// With RECORD, the walk writes what its derivative needs into `tape` (for the gradient buffers named in A; see
-// tape.h) and the caller deposits after the walk: one walk instead of two.
-template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool RATIO, bool ADJOINT, bool RECORD = false,
-          bool HERO = false>
-TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan,
-                                             const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T>& A,
-                                             Tape<T, LANES>* tape = nullptr) {
-  static_assert(!ADJOINT || RATIO, "the adjoint replay always carries ratio weights");
-  static_assert(!RECORD || (RATIO && !ADJOINT), "the recording walk carries ratio weights and deposits nothing");
-  static_assert(!HERO || LANES == 3, "a hero walk serves all three channels");
-  constexpr bool SDF = BOUNDARY == kSDFBoundary;
-  PathResult<T, LANES> res;
+// The state of one walk, which the steps take by reference.
+template <typename T, int LANES>
+struct PathState {
+  T p[3], d[3];         // grid-local position (mm) and unit direction
+  int64_t idx[3];       // the voxel (cell) of p
+  int64_t v = 0;        // flat index of the voxel where the last flight ended (a collision's voxel)
+  bool inside = false;  // inside the object
+  int ch0 = 0;          // the channel whose reference density drives the walk (the hero of a hero walk)
+  int64_t depth = 0;    // interactions so far (scatterings, internal reflections; SDF: also crossings)
+  PathRng<T> rng;       // the path's random numbers, and the number of its next event
+  uint32_t event = 0;
+  T u[4];               // the uniforms of the current event
+  T u_fresnel;          // the uniform of the next Fresnel event from outside (the first one comes with the start)
+  bool fresh = true;    // no surface hit from outside yet
+  T w[LANES], wref[LANES];  // path weight (with zero factors) and reference-only weight (for roulette)
+  // HERO: lrho[k] = log(p_k/p_h) of the path so far, lw[c] = log of the product of f_c/p_h's non-zero factors
+  T lrho[3], lw[LANES];
+  // HERO: the last argument and value of each of the collision's logarithms (slots 0..2: σ̂_k/σ̂_h, 3..5: the
+  // lanes' f_c/p_h factors); a walk through voxels of equal values (a homogeneous ink) takes no logarithm again
+  T memo_arg[6], memo_log[6];
+
+  // log x for a finite x > 0, remembered in `slot`
+  TA_HD inline T log_memo(int slot, T x) {
+    if (x != memo_arg[slot]) {
+      memo_arg[slot] = x;
+      memo_log[slot] = tlog(x);
+    }
+    return memo_log[slot];
+  }
+  // log(a / b), a >= 0, b > 0 (see log_ratio)
+  TA_HD inline T log_ratio_memo(int slot, T a, T b) {
+    const T r = a / b;
+    return r > T(0) && r < tinf<T>() ? log_memo(slot, r) : log_ratio(a, b);
+  }
+};
+
+// The state at the start of the walk of sensor element `elem`, sample `sample`, channel `chan` (LANES == 1), and
+// the result it would leave if it ended now (V = 0).
+template <typename T, int LANES, bool HERO>
+TA_HD inline void begin_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan, PathState<T, LANES>& st,
+                             PathResult<T, LANES>& res) {
   for (int l = 0; l < LANES; ++l) {
     res.value[l] = T(0);
     res.prod_nonzero[l] = T(1);
     res.zeros[l] = 0;
   }
   for (int k = 0; k < 3; ++k) res.direction[k] = T(0);
+  st.ch0 = HERO ? hero_channel<T>(S.seed, elem, sample) : (LANES == 1 ? chan : 0);
+  st.rng = PathRng<T>{S.seed, uint32_t(elem), uint32_t(sample), uint32_t(HERO ? 4 : (LANES == 1 ? chan : 3))};
+  st.event = 0;
+  for (int l = 0; l < LANES; ++l) st.w[l] = st.wref[l] = T(1);
+  for (int k = 0; k < 3; ++k) st.lrho[k] = T(0);
+  for (int l = 0; l < LANES; ++l) st.lw[l] = T(0);
+  for (int i = 0; i < 6; ++i) st.memo_arg[i] = st.memo_log[i] = T(0);
+  st.depth = 0;
+  st.fresh = true;
+}
+
+// The walk escapes along dir: its weight, combined over the channels for a hero walk.
+template <bool HERO, typename T, int LANES>
+TA_HD inline void finish(const PathState<T, LANES>& st, PathResult<T, LANES>& res, const T dir[3]) {
+  if constexpr (HERO) hero_escape(res, st.lw, st.lrho, dir);
+  else escape(res, st.w, dir);
+}
+
+// Step 1, the start at the sensor: event 0 places the walk (u0, u1) and holds the first Fresnel event (u2). Face
+// texels start inside the box on its face, where a dielectric reflects the emitter specularly (normal incidence):
+// false when the walk ends there.
+template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
+TA_HD inline bool start_at_sensor(const Scene<T>& S, int64_t elem, PathState<T, LANES>& st,
+                                  PathResult<T, LANES>& res) {
+  const Medium<T>& M = S.medium;
+  st.rng.draw(st.event++, st.u);
+  st.u_fresnel = st.u[2];
+  if (S.sensor.kind == kFaceTexels) {
+    S.sensor.generate_on_face(elem, M.D, M.H, M.W, M.voxel, st.u, st.p, st.d, st.idx);
+    st.inside = true;
+    if (DIELECTRIC) {
+      const T r = fresnel_dielectric(T(1), T(1) / S.ior);
+      if (st.u[2] < r) {
+        const T back[3] = {0, 0, -st.d[2]};
+        finish<HERO>(st, res, back);
+        return false;
+      }
+    }
+    return true;
+  }
+  T o[3];
+  S.sensor.generate(elem, st.u, o, st.d);
+  for (int k = 0; k < 3; ++k) st.p[k] = o[k] - M.origin[k];
+  st.inside = start_inside<T, BOUNDARY>(S, st.p, st.idx);
+  return true;
+}
+
+// How a flight ended: at a collision (in voxel st.v), at the SDF surface, or at the grid box's face normal to `axis`.
+enum FlightEnd : int { kCollided = 0, kReachedSurface = 1, kLeftGrid = 2 };
+struct Flight {
+  int end = kCollided;
+  int axis = -1;  // kLeftGrid
+};
+
+// Step 2, one free flight inside the object in the reference medium: draws the flight's event (u0 the optical depth
+// to the collision; u1..u3 are left for what ends the flight), walks the voxels with the DDA (analytic transmittance
+// per voxel), stops at the collision, the surface (SDF) or the grid's box, and moves p there. On the way: the ratio
+// weights of the flight (RATIO, HERO), its segments in the tape (RECORD) or their ∂/∂σ_t (ADJOINT).
+template <typename T, int LANES, int BOUNDARY, bool RATIO, bool ADJOINT, bool RECORD, bool HERO, typename Deposit>
+TA_HD inline Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res, int chan,
+                        const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T, Deposit>& A,
+                        Tape<T, LANES>* tape) {
+  constexpr bool SDF = BOUNDARY == kSDFBoundary;
+  const Medium<T>& M = S.medium;
+  const int64_t N = M.voxels();
+  const int ch0 = st.ch0;
+  st.rng.draw(st.event++, st.u);
+  const T tau = -tlog(st.u[0]);  // optical depth to the next collision, in the reference medium
+
+  VoxelDDA<T> dda(M, st.p, st.d, st.idx);
+  T t = 0, acc = 0;
+  T excess[LANES];  // Σ (σ_c − σ̂)·ℓ over the flight, for the transmittance ratio
+  for (int l = 0; l < LANES; ++l) excess[l] = T(0);
+  T ref_excess[3] = {0, 0, 0};  // HERO: Σ (σ̂_k − σ̂_h)·ℓ over the flight
+  Flight f;
+  for (;;) {
+    const int64_t v = dda.voxel();
+    T tend = dda.t1;
+    bool hit_here = false;
+    if (SDF && S.sdf.cell[v] != kCellInside) {
+      T th;
+      if (S.sdf.crossing(M, dda.idx, st.p, st.d, dda.t0, tend, T(1), &th)) {
+        tend = th;
+        hit_here = true;
+      }
+    }
+    const T seg = tmax(T(0), tend - dda.t0);
+    const T sref = M.ref_sigma_t[ch0 * N + v];  // reference density, mm⁻¹ (t is in mm)
+    const T od = sref * seg;
+    T len = seg;
+    bool collided = false;
+    if (acc + od >= tau) {  // collision inside this voxel
+      len = (tau - acc) / sref;
+      collided = true;
+    }
+    if (RATIO) {
+      for (int l = 0; l < LANES; ++l) {
+        const int c = LANES == 1 ? chan : l;
+        excess[l] += (M.sigma_t[c * N + v] - M.ref_sigma_t[ch0 * N + v]) * len;
+      }
+    }
+    if (HERO) {
+      for (int k = 0; k < 3; ++k) ref_excess[k] += (M.ref_sigma_t[k * N + v] - sref) * len;
+    }
+    if (RECORD && A.grad_sigma_t && len > T(0)) tape->segment(v, len);
+    if (ADJOINT && A.grad_sigma_t && len > T(0)) {
+      for (int l = 0; l < LANES; ++l) {
+        const int c = LANES == 1 ? chan : l;
+        A.sigma_t(c * N + v, -(adj[l] * pass1->value[l] * len));
+      }
+    }
+    if (collided) {
+      t = dda.t0 + len;
+      st.v = v;
+      f.end = kCollided;
+      break;
+    }
+    acc += od;
+    if (hit_here) {
+      t = tend;
+      f.end = kReachedSurface;
+      break;
+    }
+    if (!dda.next()) {
+      t = dda.t0;
+      f.end = kLeftGrid;
+      f.axis = dda.axis;
+      break;
+    }
+  }
+  for (int k = 0; k < 3; ++k) st.idx[k] = dda.idx[k];
+  for (int k = 0; k < 3; ++k) st.p[k] += st.d[k] * t;
+  if constexpr (HERO) {
+    for (int k = 0; k < 3; ++k) st.lrho[k] -= ref_excess[k];
+    for (int l = 0; l < LANES; ++l) st.lw[l] -= RATIO ? excess[l] : ref_excess[l];  // f_c/p_h of the flight
+  } else if (RATIO) {
+    for (int l = 0; l < LANES; ++l) {
+      const T fl = texp(-excess[l]);
+      st.w[l] *= fl;
+      res.prod_nonzero[l] *= fl;
+    }
+  }
+  return f;
+}
+
+// Step 3, the collision in voxel st.v: keeps p in that voxel, counts the interaction (cut past max_depth),
+// continues with probability p_s·q (u1; reference albedo, roulette on the reference weight), carries the collision's
+// factors σ_c/σ̂ and α_c/(p_s q) (records them, or deposits their ∂), and samples the new direction (u2, u3).
+// False when the walk ends (truncated, absorbed or killed by roulette).
+template <typename T, int LANES, bool RATIO, bool ADJOINT, bool RECORD, bool HERO, typename Deposit>
+TA_HD inline bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res, int chan,
+                          const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T, Deposit>& A,
+                          Tape<T, LANES>* tape) {
   const Medium<T>& M = S.medium;
   const int64_t N = M.voxels();
   const T* vs = M.voxel;
-  // the channel whose reference density drives the walk
-  const int ch0 = HERO ? hero_channel<T>(S.seed, elem, sample) : (LANES == 1 ? chan : 0);
-  const int64_t dims[3] = {M.W, M.H, M.D};
-
-  const PathRng<T> rng{S.seed, uint32_t(elem), uint32_t(sample), uint32_t(HERO ? 4 : (LANES == 1 ? chan : 3))};
-  uint32_t event = 0;
-  T u[4];
-  rng.draw(event++, u);
-
-  T w[LANES], wref[LANES];  // path weight (with zero factors) and reference-only weight (for roulette)
-  for (int l = 0; l < LANES; ++l) w[l] = wref[l] = T(1);
-  // HERO: lrho[k] = log(p_k/p_h) of the path so far, lw[c] = log of the product of f_c/p_h's non-zero factors
-  T lrho[3] = {0, 0, 0}, lw[LANES];
-  for (int l = 0; l < LANES; ++l) lw[l] = T(0);
-  // HERO: the last argument and value of each of the collision's logarithms (slots 0..2: σ̂_k/σ̂_h, 3..5: the
-  // lanes' f_c/p_h factors); a walk through voxels of equal values (a homogeneous ink) takes no logarithm again
-  T memo_arg[6], memo_log[6];
-  for (int i = 0; i < 6; ++i) memo_arg[i] = memo_log[i] = T(0);
-  auto log_memo = [&](int slot, T x) {  // log x for a finite x > 0
-    if (x != memo_arg[slot]) {
-      memo_arg[slot] = x;
-      memo_log[slot] = tlog(x);
-    }
-    return memo_log[slot];
-  };
-  auto log_ratio_memo = [&](int slot, T a, T b) {  // log(a / b), a >= 0, b > 0 (see log_ratio)
-    const T r = a / b;
-    return r > T(0) && r < tinf<T>() ? log_memo(slot, r) : log_ratio(a, b);
-  };
-  auto finish = [&](const T dir[3]) {
-    if constexpr (HERO) hero_escape(res, lw, lrho, dir);
-    else escape(res, w, dir);
-  };
-  T p[3], d[3];  // grid-local position (mm) and unit direction
-  int64_t idx[3];
-  bool inside;
-  T u_fresnel = u[2];  // the uniform of the next Fresnel event from outside (the first one comes with the start)
-  bool fresh = true;
-
-  if (S.sensor.kind == kFaceTexels) {
-    // Start on the face, inside the texel's footprint, pointing along the inward normal.
-    const int64_t HW = M.H * M.W;
-    const int face = S.sensor.face == kFaceBoth ? int(elem / HW) : S.sensor.face;
-    const int64_t ti = elem % HW;
-    const int64_t tj = ti / M.W, tx = ti % M.W;
-    p[0] = (T(tx) + u[0]) * vs[0];
-    p[1] = (T(tj) + u[1]) * vs[1];
-    p[2] = face == kFaceTop ? T(M.D) * vs[2] : T(0);
-    d[0] = d[1] = T(0);
-    d[2] = face == kFaceTop ? T(-1) : T(1);
-    idx[0] = tx;
-    idx[1] = tj;
-    idx[2] = face == kFaceTop ? M.D - 1 : 0;
-    inside = true;
-    if (DIELECTRIC) {  // specular reflection of the emitter at the entry face (normal incidence)
-      const T r = fresnel_dielectric(T(1), T(1) / S.ior);
-      if (u[2] < r) {
-        const T back[3] = {0, 0, -d[2]};
-        finish(back);
-        return res;
-      }
-    }
-  } else {
-    T o[3];
-    S.sensor.generate(elem, u, o, d);
-    for (int k = 0; k < 3; ++k) p[k] = o[k] - M.origin[k];
-    inside = start_inside<T, BOUNDARY>(S, p, idx);
+  const int64_t v = st.v;
+  const int ch0 = st.ch0;
+  // keep the point inside the voxel the DDA found (no drift into a neighbour through rounding)
+  for (int k = 0; k < 3; ++k) st.p[k] = tmin(T(st.idx[k] + 1) * vs[k], tmax(T(st.idx[k]) * vs[k], st.p[k]));
+  if (++st.depth > S.max_depth) {  // truncated: contributes 0
+    res.truncated = true;
+    return false;
   }
-
-  int64_t depth = 0;
-  for (;;) {
-    if (!inside) {
-      // ---- outside the object: fly to the next surface point or escape
-      T n[3];
-      if (!find_entry<T, BOUNDARY>(S, p, d, idx, n)) {
-        finish(d);
-        return res;
-      }
-      if (!fresh) {
-        rng.draw(event++, u);
-        u_fresnel = u[0];
-      }
-      fresh = false;
-      if (SDF && ++depth > S.max_depth) {
-        res.truncated = true;
-        return res;
-      }
-      if (DIELECTRIC) {
-        const T cos_i = tmin(T(1), -dot3(d, n));
-        const T eta = T(1) / S.ior;
-        if (u_fresnel < fresnel_dielectric(cos_i, eta)) {
-          reflect(d, n, cos_i);
-          if (!SDF) {  // a convex box: the reflected ray leaves
-            finish(d);
-            return res;
-          }
-          continue;
-        }
-        refract(d, n, cos_i, eta);
-      }
-      inside = true;
-      continue;
+  ++res.scatter_events;
+  // continuation probability: reference albedo (max over lanes), times roulette on the reference weight
+  T ps, aref[LANES];
+  if (LANES == 1) {
+    aref[0] = M.ref_albedo[chan * N + v];
+    ps = aref[0];
+  } else {
+    ps = 0;
+    for (int l = 0; l < LANES; ++l) {
+      aref[l] = M.ref_albedo[l * N + v];
+      ps = tmax(ps, aref[l]);
     }
-
-    // ---- inside: one free flight in the reference medium
-    rng.draw(event++, u);
-    const T tau = -tlog(u[0]);  // optical depth to the next collision, in the reference medium
-
-    // exact regular tracking through the voxels (DDA), analytic transmittance per voxel
-    T tnext[3], tdelta[3];
-    int64_t step[3];
-    for (int a = 0; a < 3; ++a) {
-      if (d[a] > T(0)) {
-        step[a] = 1;
-        tdelta[a] = vs[a] / d[a];
-        tnext[a] = tmax(T(0), (T(idx[a] + 1) * vs[a] - p[a]) / d[a]);
-      } else if (d[a] < T(0)) {
-        step[a] = -1;
-        tdelta[a] = -vs[a] / d[a];
-        tnext[a] = tmax(T(0), (T(idx[a]) * vs[a] - p[a]) / d[a]);
-      } else {
-        step[a] = 0;
-        tdelta[a] = tinf<T>();
-        tnext[a] = tinf<T>();
-      }
+  }
+  T q = T(1);
+  if (st.depth > S.rr_depth) {
+    T m = 0;
+    for (int l = 0; l < LANES; ++l) m = tmax(m, st.wref[l] * aref[l] / ps);
+    q = tmin(T(1), m);
+  }
+  if (!(st.u[1] < ps * q)) return false;  // absorbed or killed by roulette: contributes 0
+  const T inv_psq = T(1) / (ps * q);
+  if constexpr (HERO) {  // the collision density ratios σ̂_k/σ̂_h of the path pdfs
+    const T sh = M.ref_sigma_t[ch0 * N + v];
+    for (int k = 0; k < 3; ++k)
+      if (k != ch0) st.lrho[k] += st.log_ratio_memo(k, M.ref_sigma_t[k * N + v], sh);  // −inf for σ̂_k = 0
+  }
+  TapeCollision<T, LANES>* rec = nullptr;
+  if (RECORD) {
+    rec = tape->collision(v);
+    if (rec) {
+      rec->sref = M.ref_sigma_t[ch0 * N + v];
+      rec->inv_psq = inv_psq;
     }
-    T t = 0, acc = 0;
-    T excess[LANES];  // Σ (σ_c − σ̂)·ℓ over the flight, for the transmittance ratio
-    for (int l = 0; l < LANES; ++l) excess[l] = T(0);
-    T ref_excess[3] = {0, 0, 0};  // HERO: Σ (σ̂_k − σ̂_h)·ℓ over the flight
-    bool collided = false, surface = false;
-    int exit_axis = -1;
-    int64_t v = 0;
-    for (;;) {
-      v = (idx[2] * M.H + idx[1]) * M.W + idx[0];
-      const int a = tnext[0] < tnext[1] ? (tnext[0] < tnext[2] ? 0 : 2) : (tnext[1] < tnext[2] ? 1 : 2);
-      T tend = tnext[a];
-      bool hit_here = false;
-      if (SDF && S.sdf.cell[v] != kCellInside) {
-        T th;
-        if (S.sdf.crossing(M, idx, p, d, t, tend, T(1), &th)) {
-          tend = th;
-          hit_here = true;
-        }
-      }
-      const T seg = tmax(T(0), tend - t);
-      const T sref = M.ref_sigma_t[ch0 * N + v];  // reference density, mm⁻¹ (t is in mm)
-      const T od = sref * seg;
-      T len = seg;
-      if (acc + od >= tau) {  // collision inside this voxel
-        len = (tau - acc) / sref;
-        collided = true;
-      }
-      if (RATIO) {
-        for (int l = 0; l < LANES; ++l) {
-          const int c = LANES == 1 ? chan : l;
-          excess[l] += (M.sigma_t[c * N + v] - M.ref_sigma_t[ch0 * N + v]) * len;
-        }
-      }
-      if (HERO) {
-        for (int k = 0; k < 3; ++k) ref_excess[k] += (M.ref_sigma_t[k * N + v] - sref) * len;
-      }
-      if (RECORD && A.grad_sigma_t && len > T(0)) tape->segment(v, len);
-      if (ADJOINT && A.grad_sigma_t && len > T(0)) {
-        for (int l = 0; l < LANES; ++l) {
-          const int c = LANES == 1 ? chan : l;
-          A.grad_sigma_t[c * N + v] -= adj[l] * pass1->value[l] * len;
-        }
-      }
-      if (collided) {
-        t += len;
-        break;
-      }
-      acc += od;
-      if (hit_here) {
-        t = tend;
-        surface = true;
-        break;
-      }
-      t = tnext[a];
-      idx[a] += step[a];
-      if (idx[a] < 0 || idx[a] >= dims[a]) {
-        idx[a] -= step[a];
-        exit_axis = a;
-        break;
-      }
-      tnext[a] += tdelta[a];
+  }
+  for (int l = 0; l < LANES; ++l) {
+    const int c = LANES == 1 ? chan : l;
+    st.wref[l] *= aref[l] * inv_psq;
+    const T fa = M.albedo[c * N + v] * inv_psq;  // albedo factor α_c/(p_s q)
+    T fs = T(1);                                 // collision factor σ_c/σ̂
+    if (RATIO) fs = M.sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
+    else if (HERO) fs = M.ref_sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
+    if (RECORD && rec) {
+      rec->fs[l] = fs;
+      rec->fa[l] = fa;
     }
-    for (int k = 0; k < 3; ++k) p[k] += d[k] * t;
+    if (ADJOINT) {
+      if (A.grad_sigma_t)
+        A.sigma_t(c * N + v, adj[l] * weight_without(fs, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) /
+                                 M.ref_sigma_t[ch0 * N + v]);
+      if (A.grad_albedo)
+        A.albedo(c * N + v,
+                 adj[l] * weight_without(fa, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) * inv_psq);
+    }
     if constexpr (HERO) {
-      for (int k = 0; k < 3; ++k) lrho[k] -= ref_excess[k];
-      for (int l = 0; l < LANES; ++l) lw[l] -= RATIO ? excess[l] : ref_excess[l];  // f_c/p_h of the flight
-    } else if (RATIO) {
-      for (int l = 0; l < LANES; ++l) {
-        const T f = texp(-excess[l]);
-        w[l] *= f;
-        res.prod_nonzero[l] *= f;
+      if (fs == T(0)) ++res.zeros[l];
+      if (fa == T(0)) ++res.zeros[l];
+      if (fs != T(0) && fa != T(0)) {
+        const T f = fs * fa;  // one logarithm unless the product leaves the normal range
+        st.lw[l] += (f > T(0) && f < tinf<T>()) ? st.log_memo(3 + l, f) : tlog(fs) + tlog(fa);
       }
+    } else if (RATIO || LANES > 1) {
+      st.w[l] *= fs * fa;
+      if (fs == T(0)) ++res.zeros[l]; else res.prod_nonzero[l] *= fs;
+      if (fa == T(0)) ++res.zeros[l]; else res.prod_nonzero[l] *= fa;
     }
+  }
+  rotate_direction(st.d, sample_hg_cos(S.g, st.u[2]), st.u[3]);
+  return true;
+}
 
-    if (collided) {
-      // keep the point inside the voxel the DDA found (no drift into a neighbour through rounding)
-      for (int k = 0; k < 3; ++k) p[k] = tmin(T(idx[k] + 1) * vs[k], tmax(T(idx[k]) * vs[k], p[k]));
-      if (++depth > S.max_depth) {  // truncated: contributes 0
+// Step 4, the boundary reached from inside (the SDF surface, or the grid box's face normal to f.axis): a dielectric
+// reflects internally (u1 < F; an interaction) or refracts; the walk then leaves the object: it escapes the box (or
+// an SDF object's grid), or flies on outside an SDF object. False when the walk ends (escaped or truncated).
+template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
+TA_HD inline bool cross_from_inside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res,
+                                    const Flight& f) {
+  constexpr bool SDF = BOUNDARY == kSDFBoundary;
+  const Medium<T>& M = S.medium;
+  const bool surface = f.end == kReachedSurface;
+  const int exit_axis = f.axis;
+  T n[3] = {0, 0, 0};  // outward unit normal
+  if (surface) {
+    S.sdf.normal(M, st.idx, st.p, st.d, n);
+  } else {
+    st.p[exit_axis] = st.d[exit_axis] > T(0) ? T(M.dim(exit_axis)) * M.voxel[exit_axis] : T(0);
+    n[exit_axis] = st.d[exit_axis] > T(0) ? T(1) : T(-1);
+  }
+  if (DIELECTRIC) {
+    const T cos_i = surface ? tmin(T(1), tmax(T(0), dot3(st.d, n))) : tabs(st.d[exit_axis]);
+    if (st.u[1] < fresnel_dielectric(cos_i, S.ior)) {  // internal reflection (total when F == 1)
+      if (++st.depth > S.max_depth) {
         res.truncated = true;
-        return res;
+        return false;
       }
-      ++res.scatter_events;
-      // continuation probability: reference albedo (max over lanes), times roulette on the reference weight
-      T ps, aref[LANES];
-      if (LANES == 1) {
-        aref[0] = M.ref_albedo[chan * N + v];
-        ps = aref[0];
+      if (surface) {
+        const T n_inc[3] = {-n[0], -n[1], -n[2]};
+        reflect(st.d, n_inc, cos_i);
       } else {
-        ps = 0;
-        for (int l = 0; l < LANES; ++l) {
-          aref[l] = M.ref_albedo[l * N + v];
-          ps = tmax(ps, aref[l]);
-        }
+        st.d[exit_axis] = -st.d[exit_axis];
       }
-      T q = T(1);
-      if (depth > S.rr_depth) {
-        T m = 0;
-        for (int l = 0; l < LANES; ++l) m = tmax(m, wref[l] * aref[l] / ps);
-        q = tmin(T(1), m);
+      return true;
+    }
+    if (SDF || S.emitter.kind != kConstant) {  // the escape direction matters: refract
+      const T n_inc[3] = {-n[0], -n[1], -n[2]};
+      refract(st.d, n_inc, cos_i, S.ior);
+    }
+  }
+  if (!SDF || !surface) {  // left the box (convex) or, for an SDF, the grid: escaped
+    finish<HERO>(st, res, st.d);
+    return false;
+  }
+  if (++st.depth > S.max_depth) {
+    res.truncated = true;
+    return false;
+  }
+  st.inside = false;
+  return true;
+}
+
+// Step 5, outside the object: the flight to the next surface point (find_entry; none: the walk escapes), the Fresnel
+// event of the hit (u0 of a new event, except for the first hit, whose uniform came with the start), the crossing
+// counted as an interaction (SDF), then reflection (u < F) or refraction into the object. False when the walk ends
+// (escaped, reflected off the convex box, or truncated).
+template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
+TA_HD inline bool enter_from_outside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res) {
+  constexpr bool SDF = BOUNDARY == kSDFBoundary;
+  T n[3];
+  if (!find_entry<T, BOUNDARY>(S, st.p, st.d, st.idx, n)) {
+    finish<HERO>(st, res, st.d);
+    return false;
+  }
+  if (!st.fresh) {
+    st.rng.draw(st.event++, st.u);
+    st.u_fresnel = st.u[0];
+  }
+  st.fresh = false;
+  if (SDF && ++st.depth > S.max_depth) {
+    res.truncated = true;
+    return false;
+  }
+  if (DIELECTRIC) {
+    const T cos_i = tmin(T(1), -dot3(st.d, n));
+    const T eta = T(1) / S.ior;
+    if (st.u_fresnel < fresnel_dielectric(cos_i, eta)) {
+      reflect(st.d, n, cos_i);
+      if (!SDF) {  // a convex box: the reflected ray leaves
+        finish<HERO>(st, res, st.d);
+        return false;
       }
-      if (!(u[1] < ps * q)) return res;  // absorbed or killed by roulette: contributes 0
-      const T inv_psq = T(1) / (ps * q);
-      if constexpr (HERO) {  // the collision density ratios σ̂_k/σ̂_h of the path pdfs
-        const T sh = M.ref_sigma_t[ch0 * N + v];
-        for (int k = 0; k < 3; ++k)
-          if (k != ch0) lrho[k] += log_ratio_memo(k, M.ref_sigma_t[k * N + v], sh);  // −inf for σ̂_k = 0
-      }
-      TapeCollision<T, LANES>* rec = nullptr;
-      if (RECORD) {
-        rec = tape->collision(v);
-        if (rec) {
-          rec->sref = M.ref_sigma_t[ch0 * N + v];
-          rec->inv_psq = inv_psq;
-        }
-      }
-      for (int l = 0; l < LANES; ++l) {
-        const int c = LANES == 1 ? chan : l;
-        wref[l] *= aref[l] * inv_psq;
-        const T fa = M.albedo[c * N + v] * inv_psq;  // albedo factor α_c/(p_s q)
-        T fs = T(1);                                 // collision factor σ_c/σ̂
-        if (RATIO) fs = M.sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
-        else if (HERO) fs = M.ref_sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
-        if (RECORD && rec) {
-          rec->fs[l] = fs;
-          rec->fa[l] = fa;
-        }
-        if (ADJOINT) {
-          if (A.grad_sigma_t)
-            A.grad_sigma_t[c * N + v] += adj[l] *
-                weight_without(fs, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) /
-                M.ref_sigma_t[ch0 * N + v];
-          if (A.grad_albedo)
-            A.grad_albedo[c * N + v] += adj[l] *
-                weight_without(fa, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) * inv_psq;
-        }
-        if constexpr (HERO) {
-          if (fs == T(0)) ++res.zeros[l];
-          if (fa == T(0)) ++res.zeros[l];
-          if (fs != T(0) && fa != T(0)) {
-            const T f = fs * fa;  // one logarithm unless the product leaves the normal range
-            lw[l] += (f > T(0) && f < tinf<T>()) ? log_memo(3 + l, f) : tlog(fs) + tlog(fa);
-          }
-        } else if (RATIO || LANES > 1) {
-          w[l] *= fs * fa;
-          if (fs == T(0)) ++res.zeros[l]; else res.prod_nonzero[l] *= fs;
-          if (fa == T(0)) ++res.zeros[l]; else res.prod_nonzero[l] *= fa;
-        }
-      }
-      rotate_direction(d, sample_hg_cos(S.g, u[2]), u[3]);
+      return true;  // still outside
+    }
+    refract(st.d, n, cos_i, eta);
+  }
+  st.inside = true;
+  return true;
+}
+
+// One random walk of the path that starts at sensor element `elem`, sample `sample`: the steps above in turn.
+// `chan` is the channel for LANES == 1 (lanes map to channels 0..2 for LANES == 3).
+// With ADJOINT, `pass1` holds this path's result from a non-adjoint replay and `adj[l]` = grad_out·L_e/spp.
+// With RECORD, the walk writes what its derivative needs into `tape` (for the gradient buffers named in A; see
+// tape.h) and the caller deposits after the walk: one walk instead of two.
+template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool RATIO, bool ADJOINT, bool RECORD = false,
+          bool HERO = false, typename Deposit = PlainAdd>
+TA_HD inline PathResult<T, LANES> trace_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan,
+                                             const PathResult<T, LANES>* pass1, const T* adj,
+                                             const Adjoint<T, Deposit>& A, Tape<T, LANES>* tape = nullptr) {
+  static_assert(!ADJOINT || RATIO, "the adjoint replay always carries ratio weights");
+  static_assert(!RECORD || (RATIO && !ADJOINT), "the recording walk carries ratio weights and deposits nothing");
+  static_assert(!HERO || LANES == 3, "a hero walk serves all three channels");
+  PathResult<T, LANES> res;
+  PathState<T, LANES> st;
+  begin_path<T, LANES, HERO>(S, elem, sample, chan, st, res);
+  if (!start_at_sensor<T, LANES, BOUNDARY, DIELECTRIC, HERO>(S, elem, st, res)) return res;
+  for (;;) {
+    if (!st.inside) {
+      if (!enter_from_outside<T, LANES, BOUNDARY, DIELECTRIC, HERO>(S, st, res)) return res;
       continue;
     }
-
-    // ---- reached the surface (SDF crossing) or the grid box (axis exit_axis)
-    T n[3] = {0, 0, 0};  // outward unit normal
-    if (surface) {
-      S.sdf.normal(M, idx, p, d, n);
-    } else {
-      p[exit_axis] = d[exit_axis] > T(0) ? T(dims[exit_axis]) * vs[exit_axis] : T(0);
-      n[exit_axis] = d[exit_axis] > T(0) ? T(1) : T(-1);
+    const Flight f = fly<T, LANES, BOUNDARY, RATIO, ADJOINT, RECORD, HERO>(S, st, res, chan, pass1, adj, A, tape);
+    if (f.end == kCollided) {
+      if (!collide<T, LANES, RATIO, ADJOINT, RECORD, HERO>(S, st, res, chan, pass1, adj, A, tape)) return res;
+      continue;
     }
-    if (DIELECTRIC) {
-      const T cos_i = surface ? tmin(T(1), tmax(T(0), dot3(d, n))) : tabs(d[exit_axis]);
-      if (u[1] < fresnel_dielectric(cos_i, S.ior)) {  // internal reflection (total when F == 1)
-        if (++depth > S.max_depth) {
-          res.truncated = true;
-          return res;
-        }
-        if (surface) {
-          const T n_inc[3] = {-n[0], -n[1], -n[2]};
-          reflect(d, n_inc, cos_i);
-        } else {
-          d[exit_axis] = -d[exit_axis];
-        }
-        continue;
-      }
-      if (SDF || S.emitter.kind != kConstant) {  // the escape direction matters: refract
-        const T n_inc[3] = {-n[0], -n[1], -n[2]};
-        refract(d, n_inc, cos_i, S.ior);
-      }
-    }
-    if (!SDF || !surface) {  // left the box (convex) or, for an SDF, the grid: escaped
-      finish(d);
-      return res;
-    }
-    if (++depth > S.max_depth) {
-      res.truncated = true;
-      return res;
-    }
-    inside = false;
+    if (!cross_from_inside<T, LANES, BOUNDARY, DIELECTRIC, HERO>(S, st, res, f)) return res;
   }
 }
 

@@ -51,12 +51,5 @@ struct Medium {
   }
 };
 
-// Where the adjoint goes (chunk-local buffers, channel-planar like the grids); null when not requested.
-template <typename T>
-struct Adjoint {
-  T* grad_sigma_t = nullptr;
-  T* grad_albedo = nullptr;
-};
-
 }  // namespace core
 }  // namespace ta

@@ -1,7 +1,8 @@
 // Sensors: where paths start. Consulted once per path, so a tagged struct dispatched by `switch`.
 //
 //   Face           one texel per voxel column of the box's top (z = D·sz) and/or bottom (z = 0) face; a sample
-//                  starts at a uniform point of the texel's square footprint, along the inward normal.
+//                  starts at a uniform point of the texel's square footprint, along the inward normal, already
+//                  inside the box (generate_on_face, in the grid's own frame).
 //   SurfaceTexels  an arbitrary list of texels: surface point P, outward unit normal n, footprint radius r. A
 //                  sample is a uniform point of the disc of radius r around P in the tangent plane, lifted
 //                  outwards by `lift` mm, shot along −n; the texel value is the radiance leaving along n.
@@ -38,8 +39,27 @@ struct Sensor {
   T width = 0, height = 0;     // kOrthographic: image extent, mm
   T tan_half_fov = 0;          // kPerspective: tan(fov_y / 2)
 
-  // World-space start ray of element `e` (not for kFaceTexels, which the walk starts itself), from the
-  // uniforms u[0], u[1] (u[2] is left for the first Fresnel event).
+  // kFaceTexels: the start of element `e` in the grid-local frame of a D×H×W grid with voxel edges vs (mm): the
+  // point (u[0], u[1]) of the texel's footprint on its face, the inward normal d, and the voxel idx of the point
+  // (u[2] is left for the Fresnel event at the face).
+  TA_HD inline void generate_on_face(int64_t e, int64_t D, int64_t H, int64_t W, const T vs[3], const T u[4], T p[3],
+                                     T d[3], int64_t idx[3]) const {
+    const int64_t HW = H * W;
+    const int f = face == kFaceBoth ? int(e / HW) : face;
+    const int64_t ti = e % HW;
+    const int64_t tj = ti / W, tx = ti % W;
+    p[0] = (T(tx) + u[0]) * vs[0];
+    p[1] = (T(tj) + u[1]) * vs[1];
+    p[2] = f == kFaceTop ? T(D) * vs[2] : T(0);
+    d[0] = d[1] = T(0);
+    d[2] = f == kFaceTop ? T(-1) : T(1);
+    idx[0] = tx;
+    idx[1] = tj;
+    idx[2] = f == kFaceTop ? D - 1 : 0;
+  }
+
+  // World-space start ray of element `e` of the other kinds, from the uniforms u[0], u[1] (u[2] is left for the
+  // first Fresnel event).
   TA_HD inline void generate(int64_t e, const T u[4], T o[3], T d[3]) const {
     switch (kind) {
       case kSurfaceTexels: {

@@ -11,7 +11,7 @@
 #pragma once
 
 #include "core/defs.h"
-#include "core/medium.h"
+#include "core/adjoint.h"
 
 namespace ta {
 namespace core {
@@ -67,12 +67,12 @@ TA_HD inline T weight_without(T factor, T value, T prod_nonzero, int zeros) {
   return zeros == 1 ? prod_nonzero : T(0);
 }
 
-// Deposits ∂V/∂θ of a recorded walk (see integrator.h for the formulas). `value`, `prod_nonzero`, `zeros` are the
-// walk's final PathResult fields, `adj[l]` = grad_out·L_e/spp, `chan` the channel of a one-lane walk, N the voxels
-// per channel plane.
-template <typename T, int LANES>
+// Deposits ∂V/∂θ of a recorded walk (see integrator.h for the formulas), each through A's deposit policy. `value`,
+// `prod_nonzero`, `zeros` are the walk's final PathResult fields, `adj[l]` = grad_out·L_e/spp, `chan` the channel of
+// a one-lane walk, N the voxels per channel plane.
+template <typename T, int LANES, typename Deposit>
 TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const T* prod_nonzero, const int* zeros,
-                               int chan, const T* adj, const Adjoint<T>& A, int64_t N) {
+                               int chan, const T* adj, const Adjoint<T, Deposit>& A, int64_t N) {
   int64_t s = 0;
   auto segments_until = [&](int64_t end) {
     if (!A.grad_sigma_t) return;  // (nothing was recorded then)
@@ -81,7 +81,7 @@ TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const
       const T len = tape.segs[s].len;
       for (int l = 0; l < LANES; ++l) {
         const int c = LANES == 1 ? chan : l;
-        A.grad_sigma_t[c * N + v] -= adj[l] * value[l] * len;
+        A.sigma_t(c * N + v, -(adj[l] * value[l] * len));
       }
     }
   };
@@ -91,11 +91,10 @@ TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const
     for (int l = 0; l < LANES; ++l) {
       const int c = LANES == 1 ? chan : l;
       if (A.grad_sigma_t)
-        A.grad_sigma_t[c * N + col.v] += adj[l] * weight_without(col.fs[l], value[l], prod_nonzero[l], zeros[l]) /
-                                         col.sref;
+        A.sigma_t(c * N + col.v, adj[l] * weight_without(col.fs[l], value[l], prod_nonzero[l], zeros[l]) / col.sref);
       if (A.grad_albedo)
-        A.grad_albedo[c * N + col.v] += adj[l] * weight_without(col.fa[l], value[l], prod_nonzero[l], zeros[l]) *
-                                        col.inv_psq;
+        A.albedo(c * N + col.v, adj[l] * weight_without(col.fa[l], value[l], prod_nonzero[l], zeros[l]) *
+                                    col.inv_psq);
     }
   }
   segments_until(tape.nseg);

@@ -80,7 +80,7 @@ struct WalkOut {
 
 typedef void (*WalkDone)(void* ctx, const WalkOut& out);
 
-// Walks every path of a batch (call only on a CPU with the instruction set; volpath_cpu.cpp checks): for each
+// Walks every path of a batch (call only on a CPU with the instruction set; simd_glue.cpp checks): for each
 // element k < n of `elems` (flat texel index, < 2^32) and sample s < spp, the channels whose bit is set in live[k]
 // (all three when live is null). `ratio`: weights f/p_ref (the replay); `tapes` (not null: implies ratio): record
 // each path's tape for the replay's deposit (a path with more than the caps is reported with `overflow`).

@@ -120,7 +120,7 @@ void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t
 #pragma clang attribute pop
 #endif
 
-#else  // not x86: no AVX2 walk (cpu_has_avx2() in volpath_cpu.cpp is false there, so this is never called)
+#else  // not x86: no AVX2 walk (cpu_simd_level() in simd_glue.cpp is 0 there, so this is never called)
 
 namespace ta {
 namespace simd {

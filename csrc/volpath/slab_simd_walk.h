@@ -17,13 +17,17 @@
 //                             next free entry)
 //
 // Each lane follows core::trace_path<float, 1, kBoxBoundary, DIELECTRIC, RATIO, false, RECORD> for face texels and a
-// constant emitter step by step (integrator.h is the reference; comments there explain the estimator):
-//   start   event 0: position in the texel (u0, u1), specular reflection at the entry face (u2 < F(1)) escapes;
-//   flight  one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 absorption (at a
+// constant emitter step by step (integrator.h is the reference, its steps named here; comments there explain the
+// estimator):
+//   start   (start_at_sensor) event 0: position in the texel (u0, u1), specular reflection at the entry face
+//           (u2 < F(1)) escapes;
+//   flight  (fly) one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 absorption (at a
 //           collision) or Fresnel (at the box), u2 u3 the new direction (HG cosine, azimuth 2π u3);
-//   DDA     exact regular tracking through the voxels, one voxel per iteration of the wavefront loop;
-//   collide depth cut, continuation p_s = α̂ times roulette q on the reference weight, weights σ/σ̂ and α/(p_s q);
-//   box     internal reflection with probability F(|d_a|) (depth counted), else escape with weight w.
+//   DDA     (VoxelDDA) exact regular tracking through the voxels, one voxel per iteration of the wavefront loop;
+//   collide (collide) depth cut, continuation p_s = α̂ times roulette q on the reference weight, weights σ/σ̂ and
+//           α/(p_s q);
+//   box     (cross_from_inside) internal reflection with probability F(|d_a|) (depth counted), else escape with
+//           weight w.
 //
 // Every operation is IEEE-exact (no contraction), so each width gives the same bits as the other and as the scalar
 // walk where the scalar walk computes the same expression.
@@ -594,7 +598,7 @@ inline void walks_dispatch(const SlabWalkScene& S, const int64_t* elems, const u
   if (ended_lanes < 1 || ended_lanes > kLanes) ended_lanes = kLanes * 3 / 4;
   if (tapes && !(tapes->seg_cap >= 0 && tapes->seg_cap <= kMaxTapeCap && tapes->col_cap >= 0 &&
                  tapes->col_cap <= kMaxTapeCap))
-    __builtin_trap();  // (the caller checks first: see volpath_cpu.cpp)
+    __builtin_trap();  // (the caller checks first: see simd_glue.cpp)
   if (S.dielectric) {
     if (tapes) walks<true, true, true>(S, elems, live, n, tapes, ended_lanes, done, ctx);
     else if (ratio) walks<true, true, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);

@@ -1,10 +1,22 @@
 // Differentiable heterogeneous-volume path tracer: forward + radiative backpropagation (path replay).
 //
-// Two entry points share one core (csrc/core/integrator.h):
+// One pair of entry points over one core (csrc/core/integrator.h), for every scene (render_scene; render_texels
+// builds the slab scene: box boundary, face texels, constant environment):
 //
-//   forward_cpu / backward_cpu              the slab of the first wave (render_texels): box boundary, face texels,
-//                                           constant environment, options in TraceOptions.
-//   scene_forward_cpu / scene_backward_cpu  general scenes (render_scene): the pieces in SceneOptions.
+//   scene_forward_cpu / scene_backward_cpu  the scene's pieces in SceneOptions (one struct per piece, flattened
+//                                           from the Python dataclass of the same role).
+//   scene_forward_indexed_cpu               the forward of a palette medium (a quantised print).
+//
+// Files, one concern each (as nvdiffrast keeps one glue file per concern; the torch-free core is csrc/core/):
+//   checks.{h,cpp}          the input checks (TORCH_CHECK messages naming the argument, expected and received)
+//   scene_build.{h,cpp}     SceneOptions flattened into core::Scene<T>, the converted tensors kept alive
+//   threading.h             the static work split over threads, the process's share, per-chunk gradient buffers
+//                           and their reduction in chunk order (deterministic for a given thread count)
+//   simd_glue.{h,cpp}       the SIMD slab walk (slab_simd.h): which width runs, whether it serves a scene, its chunks
+//   replay.h                the scalar path replay of one path (tape, or the two-pass fallback)
+//   dispatch.h              runtime scene flags → template instance
+//   forward_cpu.cpp         the forward kernel and scene_forward_cpu, scene_forward_indexed_cpu
+//   backward_cpu.cpp        the backward kernel and scene_backward_cpu (forward and backward compile in parallel)
 //
 // Medium: a grid of D×H×W voxels with edges voxel_size = (sx, sy, sz) mm occupying
 // origin + [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W, y ↔ H, z ↔ D). Piecewise-constant σ_t (mm⁻¹) and single-scattering
@@ -30,23 +42,6 @@
 
 namespace ta {
 namespace volpath {
-
-// The slab of the first wave.
-struct TraceOptions {
-  std::vector<double> voxel_size{1.0, 1.0, 1.0};  // voxel edges (x, y, z), mm
-  int face = 0;                                    // 0 top, 1 bottom, 2 both
-  double g = 0.0;
-  double ior = -1.0;  // <= 0: index matched
-  std::vector<double> environment{1.0, 1.0, 1.0};
-  int64_t spp = 1;
-  int64_t seed = 0;
-  int64_t max_depth = 1;
-  int64_t rr_depth = 0;
-  int64_t lanes = 1;
-  int64_t hero = 0;        // 1 (with lanes 3): hero-channel spectral MIS walk for a chromatic reference
-  int64_t part_rank = 0;   // data-parallel share: this process traces the sensor elements t with
-  int64_t part_world = 1;  // t % part_world == part_rank (others: 0 in the image, no gradient)
-};
 
 // ---- general scenes: one struct per piece, flattened from the Python dataclass of the same role
 struct BoundaryOptions {
@@ -95,18 +90,6 @@ struct ForwardCounts {
   int64_t scatter_events = 0;
   int64_t truncated_paths = 0;  // walks cut by max_depth (each channel's walk counts once)
 };
-
-// Returns (image (F, H, W, 3) or (H, W, 3) for one face, counts).
-std::tuple<torch::Tensor, ForwardCounts> forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-                                                     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo,
-                                                     bool ratio, const TraceOptions& opt);
-
-// Path replay (one recording walk per path, core/tape.h). Returns (grad_sigma_t or undefined, grad_albedo or
-// undefined, scatter events of the replay walks).
-std::tuple<torch::Tensor, torch::Tensor, int64_t> backward_cpu(
-    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
-    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const TraceOptions& opt);
 
 // General scenes. The image is (F, H, W, 3)/(H, W, 3) for face texels, (N, 3) for surface texels,
 // (rows, cols, 3) for cameras.

@@ -43,7 +43,7 @@ rows after the first carry ``forward_speedup_vs_<first>``, ``backward_speedup_vs
 
 With ``--baseline REV`` the slab scenes are also timed on the extension built from git revision REV (built once
 into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry
-points (``_C.volpath_forward``/``volpath_backward``, the forward on the parameters, the backward on the floored
+points (``_C.scene_forward``/``scene_backward``, the forward on the parameters, the backward on the floored
 reference as render_texels does), alternating old and new for every repetition, and a JSON line per scene gives
 ``ratio_forward`` and ``ratio_backward`` = new / old (medians, and of the fastest repetitions).
 
@@ -368,16 +368,19 @@ spec = importlib.util.spec_from_file_location("ta_bench_ext._C", so)
 C = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(C)
 d = torch.load(data)
-o = C.TraceOptions()
-for k, v in d["options"].items():
+o, b, se, e = C.SceneOptions(), C.BoundaryOptions(), C.SensorOptions(), C.EmitterOptions()
+opt = dict(d["options"])
+b.ior, se.face, e.radiance = opt.pop("ior"), opt.pop("face"), opt.pop("environment")
+o.boundary, o.sensor, o.emitter = b, se, e
+for k, v in opt.items():
     setattr(o, k, v)
 s, a, rs, ra, w = d["sigma_t"], d["albedo"], d["ref_sigma_t"], d["ref_albedo"], d["weights"]
-image, _ = C.volpath_forward(s, a, s, a, False, o)
-C.volpath_backward(w, s, a, rs, ra, True, True, o)
+image, _ = C.scene_forward(s, a, s, a, False, o)
+C.scene_backward(w, s, a, rs, ra, True, True, o)
 t0 = time.perf_counter()
-image, counts = C.volpath_forward(s, a, s, a, False, o)
+image, counts = C.scene_forward(s, a, s, a, False, o)
 t1 = time.perf_counter()
-gs, ga, _ = C.volpath_backward(w, s, a, rs, ra, True, True, o)
+gs, ga, _ = C.scene_backward(w, s, a, rs, ra, True, True, o)
 t2 = time.perf_counter()
 with open(f"/proc/self/status") as f:
     peak = [int(l.split()[1]) / 1024 for l in f if l.startswith("VmHWM:")]

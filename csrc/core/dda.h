@@ -1,0 +1,75 @@
+// Exact regular tracking: the voxels that a ray crosses, in order, as an iterator object in the manner of pbrt-v4's
+// DDAMajorantIterator (src/pbrt/media.h). There the cells of a coarse majorant grid bound the density; here the cells
+// are the voxels of the piecewise-constant grid itself, so each segment's density is exact and a flight needs no
+// null collisions. The walk's flight (integrator.h) and the search for an SDF surface from outside share it.
+//
+// The ray p + t·d (grid-local mm, unit d, t >= 0) starts in voxel `cell`. The current segment is voxel idx between
+// the ray parameters t0 and t1 (mm), where the ray leaves it through the face normal to `axis`; next() moves on to
+// the neighbour through that face. Same arithmetic, in the same order, as the loops it replaces.
+#pragma once
+
+#include "core/defs.h"
+#include "core/medium.h"
+
+namespace ta {
+namespace core {
+
+template <typename T>
+struct VoxelDDA {
+  int64_t idx[3];  // the current voxel (x, y, z)
+  T t0 = 0;        // where the ray enters it (0 for the first: the ray's start), mm
+  T t1 = 0;        // where the ray leaves it, mm
+  int axis = 0;    // the axis of the face through which it leaves
+  T tnext[3], tdelta[3];
+  int64_t step[3], dims[3];
+
+  TA_HD inline VoxelDDA(const Medium<T>& M, const T p[3], const T d[3], const int64_t cell[3]) {
+    dims[0] = M.W;
+    dims[1] = M.H;
+    dims[2] = M.D;
+    for (int a = 0; a < 3; ++a) {
+      idx[a] = cell[a];
+      const T vs = M.voxel[a];
+      if (d[a] > T(0)) {
+        step[a] = 1;
+        tdelta[a] = vs / d[a];
+        tnext[a] = tmax(T(0), (T(idx[a] + 1) * vs - p[a]) / d[a]);
+      } else if (d[a] < T(0)) {
+        step[a] = -1;
+        tdelta[a] = -vs / d[a];
+        tnext[a] = tmax(T(0), (T(idx[a]) * vs - p[a]) / d[a]);
+      } else {
+        step[a] = 0;
+        tdelta[a] = tinf<T>();
+        tnext[a] = tinf<T>();
+      }
+    }
+    pick();
+  }
+
+  // Flat index of the current voxel in one channel plane of the grid.
+  TA_HD inline int64_t voxel() const { return (idx[2] * dims[1] + idx[1]) * dims[0] + idx[0]; }
+
+  // Steps into the next voxel (t0 = the old t1). False when the ray leaves the grid instead: idx stays the last
+  // voxel, t0 is where the ray leaves the grid and `axis` the axis of that face.
+  TA_HD inline bool next() {
+    t0 = t1;
+    idx[axis] += step[axis];
+    if (idx[axis] < 0 || idx[axis] >= dims[axis]) {
+      idx[axis] -= step[axis];
+      return false;
+    }
+    tnext[axis] += tdelta[axis];
+    pick();
+    return true;
+  }
+
+ private:
+  TA_HD inline void pick() {
+    axis = tnext[0] < tnext[1] ? (tnext[0] < tnext[2] ? 0 : 2) : (tnext[1] < tnext[2] ? 1 : 2);
+    t1 = tnext[axis];
+  }
+};
+
+}  // namespace core
+}  // namespace ta

@@ -1,0 +1,141 @@
+// The backward kernel (radiative backpropagation by path replay) and its entry point scene_backward_cpu: per sensor
+// element, each sample's path replayed (replay.h, or the SIMD slab walk where it serves), deposited into per-chunk
+// gradient buffers that are added in chunk order.
+#include <ATen/Parallel.h>
+
+#include <atomic>
+#include <type_traits>
+#include <vector>
+
+#include "core/integrator.h"
+#include "volpath/checks.h"
+#include "volpath/dispatch.h"
+#include "volpath/replay.h"
+#include "volpath/scene_build.h"
+#include "volpath/simd_glue.h"
+#include "volpath/threading.h"
+#include "volpath/volpath.h"
+
+namespace ta {
+namespace volpath {
+namespace detail {
+
+std::atomic<int64_t> g_initial_tape_segments{int64_t(1) << 14};  // set_tape_capacity (tests)
+
+}  // namespace detail
+
+namespace {
+
+using core::Adjoint;
+using core::Scene;
+using namespace detail;
+
+template <typename T, int LANES, int B, bool DIEL, bool HERO>
+int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share) {
+  const int64_t nchunks = num_chunks(share.count);
+  const int64_t n = 3 * S.medium.voxels();
+  // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
+  std::vector<ZeroedBuffer<T>> bufs_s, bufs_a;
+  for (int64_t c = 1; c < nchunks; ++c) {
+    if (gs) bufs_s.emplace_back(n);
+    if (ga) bufs_a.emplace_back(n);
+  }
+  std::vector<int64_t> events(nchunks, 0);
+  const bool constant = S.emitter.kind == core::kConstant;
+  const bool simd = simd_serves<T, LANES, B, HERO>(S);
+  std::vector<float> ref_pair;
+  if constexpr (std::is_same_v<T, float>)
+    if (simd) ref_pair = pack_reference(S);
+  for_each_chunk(nchunks, [&](int64_t c) {
+    Adjoint<T> A;
+    if (gs) {
+      if (c == 0) A.grad_sigma_t = gs;
+      else A.grad_sigma_t = bufs_s[c - 1].data();
+    }
+    if (ga) {
+      if (c == 0) A.grad_albedo = ga;
+      else A.grad_albedo = bufs_a[c - 1].data();
+    }
+    int64_t ev = 0;
+    TapeStore<T, LANES> store;
+    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
+      if (simd) {
+        events[c] = simd_backward_chunk<DIEL>(S, ref_pair.data(), grad_out, A, store, c, nchunks, share);
+        return;
+      }
+    }
+    for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
+      const T* g = grad_out + t * 3;
+      bool live[3], any = false;  // channels whose paths can carry a derivative
+      for (int ch = 0; ch < 3; ++ch) {
+        live[ch] = g[ch] != T(0) && !(constant && S.emitter.radiance[ch] == T(0));
+        any |= live[ch];
+      }
+      if (!any) return;
+      for (int64_t s = 0; s < S.spp; ++s) {
+        if constexpr (LANES == 3) {
+          ev += replay<T, 3, B, DIEL, HERO>(S, t, s, 0, g, A, store);
+        } else {
+          for (int ch = 0; ch < 3; ++ch)
+            if (live[ch]) ev += replay<T, 1, B, DIEL, false>(S, t, s, ch, g, A, store);
+        }
+      }
+    });
+    events[c] = ev;
+  });
+  reduce_in_chunk_order(gs, bufs_s, n);
+  reduce_in_chunk_order(ga, bufs_a, n);
+  int64_t total = 0;
+  for (int64_t e : events) total += e;
+  return total;
+}
+
+}  // namespace
+
+int64_t set_tape_capacity(int64_t segments) {
+  TORCH_CHECK(segments >= 0, "segments: expected >= 0, got ", segments);
+  return g_initial_tape_segments.exchange(segments);
+}
+
+std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
+    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor) {
+  check_floors(sigma_t_floor, albedo_floor);
+  check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt, sigma_t_floor);
+  int64_t expected = 1;
+  for (int64_t s : image_shape(opt, sigma_t.size(2), sigma_t.size(3))) expected *= s;
+  check_grad_output(grad_output, sigma_t, expected);
+  const auto go = grad_output.contiguous();
+  torch::Tensor gs, ga;
+  if (need_sigma_t) gs = torch::zeros_like(sigma_t);
+  if (need_albedo) ga = torch::zeros_like(albedo);
+  int64_t events = 0;
+  if (!need_sigma_t && !need_albedo) return {gs, ga, events};
+  AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_backward", [&] {
+    using T = scalar_t;
+    check_finite<T>(go, "grad_output");
+    const T* g = go.data_ptr<T>();
+    SceneStorage store;
+    Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    S.medium.ref_sigma_t.floor = T(sigma_t_floor);  // the sampling medium max(ref, floor), read without a copy
+    S.medium.ref_albedo.floor = T(albedo_floor);
+    S.medium.ref_sigma_t.plain = !(sigma_t_floor > 0);
+    S.medium.ref_albedo.plain = !(albedo_floor > 0);
+    T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
+    T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
+    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
+                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
+      constexpr int L = decltype(lanes_c)::value;
+      constexpr bool HERO = decltype(hero_c)::value;
+      constexpr int B = decltype(bound_c)::value;
+      constexpr bool DIEL = decltype(diel_c)::value;
+      events = backward_kernel<T, L, B, DIEL, HERO>(S, g, pgs, pga,
+                                                    Share(S.elements(), opt.part_rank, opt.part_world));
+    });
+  });
+  return {gs, ga, events};
+}
+
+}  // namespace volpath
+}  // namespace ta

@@ -1,0 +1,150 @@
+// The forward kernel and its entry points (scene_forward_cpu, scene_forward_indexed_cpu): per sensor element, the
+// walks of every sample (core::trace_path, or the SIMD slab walk where it serves), summed in sample order.
+#include <ATen/Parallel.h>
+
+#include <type_traits>
+#include <vector>
+
+#include "core/integrator.h"
+#include "volpath/checks.h"
+#include "volpath/dispatch.h"
+#include "volpath/scene_build.h"
+#include "volpath/simd_glue.h"
+#include "volpath/threading.h"
+#include "volpath/volpath.h"
+
+namespace ta {
+namespace volpath {
+namespace {
+
+using core::Adjoint;
+using core::Scene;
+using namespace detail;
+
+template <typename T, int LANES, int B, bool DIEL, bool RATIO, bool HERO>
+ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
+  const int64_t nchunks = num_chunks(share.count);
+  const bool constant = S.emitter.kind == core::kConstant;
+  std::vector<ForwardCounts> counts(nchunks);
+  const Adjoint<T> none;
+  const bool simd = simd_serves<T, LANES, B, HERO>(S);
+  std::vector<float> ref_pair;
+  if constexpr (std::is_same_v<T, float>)
+    if (simd) ref_pair = pack_reference(S);
+  for_each_chunk(nchunks, [&](int64_t c) {
+    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
+      if (simd) {
+        counts[c] = simd_forward_chunk<DIEL, RATIO>(S, ref_pair.data(), out, c, nchunks, share);
+        return;
+      }
+    }
+    int64_t ev = 0, cut = 0;
+    for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
+      double acc[3] = {0, 0, 0};
+      T Le[3];
+      for (int64_t s = 0; s < S.spp; ++s) {
+        if (LANES == 3) {
+          const auto r =
+              core::trace_path<T, 3, B, DIEL, RATIO, false, false, HERO>(S, t, s, 0, nullptr, nullptr, none);
+          ev += r.scatter_events;
+          cut += r.truncated;
+          if (constant) {
+            for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]);
+          } else if (r.escaped) {
+            S.emitter.eval(r.direction, Le);
+            for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]) * double(Le[l]);
+          }
+        } else {
+          for (int ch = 0; ch < 3; ++ch) {
+            const auto r = core::trace_path<T, 1, B, DIEL, RATIO, false>(S, t, s, ch, nullptr, nullptr, none);
+            ev += r.scatter_events;
+            cut += r.truncated;
+            if (constant) {
+              acc[ch] += double(r.value[0]);
+            } else if (r.escaped) {
+              S.emitter.eval(r.direction, Le);
+              acc[ch] += double(r.value[0]) * double(Le[ch]);
+            }
+          }
+        }
+      }
+      for (int ch = 0; ch < 3; ++ch)
+        out[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
+                                   : T(acc[ch] / double(S.spp));
+    });
+    counts[c] = {ev, cut};
+  });
+  ForwardCounts total;
+  for (const auto& k : counts) {
+    total.scatter_events += k.scatter_events;
+    total.truncated_paths += k.truncated_paths;
+  }
+  return total;
+}
+
+}  // namespace
+
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                                                           const torch::Tensor& ref_sigma_t,
+                                                           const torch::Tensor& ref_albedo, bool ratio,
+                                                           const SceneOptions& opt) {
+  check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt);
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options())
+                                : torch::empty(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options());
+  ForwardCounts counts;
+  AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
+    using T = scalar_t;
+    SceneStorage store;
+    const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
+                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
+      constexpr int L = decltype(lanes_c)::value;
+      constexpr bool HERO = decltype(hero_c)::value;
+      constexpr int B = decltype(bound_c)::value;
+      constexpr bool DIEL = decltype(diel_c)::value;
+      const Share share(S.elements(), opt.part_rank, opt.part_world);
+      counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
+                     : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
+    });
+  });
+  return {out, counts};
+}
+
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::Tensor& index,
+                                                                   const torch::Tensor& sigma_t_table,
+                                                                   const torch::Tensor& albedo_table,
+                                                                   const SceneOptions& opt) {
+  check_palette(index, sigma_t_table, albedo_table, opt);
+  const int64_t D = index.size(0), H = index.size(1), W = index.size(2), P = sigma_t_table.size(1);
+  const uint8_t* idx = index.data_ptr<uint8_t>();
+  auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, H, W), sigma_t_table.options())
+                                : torch::empty(image_shape(opt, H, W), sigma_t_table.options());
+  ForwardCounts counts;
+  AT_DISPATCH_FLOATING_TYPES(sigma_t_table.scalar_type(), "volpath_forward_indexed", [&] {
+    using T = scalar_t;
+    SceneStorage store;
+    Scene<T> S = make_scene<T>(opt, D, H, W, sigma_t_table.scalar_type(), store);
+    core::Channels<T> st, al;
+    st.index = al.index = idx;
+    st.voxels = al.voxels = D * H * W;
+    st.entries = al.entries = P;
+    st.plain = al.plain = false;
+    st.palette = sigma_t_table.data_ptr<T>();
+    al.palette = albedo_table.data_ptr<T>();
+    S.medium.sigma_t = S.medium.ref_sigma_t = st;
+    S.medium.albedo = S.medium.ref_albedo = al;
+    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
+                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
+      constexpr int L = decltype(lanes_c)::value;
+      constexpr bool HERO = decltype(hero_c)::value;
+      constexpr int B = decltype(bound_c)::value;
+      constexpr bool DIEL = decltype(diel_c)::value;
+      counts = forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
+                                                                                      opt.part_world));
+    });
+  });
+  return {out, counts};
+}
+
+}  // namespace volpath
+}  // namespace ta

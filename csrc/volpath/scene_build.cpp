@@ -1,0 +1,128 @@
+// Scene building (see scene_build.h).
+#include "volpath/scene_build.h"
+
+#include <ATen/Parallel.h>
+
+namespace ta {
+namespace volpath {
+namespace detail {
+namespace {
+
+template <typename T>
+void copy3(const std::vector<double>& v, T out[3]) {
+  for (int k = 0; k < 3; ++k) out[k] = T(v[k]);
+}
+
+}  // namespace
+
+// The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
+template <typename T>
+core::Scene<T> make_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W, at::ScalarType dtype,
+                    SceneStorage& store) {
+  core::Scene<T> S;
+  auto& M = S.medium;
+  M.D = D;
+  M.H = H;
+  M.W = W;
+  copy3(o.voxel_size, M.voxel);
+  copy3(o.origin, M.origin);
+  if (o.boundary.kind == 1) {
+    store.sdf = o.boundary.sdf.to(dtype).contiguous();
+    const T* s = store.sdf.data_ptr<T>();
+    store.cells.assign(M.voxels(), 0);
+    const int64_t W1 = M.W + 1, HW1 = (M.H + 1) * W1;
+    uint8_t* cells = store.cells.data();
+    at::parallel_for(0, M.D, 1, [&](int64_t k0, int64_t k1) {
+      for (int64_t k = k0; k < k1; ++k)
+        for (int64_t j = 0; j < M.H; ++j)
+          for (int64_t i = 0; i < M.W; ++i) {
+            const T* b = s + k * HW1 + j * W1 + i;
+            const T c[8] = {b[0], b[1], b[W1], b[W1 + 1], b[HW1], b[HW1 + 1], b[HW1 + W1], b[HW1 + W1 + 1]};
+            bool all_neg = true, all_pos = true;
+            for (T x : c) {
+              all_neg &= x < T(0);
+              all_pos &= x > T(0);
+            }
+            cells[(k * M.H + j) * M.W + i] = all_neg ? core::kCellInside : (all_pos ? core::kCellOutside : core::kCellMixed);
+          }
+    });
+    S.sdf.sdf = s;
+    S.sdf.cell = cells;
+  }
+  S.ior = T(o.boundary.ior > 0 ? o.boundary.ior : 1.0);
+  auto& se = S.sensor;
+  se.kind = o.sensor.kind;
+  se.face = o.sensor.face;
+  if (se.kind == core::kSurfaceTexels) {
+    store.points = o.sensor.points.to(dtype).contiguous();
+    store.normals = o.sensor.normals.to(dtype).contiguous();
+    store.radius = o.sensor.radius.to(dtype).contiguous();
+    se.points = store.points.data_ptr<T>();
+    se.normals = store.normals.data_ptr<T>();
+    se.radius = store.radius.data_ptr<T>();
+    se.count = store.points.size(0);
+    se.lift = T(o.sensor.lift);
+  }
+  copy3(o.sensor.origin, se.origin);
+  copy3(o.sensor.forward, se.forward);
+  copy3(o.sensor.right, se.right);
+  copy3(o.sensor.up, se.up);
+  se.rows = o.sensor.rows;
+  se.cols = o.sensor.cols;
+  se.width = T(o.sensor.width);
+  se.height = T(o.sensor.height);
+  se.tan_half_fov = T(o.sensor.tan_half_fov);
+  auto& e = S.emitter;
+  e.kind = o.emitter.kind;
+  copy3(o.emitter.radiance, e.radiance);
+  copy3(o.emitter.ambient, e.ambient);
+  copy3(o.emitter.direction, e.direction);
+  e.cos_max = T(o.emitter.cos_max);
+  if (e.kind == core::kEnvMap) {
+    store.map = o.emitter.map.to(dtype).contiguous();
+    e.map = store.map.data_ptr<T>();
+    e.map_h = store.map.size(0);
+    e.map_w = store.map.size(1);
+  }
+  S.g = T(o.g);
+  S.spp = o.spp;
+  S.seed = uint64_t(o.seed);
+  S.max_depth = o.max_depth;
+  S.rr_depth = o.rr_depth;
+  return S;
+}
+
+template <typename T>
+core::Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store) {
+  core::Scene<T> S = make_scene<T>(o, sigma_t.size(1), sigma_t.size(2), sigma_t.size(3), sigma_t.scalar_type(), store);
+  S.medium.sigma_t = sigma_t.data_ptr<T>();
+  S.medium.albedo = albedo.data_ptr<T>();
+  S.medium.ref_sigma_t = ref_sigma_t.data_ptr<T>();
+  S.medium.ref_albedo = ref_albedo.data_ptr<T>();
+  return S;
+}
+
+
+template core::Scene<float> make_scene<float>(const SceneOptions&, int64_t, int64_t, int64_t, at::ScalarType,
+                                              SceneStorage&);
+template core::Scene<double> make_scene<double>(const SceneOptions&, int64_t, int64_t, int64_t, at::ScalarType,
+                                                SceneStorage&);
+template core::Scene<float> make_scene<float>(const SceneOptions&, const torch::Tensor&, const torch::Tensor&,
+                                              const torch::Tensor&, const torch::Tensor&, SceneStorage&);
+template core::Scene<double> make_scene<double>(const SceneOptions&, const torch::Tensor&, const torch::Tensor&,
+                                                const torch::Tensor&, const torch::Tensor&, SceneStorage&);
+
+std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
+  switch (o.sensor.kind) {
+    case core::kFaceTexels:
+      if (o.sensor.face == core::kFaceBoth) return {2, H, W, 3};
+      return {H, W, 3};
+    case core::kSurfaceTexels: return {o.sensor.points.size(0), 3};
+    default: return {o.sensor.rows, o.sensor.cols, 3};
+  }
+}
+
+}  // namespace detail
+}  // namespace volpath
+}  // namespace ta

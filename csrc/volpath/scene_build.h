@@ -1,0 +1,38 @@
+// Scene building: the SceneOptions of the entry points flattened into the torch-free core's Scene<T> (each piece
+// into the core struct of the same name), with the converted tensors kept alive beside it.
+#pragma once
+
+#include <torch/extension.h>
+
+#include <cstdint>
+#include <vector>
+
+#include "core/integrator.h"
+#include "volpath/volpath.h"
+
+namespace ta {
+namespace volpath {
+namespace detail {
+
+// Keeps the converted tensors alive while a Scene<T> points into them.
+struct SceneStorage {
+  torch::Tensor sdf, points, normals, radius, map;
+  std::vector<uint8_t> cells;
+};
+
+// The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
+template <typename T>
+core::Scene<T> make_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W, at::ScalarType dtype,
+                          SceneStorage& store);
+
+// The scene of the dense grids (3, D, H, W) (checked by check_all).
+template <typename T>
+core::Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+                          const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store);
+
+// The image's shape: (F, H, W, 3)/(H, W, 3) for face texels, (N, 3) for surface texels, (rows, cols, 3) for cameras.
+std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W);
+
+}  // namespace detail
+}  // namespace volpath
+}  // namespace ta

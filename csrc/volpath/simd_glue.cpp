@@ -1,0 +1,283 @@
+// SIMD glue (see simd_glue.h).
+#include "volpath/simd_glue.h"
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+
+#include "volpath/slab_simd.h"
+
+namespace ta {
+namespace volpath {
+namespace detail {
+
+using core::Adjoint;
+using core::Scene;
+
+// The widest SIMD walk this CPU runs: 2 AVX-512F, 1 AVX2, 0 none (libgcc also checks that the OS saves the registers).
+int cpu_simd_level() {
+#if (defined(__x86_64__) || defined(__i386__)) && defined(__GNUC__)
+  __builtin_cpu_init();
+  if (__builtin_cpu_supports("avx512f")) return 2;
+  return __builtin_cpu_supports("avx2") ? 1 : 0;
+#else
+  return 0;
+#endif
+}
+
+// -1: not decided yet (the CPU and TA_SIMD decide at first use); 0 the scalar walk; 1 AVX2; 2 AVX-512. set_simd (tests,
+// benchmarks) overrides.
+std::atomic<int> g_simd{-1};
+
+int simd_level() {
+  int v = g_simd.load();
+  if (v < 0) {
+    const char* env = std::getenv("TA_SIMD");
+    v = cpu_simd_level();
+    if (env && env[0] == '0') v = 0;
+    else if (env && std::strcmp(env, "avx2") == 0) v = std::min(v, 1);
+    g_simd.store(v);
+  }
+  return v;
+}
+
+namespace {
+
+// TA_SIMD_ENDED_LANES: flights that end before the SIMD walk's collision phase runs (0: its default); for tuning
+int simd_ended_lanes() {
+  static const int v = [] {
+    const char* env = std::getenv("TA_SIMD_ENDED_LANES");
+    return env ? std::atoi(env) : 0;
+  }();
+  return v;
+}
+
+// The SIMD walk of the selected width.
+void slab_walks(const simd::SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                const simd::LaneTapes* tapes, simd::WalkDone done, void* ctx) {
+  if (simd_level() == 2) simd::slab_walks_avx512(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
+  else simd::slab_walks_avx2(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
+}
+
+constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the SIMD walk
+constexpr int64_t kSimdSegments = int64_t(1) << 16;  // tape entries per lane (longer paths: scalar replay)
+static_assert(kSimdSegments <= simd::kMaxTapeCap, "the SIMD walk's tape offsets are int32");
+
+simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
+  simd::SlabWalkScene W;
+  const auto& M = S.medium;
+  W.ref_pair = ref_pair;
+  W.sigma_t = M.sigma_t.data;
+  W.albedo = M.albedo.data;
+  W.ref_sigma_t = M.ref_sigma_t.data;
+  W.ref_albedo = M.ref_albedo.data;
+  W.ref_sigma_t_floor = M.ref_sigma_t.plain ? 0.0f : M.ref_sigma_t.floor;
+  W.ref_albedo_floor = M.ref_albedo.plain ? 0.0f : M.ref_albedo.floor;
+  W.D = int32_t(M.D);
+  W.H = int32_t(M.H);
+  W.W = int32_t(M.W);
+  for (int a = 0; a < 3; ++a) W.voxel[a] = M.voxel[a];
+  W.g = S.g;
+  W.ior = S.ior;
+  W.face = S.sensor.face;
+  W.seed = S.seed;
+  W.max_depth = S.max_depth;
+  W.rr_depth = S.rr_depth;
+  W.spp = S.spp;
+  return W;
+}
+
+// core::deposit_tape<float, 1> for the SIMD walk's compact tape (slab_simd.h), through the same deposit policy
+// (Adjoint::sigma_t, Adjoint::albedo), with the σ_t deposits of one voxel in a row summed before they are added (a
+// flight that ends by a collision and the next flight's first segment there).
+void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A, int64_t N) {
+  const int64_t plane = ch * N;  // the channel's plane of the gradient buffers
+  const float av = adj * o.value;
+  int64_t cur = -1;  // the voxel of the pending σ_t deposit
+  float run = 0.0f;
+  auto add_s = [&](int64_t v, float d) {
+    if (v == cur) {
+      run += d;
+      return;
+    }
+    if (cur >= 0) A.sigma_t(plane + cur, run);
+    cur = v;
+    run = d;
+  };
+  int64_t s = 0;
+  for (int64_t k = 0; k < o.ncol; ++k) {
+    const simd::TapeCollisionF& col = o.cols[k];
+    if (A.grad_sigma_t) {
+      for (; s < col.seg_end; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
+      add_s(col.v, adj * core::weight_without(col.fs, o.value, o.prod_nonzero, int(o.zeros)) / col.sref);
+    }
+    if (A.grad_albedo)
+      A.albedo(plane + col.v, adj * core::weight_without(col.fa, o.value, o.prod_nonzero, int(o.zeros)) * col.inv_psq);
+  }
+  if (A.grad_sigma_t) {
+    for (; s < o.nseg; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
+    if (cur >= 0) A.sigma_t(plane + cur, run);
+  }
+}
+
+}  // namespace
+
+std::vector<float> pack_reference(const Scene<float>& S) {
+  const auto& M = S.medium;
+  const int64_t n = 3 * M.voxels();
+  std::vector<float> pair(size_t(2 * n));
+  const float* s = M.ref_sigma_t.data;
+  const float* a = M.ref_albedo.data;
+  float* out = pair.data();
+  at::parallel_for(0, n, 1 << 16, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      out[2 * i] = s[i];
+      out[2 * i + 1] = a[i];
+    }
+  });
+  return pair;
+}
+
+template <bool DIEL, bool RATIO>
+ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, float* out, int64_t c, int64_t nchunks,
+                                 const Share& share) {
+  simd::SlabWalkScene W = simd_scene(S, ref_pair);
+  W.dielectric = DIEL;
+  struct Ctx {
+    std::vector<float> values;
+    int64_t ev = 0, cut = 0;
+  } ctx;
+  std::vector<int64_t> elems;
+  elems.reserve(kSimdBatch);
+  ForwardCounts counts;
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
+    ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
+    slab_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
+               [](void* p, const simd::WalkOut& o) {
+                 auto* x = static_cast<Ctx*>(p);
+                 x->values[size_t(o.item)] = o.value;
+                 x->ev += o.scatter_events;
+                 x->cut += o.truncated;
+               },
+               &ctx);
+    for (int64_t k = 0; k < n; ++k) {
+      double acc[3] = {0, 0, 0};
+      for (int64_t s = 0; s < S.spp; ++s)
+        for (int ch = 0; ch < 3; ++ch) acc[ch] += double(ctx.values[size_t((k * S.spp + s) * 3 + ch)]);
+      for (int ch = 0; ch < 3; ++ch)
+        out[elems[k] * 3 + ch] = float(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp));
+    }
+    elems.clear();
+  };
+  for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
+    elems.push_back(t);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  counts.scatter_events = ctx.ev;
+  counts.truncated_paths = ctx.cut;
+  return counts;
+}
+
+template ForwardCounts simd_forward_chunk<false, false>(const Scene<float>&, const float*, float*, int64_t, int64_t,
+                                                        const Share&);
+template ForwardCounts simd_forward_chunk<false, true>(const Scene<float>&, const float*, float*, int64_t, int64_t,
+                                                       const Share&);
+template ForwardCounts simd_forward_chunk<true, false>(const Scene<float>&, const float*, float*, int64_t, int64_t,
+                                                       const Share&);
+template ForwardCounts simd_forward_chunk<true, true>(const Scene<float>&, const float*, float*, int64_t, int64_t,
+                                                      const Share&);
+
+template <bool DIEL>
+int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const float* grad_out,
+                            const Adjoint<float>& A, TapeStore<float, 1>& store, int64_t c, int64_t nchunks,
+                            const Share& share) {
+  simd::SlabWalkScene W = simd_scene(S, ref_pair);
+  W.dielectric = DIEL;
+  const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
+  // the lanes' tapes, for all the batches of this chunk (not zeroed: only the pages the paths reach are touched)
+  simd::LaneTapes tapes;
+  tapes.seg_cap = seg_cap;
+  tapes.col_cap = seg_cap / 2;
+  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
+  std::unique_ptr<simd::TapeCollisionF[]> col_buf(
+      new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
+  tapes.segs = seg_buf.get();
+  tapes.cols = col_buf.get();
+  struct Ctx {
+    const Scene<float>* S;
+    const float* grad_out;
+    const Adjoint<float>* A;
+    TapeStore<float, 1>* store;
+    const int64_t* elems;
+    int64_t ev = 0;
+  } ctx{&S, grad_out, &A, &store, nullptr};
+  std::vector<int64_t> elems;
+  std::vector<uint8_t> live;
+  elems.reserve(kSimdBatch);
+  live.reserve(kSimdBatch);
+  const bool constant = S.emitter.kind == core::kConstant;
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    ctx.elems = elems.data();
+    slab_walks(
+        W, elems.data(), live.data(), int64_t(elems.size()), true, &tapes,
+        [](void* p, const simd::WalkOut& o) {
+          auto* x = static_cast<Ctx*>(p);
+          const Scene<float>& S = *x->S;
+          const int64_t spp = S.spp;
+          const int ch = int(o.item % 3);
+          const int64_t s = (o.item / 3) % spp, t = x->elems[o.item / (3 * spp)];
+          const float* g = x->grad_out + t * 3;
+          x->ev += o.scatter_events;
+          if (o.overflow) {  // too long for the lane's tape: the scalar replay walks it again and deposits
+            x->ev += replay<float, 1, core::kBoxBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store);
+            return;
+          }
+          if (!o.escaped) return;
+          const float adj[1] = {g[ch] * S.emitter.radiance[ch] / float(spp)};
+          if (adj[0] == 0.0f) return;
+          deposit_simd_tape(o, ch, adj[0], *x->A, S.medium.voxels());
+        },
+        &ctx);
+    elems.clear();
+    live.clear();
+  };
+  for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
+    const float* g = grad_out + t * 3;
+    uint8_t bitsv = 0;
+    for (int ch = 0; ch < 3; ++ch)
+      if (g[ch] != 0.0f && !(constant && S.emitter.radiance[ch] == 0.0f)) bitsv |= uint8_t(1 << ch);
+    if (!bitsv) return;
+    elems.push_back(t);
+    live.push_back(bitsv);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  return ctx.ev;
+}
+
+template int64_t simd_backward_chunk<false>(const Scene<float>&, const float*, const float*, const Adjoint<float>&,
+                                            TapeStore<float, 1>&, int64_t, int64_t, const Share&);
+template int64_t simd_backward_chunk<true>(const Scene<float>&, const float*, const float*, const Adjoint<float>&,
+                                           TapeStore<float, 1>&, int64_t, int64_t, const Share&);
+
+}  // namespace detail
+
+int64_t set_simd(int64_t mode) {
+  TORCH_CHECK(mode >= -1 && mode <= 2, "mode: expected -1 (automatic), 0 (scalar), 1 (AVX2) or 2 (AVX-512), got ",
+              mode);
+  TORCH_CHECK(mode <= detail::cpu_simd_level(), "mode: this CPU cannot run ", mode == 2 ? "AVX-512F" : "AVX2");
+  const int before = detail::simd_level();
+  detail::g_simd.store(int(mode));
+  return before;
+}
+
+}  // namespace volpath
+}  // namespace ta

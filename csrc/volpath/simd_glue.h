@@ -1,0 +1,57 @@
+// SIMD glue: the SIMD slab walk (slab_simd.h: eight or sixteen paths per thread at once) where the scene allows it.
+// Which walk runs (the CPU, TA_SIMD, set_simd), whether it serves a scene, and its forward and replay of one chunk
+// of face texels, with the same per-element sums and the same deposits as the scalar kernels.
+#pragma once
+
+#include <cstdint>
+#include <type_traits>
+#include <vector>
+
+#include "core/integrator.h"
+#include "volpath/replay.h"
+#include "volpath/threading.h"
+#include "volpath/volpath.h"
+
+namespace ta {
+namespace volpath {
+namespace detail {
+
+// The widest SIMD walk this CPU runs: 2 AVX-512F, 1 AVX2, 0 none.
+int cpu_simd_level();
+// The walk in use: 0 scalar, 1 AVX2, 2 AVX-512 (the CPU and TA_SIMD decide at first use; set_simd overrides).
+int simd_level();
+inline bool simd_enabled() { return simd_level() > 0; }
+
+// Whether the SIMD slab walk serves this scene: float32 dense grids, box boundary, face texels, constant emitter.
+template <typename T, int LANES, int B, bool HERO>
+bool simd_serves(const core::Scene<T>& S) {
+  if constexpr (!std::is_same_v<T, float> || LANES != 1 || B != core::kBoxBoundary || HERO) {
+    return false;
+  } else {
+    const auto& M = S.medium;
+    return simd_enabled() && S.sensor.kind == core::kFaceTexels && S.emitter.kind == core::kConstant &&
+           M.sigma_t.index == nullptr && M.albedo.index == nullptr && M.ref_sigma_t.index == nullptr &&
+           M.ref_albedo.index == nullptr && M.sigma_t.plain && M.albedo.plain && 3 * M.voxels() < (int64_t(1) << 31);
+  }
+}
+
+// The reference σ_t and albedo side by side, voxel by voxel (SlabWalkScene::ref_pair), for the SIMD walk.
+std::vector<float> pack_reference(const core::Scene<float>& S);
+
+// Forward of chunk c with the SIMD walk: per batch of elements, every path's value, then the per-element sums in
+// sample order (as the scalar kernel adds them, so the image does not depend on the order the lanes finish in).
+template <bool DIEL, bool RATIO>
+ForwardCounts simd_forward_chunk(const core::Scene<float>& S, const float* ref_pair, float* out, int64_t c,
+                                 int64_t nchunks, const Share& share);
+
+// Gradient replay of chunk c with the SIMD walk: the lanes record their paths' tapes, and each path is deposited
+// when it ends; a path longer than its lane's tape is replayed by the scalar code from the start (walk and deposit),
+// so every deposit belongs to the walk that produced its weight. Returns the scatter events.
+template <bool DIEL>
+int64_t simd_backward_chunk(const core::Scene<float>& S, const float* ref_pair, const float* grad_out,
+                            const core::Adjoint<float>& A, TapeStore<float, 1>& store, int64_t c, int64_t nchunks,
+                            const Share& share);
+
+}  // namespace detail
+}  // namespace volpath
+}  // namespace ta

@@ -1,0 +1,105 @@
+// Threading: how the sensor elements are dealt to the threads (static chunks, so sums are deterministic for a given
+// thread count), the data-parallel share of this process, and the per-chunk gradient buffers with their reduction in
+// chunk order.
+#pragma once
+
+#include <ATen/Parallel.h>
+#include <c10/util/Exception.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstdlib>
+#include <memory>
+#include <vector>
+
+#include "core/integrator.h"
+
+namespace ta {
+namespace volpath {
+namespace detail {
+
+constexpr int64_t kTexelBlock = 8;  // sensor elements handed out together (limits false sharing of output rows)
+
+// Static, strided work split: chunk c owns element blocks c, c + n, c + 2n, ... . The split depends only on the
+// number of chunks (= threads), so sums are deterministic for a given thread count, and strided blocks balance
+// spatially varying path lengths.
+template <typename F>
+void for_each_chunk(int64_t nchunks, const F& body) {
+  at::parallel_for(0, nchunks, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t c = begin; c < end; ++c) body(c);
+  });
+}
+
+// The sensor elements this process traces: t = rank + world·u for u < count (all of them when world = 1).
+struct Share {
+  int64_t rank = 0, world = 1, count = 0;
+  Share(int64_t n, int64_t r, int64_t w) : rank(r), world(w), count(r < n ? (n - r + w - 1) / w : 0) {}
+  int64_t element(int64_t u) const { return rank + world * u; }
+};
+
+template <typename F>
+void for_elements_of_chunk(int64_t c, int64_t nchunks, const Share& share, const F& body) {
+  const int64_t n = share.count;
+  for (int64_t b0 = c * kTexelBlock; b0 < n; b0 += nchunks * kTexelBlock)
+    for (int64_t u = b0, e = std::min(n, b0 + kTexelBlock); u < e; ++u) body(share.element(u));
+}
+
+inline int64_t num_chunks(int64_t n) {
+  const int64_t blocks = (n + kTexelBlock - 1) / kTexelBlock;
+  return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), blocks));
+}
+
+// Face texels of chunk c (of this process's share) in tiles of kTile × kTile texels, tiles dealt to the chunks in
+// turn: the paths of neighbouring texels read the same voxels, so a tile's grid stays in the caches (on a 760²
+// slab, 1.4× faster than rows of texels).
+constexpr int64_t kTile = 16;
+
+template <typename T, typename F>
+void for_tiled_face_elements(const core::Scene<T>& S, int64_t c, int64_t nchunks, const Share& share, const F& body) {
+  const int64_t H = S.medium.H, W = S.medium.W;
+  const int64_t faces = S.sensor.face == core::kFaceBoth ? 2 : 1;
+  const int64_t ny = (H + kTile - 1) / kTile, nx = (W + kTile - 1) / kTile;
+  for (int64_t q = c; q < faces * ny * nx; q += nchunks) {
+    const int64_t f = q / (ny * nx), ty = (q % (ny * nx)) / nx, tx = q % nx;
+    for (int64_t j = ty * kTile; j < std::min(H, (ty + 1) * kTile); ++j)
+      for (int64_t i = tx * kTile; i < std::min(W, (tx + 1) * kTile); ++i) {
+        const int64_t t = (f * H + j) * W + i;
+        if (t % share.world == share.rank) body(t);
+      }
+  }
+}
+
+// The elements of chunk c: face texels in tiles, other sensors' elements in strided blocks.
+template <typename T, typename F>
+void for_chunk_elements(const core::Scene<T>& S, int64_t c, int64_t nchunks, const Share& share, const F& body) {
+  if (S.sensor.kind == core::kFaceTexels) for_tiled_face_elements(S, c, nchunks, share, body);
+  else for_elements_of_chunk(c, nchunks, share, body);
+}
+
+// A gradient buffer of n zeros from calloc: a large block comes fresh from the kernel, so the pages that the deposits
+// never touch are never resident (an object's paths touch the voxels near its surface, not its whole bounding box).
+template <typename T>
+struct ZeroedBuffer {
+  std::unique_ptr<T, void (*)(void*)> p{nullptr, std::free};
+  explicit ZeroedBuffer(int64_t n) : p(static_cast<T*>(std::calloc(size_t(n), sizeof(T))), std::free) {
+    TORCH_CHECK(p != nullptr, "volpath backward: could not allocate a gradient buffer of ", n * int64_t(sizeof(T)),
+                " bytes");
+  }
+  T* data() const { return p.get(); }
+};
+
+// Adds the chunks' buffers into out (n values) in chunk order, in parallel over the values: deterministic.
+template <typename T>
+void reduce_in_chunk_order(T* out, const std::vector<ZeroedBuffer<T>>& bufs, int64_t n) {
+  if (!out || bufs.empty()) return;
+  at::parallel_for(0, n, 1 << 14, [&](int64_t b, int64_t e) {
+    for (const auto& buf : bufs) {
+      const T* x = buf.data();
+      for (int64_t i = b; i < e; ++i) out[i] += x[i];
+    }
+  });
+}
+
+}  // namespace detail
+}  // namespace volpath
+}  // namespace ta
