@@ -11,6 +11,17 @@
 #define TA_HD
 #endif
 
+// The walk's steps (integrator.h) are inlined into the walk whatever the caller's size: each is called once per walk
+// instance, and the path state that they share by reference stays in registers, as in the one function they were
+// carved from (left to the compiler, fly and collide stayed out of line and the scalar replay measured slower).
+#if defined(__CUDACC__)
+#define TA_INLINE __forceinline__
+#elif defined(__GNUC__)
+#define TA_INLINE inline __attribute__((always_inline))
+#else
+#define TA_INLINE inline
+#endif
+
 namespace ta {
 namespace core {
 

@@ -250,7 +250,7 @@ struct PathState {
 // The state at the start of the walk of sensor element `elem`, sample `sample`, channel `chan` (LANES == 1), and
 // the result it would leave if it ended now (V = 0).
 template <typename T, int LANES, bool HERO>
-TA_HD inline void begin_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan, PathState<T, LANES>& st,
+TA_HD TA_INLINE void begin_path(const Scene<T>& S, int64_t elem, int64_t sample, int chan, PathState<T, LANES>& st,
                              PathResult<T, LANES>& res) {
   for (int l = 0; l < LANES; ++l) {
     res.value[l] = T(0);
@@ -280,7 +280,7 @@ TA_HD inline void finish(const PathState<T, LANES>& st, PathResult<T, LANES>& re
 // texels start inside the box on its face, where a dielectric reflects the emitter specularly (normal incidence):
 // false when the walk ends there.
 template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
-TA_HD inline bool start_at_sensor(const Scene<T>& S, int64_t elem, PathState<T, LANES>& st,
+TA_HD TA_INLINE bool start_at_sensor(const Scene<T>& S, int64_t elem, PathState<T, LANES>& st,
                                   PathResult<T, LANES>& res) {
   const Medium<T>& M = S.medium;
   st.rng.draw(st.event++, st.u);
@@ -317,7 +317,7 @@ struct Flight {
 // per voxel), stops at the collision, the surface (SDF) or the grid's box, and moves p there. On the way: the ratio
 // weights of the flight (RATIO, HERO), its segments in the tape (RECORD) or their ∂/∂σ_t (ADJOINT).
 template <typename T, int LANES, int BOUNDARY, bool RATIO, bool ADJOINT, bool RECORD, bool HERO, typename Deposit>
-TA_HD inline Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res, int chan,
+TA_HD TA_INLINE Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res, int chan,
                         const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T, Deposit>& A,
                         Tape<T, LANES>* tape) {
   constexpr bool SDF = BOUNDARY == kSDFBoundary;
@@ -408,7 +408,7 @@ TA_HD inline Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T
 // factors σ_c/σ̂ and α_c/(p_s q) (records them, or deposits their ∂), and samples the new direction (u2, u3).
 // False when the walk ends (truncated, absorbed or killed by roulette).
 template <typename T, int LANES, bool RATIO, bool ADJOINT, bool RECORD, bool HERO, typename Deposit>
-TA_HD inline bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res, int chan,
+TA_HD TA_INLINE bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res, int chan,
                           const PathResult<T, LANES>* pass1, const T* adj, const Adjoint<T, Deposit>& A,
                           Tape<T, LANES>* tape) {
   const Medium<T>& M = S.medium;
@@ -496,7 +496,7 @@ TA_HD inline bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathResult
 // reflects internally (u1 < F; an interaction) or refracts; the walk then leaves the object: it escapes the box (or
 // an SDF object's grid), or flies on outside an SDF object. False when the walk ends (escaped or truncated).
 template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
-TA_HD inline bool cross_from_inside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res,
+TA_HD TA_INLINE bool cross_from_inside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res,
                                     const Flight& f) {
   constexpr bool SDF = BOUNDARY == kSDFBoundary;
   const Medium<T>& M = S.medium;
@@ -546,7 +546,7 @@ TA_HD inline bool cross_from_inside(const Scene<T>& S, PathState<T, LANES>& st, 
 // counted as an interaction (SDF), then reflection (u < F) or refraction into the object. False when the walk ends
 // (escaped, reflected off the convex box, or truncated).
 template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
-TA_HD inline bool enter_from_outside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res) {
+TA_HD TA_INLINE bool enter_from_outside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res) {
   constexpr bool SDF = BOUNDARY == kSDFBoundary;
   T n[3];
   if (!find_entry<T, BOUNDARY>(S, st.p, st.d, st.idx, n)) {
