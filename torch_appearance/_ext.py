@@ -1,4 +1,5 @@
-"""Loads the compiled core ``torch_appearance._C`` and refuses a missing or stale build with the fix."""
+"""Loads the compiled core ``torch_appearance._C`` and refuses a missing or stale build with the fix; calls its tracer
+entry points so that Ctrl-C interrupts them (:func:`call_tracer`)."""
 import os
 
 import torch
@@ -41,6 +42,21 @@ def check_build(built_hash, built_torch, csrc_dir=None):
             raise ImportError(f"torch_appearance: the C++ extension is stale: csrc/ changed since it was built "
                               f"(built from sources {built_hash}, checkout has {current}). Rebuild it: {_FIX} "
                               f"(set TORCH_APPEARANCE_ALLOW_STALE_BUILD=1 to import anyway).")
+
+
+_INTERRUPTED = "interrupted (SIGINT)"
+
+
+def call_tracer(entry, *args):
+    """``entry(*args)`` for a C++ entry point of the tracer, with Ctrl-C: the tracer polls SIGINT between sensor
+    elements (csrc/volpath/interrupt.h), stops within moments instead of finishing a render of minutes, and its
+    "interrupted" error becomes the ``KeyboardInterrupt`` Python code expects."""
+    try:
+        return entry(*args)
+    except RuntimeError as error:
+        if _INTERRUPTED in str(error):
+            raise KeyboardInterrupt(f"{_INTERRUPTED} during a render") from None
+        raise
 
 
 _C = _load()

@@ -43,7 +43,7 @@ from .color import linear_to_srgb, srgb_to_linear
 
 __all__ = ["read_image", "read_image_bytes", "read_mask", "decode_image", "strict_pillow", "IMAGE_FORMATS",
            "write_exr", "read_exr", "write_png", "read_png", "write_json", "write_csv", "save_figure",
-           "atomic_write_bytes", "nan_to_none", "markdown_table"]
+           "atomic_write_bytes", "read_json", "nan_to_none", "markdown_table"]
 
 # Permissions that a plain open() would give a new file (mkstemp creates 0600 files).
 _UMASK = os.umask(0)
@@ -619,6 +619,17 @@ def write_json(path, obj, *, indent=2):
         raise ValueError(f"obj cannot be written as strict JSON (NaN or infinity?): {error}") from None
     atomic_write_bytes(path, (text + "\n").encode("utf-8"))
 
+
+
+def read_json(path, *, name="path"):
+    """The JSON value in ``path``; a missing, unreadable or malformed file is a ValueError naming ``name``."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise ValueError(f"{name}: no such file {path!r}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{name}: {path!r} is not a readable JSON file ({error})") from None
 
 
 def nan_to_none(obj):

@@ -10,6 +10,7 @@
 #include "core/integrator.h"
 #include "volpath/checks.h"
 #include "volpath/dispatch.h"
+#include "volpath/interrupt.h"
 #include "volpath/replay.h"
 #include "volpath/scene_build.h"
 #include "volpath/simd_glue.h"
@@ -112,6 +113,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
   if (need_albedo) ga = torch::zeros_like(albedo);
   int64_t events = 0;
   if (!need_sigma_t && !need_albedo) return {gs, ga, events};
+  const InterruptScope interrupt;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_backward", [&] {
     using T = scalar_t;
     check_finite<T>(go, "grad_output");
@@ -134,6 +136,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
                                                     Share(S.elements(), opt.part_rank, opt.part_world));
     });
   });
+  interrupt.throw_if_interrupted();
   return {gs, ga, events};
 }
 

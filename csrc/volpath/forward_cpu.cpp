@@ -8,6 +8,7 @@
 #include "core/integrator.h"
 #include "volpath/checks.h"
 #include "volpath/dispatch.h"
+#include "volpath/interrupt.h"
 #include "volpath/scene_build.h"
 #include "volpath/simd_glue.h"
 #include "volpath/threading.h"
@@ -92,6 +93,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
   auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options())
                                 : torch::empty(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options());
   ForwardCounts counts;
+  const InterruptScope interrupt;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
     SceneStorage store;
@@ -107,6 +109,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
                      : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
     });
   });
+  interrupt.throw_if_interrupted();
   return {out, counts};
 }
 
@@ -120,6 +123,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
   auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, H, W), sigma_t_table.options())
                                 : torch::empty(image_shape(opt, H, W), sigma_t_table.options());
   ForwardCounts counts;
+  const InterruptScope interrupt;
   AT_DISPATCH_FLOATING_TYPES(sigma_t_table.scalar_type(), "volpath_forward_indexed", [&] {
     using T = scalar_t;
     SceneStorage store;
@@ -143,6 +147,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
                                                                                       opt.part_world));
     });
   });
+  interrupt.throw_if_interrupted();
   return {out, counts};
 }
 

@@ -1,6 +1,6 @@
 // Threading: how the sensor elements are dealt to the threads (static chunks, so sums are deterministic for a given
 // thread count), the data-parallel share of this process, and the per-chunk gradient buffers with their reduction in
-// chunk order.
+// chunk order. The element loops stop early on Ctrl-C (volpath/interrupt.h).
 #pragma once
 
 #include <ATen/Parallel.h>
@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "core/integrator.h"
+#include "volpath/interrupt.h"
 
 namespace ta {
 namespace volpath {
@@ -41,7 +42,10 @@ template <typename F>
 void for_elements_of_chunk(int64_t c, int64_t nchunks, const Share& share, const F& body) {
   const int64_t n = share.count;
   for (int64_t b0 = c * kTexelBlock; b0 < n; b0 += nchunks * kTexelBlock)
-    for (int64_t u = b0, e = std::min(n, b0 + kTexelBlock); u < e; ++u) body(share.element(u));
+    for (int64_t u = b0, e = std::min(n, b0 + kTexelBlock); u < e; ++u) {
+      if (interrupted()) return;
+      body(share.element(u));
+    }
 }
 
 inline int64_t num_chunks(int64_t n) {
@@ -64,6 +68,7 @@ void for_tiled_face_elements(const core::Scene<T>& S, int64_t c, int64_t nchunks
     for (int64_t j = ty * kTile; j < std::min(H, (ty + 1) * kTile); ++j)
       for (int64_t i = tx * kTile; i < std::min(W, (tx + 1) * kTile); ++i) {
         const int64_t t = (f * H + j) * W + i;
+        if (interrupted()) return;
         if (t % share.world == share.rank) body(t);
       }
   }

@@ -12,7 +12,7 @@ import warnings
 import torch
 from torch.autograd.function import once_differentiable
 
-from .._ext import _C
+from .._ext import _C, call_tracer
 
 __all__ = ["VolumePathTrace", "reference_medium", "sampling_lanes", "walk_options"]
 
@@ -84,7 +84,8 @@ class VolumePathTrace(torch.autograd.Function):
         ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
         options = walk_options(job, ref_s, job.seed, tuple(sigma_t.shape[1:]), sigma_t.dtype)
         start = time.perf_counter()
-        image, counts = _C.scene_forward(sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio, options)
+        image, counts = call_tracer(_C.scene_forward, sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio,
+                                    options)
         if stats is not None:
             stats["forward_s"] = time.perf_counter() - start
             stats["scatter_events"] = counts.scatter_events
@@ -118,9 +119,9 @@ class VolumePathTrace(torch.autograd.Function):
         options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
                                lanes=_floored_lanes(ref_s, floor_s))
         start = time.perf_counter()
-        grad_s, grad_a, events = _C.scene_backward(grad_image.to(sigma_t.dtype).contiguous(), sigma_t.detach(),
-                                                   albedo.detach(), ref_s, ref_a, need_s, need_a, options,
-                                                   floor_s, floor_a)
+        grad_s, grad_a, events = call_tracer(_C.scene_backward, grad_image.to(sigma_t.dtype).contiguous(),
+                                             sigma_t.detach(), albedo.detach(), ref_s, ref_a, need_s, need_a, options,
+                                             floor_s, floor_a)
         if ctx.stats is not None:
             ctx.stats["backward_s"] = time.perf_counter() - start
             ctx.stats["backward_scatter_events"] = int(events)

@@ -22,10 +22,13 @@ Examples:
 import argparse
 import dataclasses
 import os
+import shlex
 import sys
 
+from .. import io as ta_io
 from ..fabrication.inks import DEFAULT_INKS, INKS
-from ..pipelines.print.config import PrintConfig
+from ..pipelines.print.config import RESUME_MAY_CHANGE, PrintConfig, config_conflicts
+from ..pipelines.runs import RunInterrupted
 from ..pipelines.print.loop import optimize_print
 from .command import CommandParser, check_output_folder, fail
 
@@ -145,17 +148,82 @@ def parser(prog=PROG):
                         "images (slabs: .exr+.png; objects: .npy, .ply and _uv.png), views.png (objects), "
                         "ink_usage_by_depth.png, mixture.npz, quantized.npz, slices/, checkpoint.pt, summary.json "
                         "(default: %(default)s)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its checkpoint, with the settings of its config.json (a flag "
+                        "that disagrees with them is refused; --iterations may be raised to extend the run)")
+    p.add_argument("--checkpoint-s", type=float, default=PrintConfig.checkpoint_s,
+                   help="write checkpoint.pt at least every this many seconds of wall time, besides at every "
+                        "evaluation and on Ctrl-C (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+_PATH_FLAGS = ("target", "bottom_target", "mesh", "texture", "envmap")
+
+
+def absolute_paths(args):
+    """Input files named by absolute paths (config.json then names them wherever the run is resumed from): the
+    target images, mesh, texture, environment map, a JSON ink file and the mask images of ``--fixed``."""
+    def absolute(path):
+        return os.path.abspath(path) if isinstance(path, str) and os.path.isfile(path) else path
+
+    for name in _PATH_FLAGS:
+        if hasattr(args, name):
+            setattr(args, name, absolute(getattr(args, name)))
+    if isinstance(getattr(args, "inks", None), str) and args.inks.lower().endswith(".json"):
+        args.inks = absolute(args.inks)
+    def absolute_masks(spec):  # INK=FRACTION:TERM&TERM...
+        head, sep, mask = spec.partition(":")
+        return head + sep + "&".join(absolute(term.strip()) for term in mask.split("&")) if sep else spec
+
+    if getattr(args, "fixed", None):
+        args.fixed = [absolute_masks(spec) for spec in args.fixed]
+
+
+def given_flags(p, argv):
+    """The destinations of the flags that ``argv`` gives (not left at their defaults)."""
+    probe = parser(p.prog)
+    for action in probe._actions:
+        action.default = argparse.SUPPRESS
+    return set(vars(probe.parse_args(argv)))
+
+
+def resumed_config(p, args, argv):
+    """The config of the run in ``--out`` (its config.json), with ``--iterations``/``--checkpoint-s`` if given;
+    any other flag given must agree with it (exit 2 naming the flags otherwise)."""
+    path = os.path.join(args.out, "config.json")
+    if not os.path.isfile(path):
+        p.error(f"--resume: {args.out!r} holds no run to resume (no config.json); start one without --resume")
+    try:
+        stored = PrintConfig.from_record(ta_io.read_json(path, name="--resume"))
+    except (TypeError, ValueError) as error:
+        p.error(f"--resume: {path} does not hold a run's settings ({error})")
+    given = given_flags(p, argv)
+    flag = {a.dest: a.option_strings[0] for a in p._actions if a.option_strings}
+    differ = config_conflicts(stored, config_from_args(args), [n for n in sorted(given) if hasattr(stored, n) and
+                                                                n not in RESUME_MAY_CHANGE])
+    if differ:
+        p.error(f"--resume: the run in {args.out!r} was made with other settings: " +
+                "; ".join(f"{flag[name]} {_show(mine)} (the run has {_show(theirs)})" for name, mine, theirs in differ)
+                + "; drop these flags to resume it, or start a new run in another --out")
+    keep = {name: getattr(args, name) for name in ("iterations", "checkpoint_s") if name in given}
+    return dataclasses.replace(stored, out=args.out, resume=True, **keep)
+
+
+def _show(value):
+    if isinstance(value, (list, tuple)):
+        return ",".join(getattr(v, "name", None) or str(v) for v in value)
+    return str(value)
 
 
 def main(argv=None, prog=PROG):
     """Run :func:`optimize_print` with the flags in ``argv`` (default ``sys.argv[1:]``); under ``torchrun``
     (``WORLD_SIZE`` > 1) the renders are data-parallel over a gloo process group. Returns the exit status (2 for
-    refused input, with the message on stderr)."""
+    refused input, with the message on stderr; 130 after Ctrl-C, with the checkpoint written and the command that
+    resumes the run)."""
     import torch
 
+    argv = sys.argv[1:] if argv is None else list(argv)
     p = parser(prog)
     args = p.parse_args(argv)
     check_output_folder(p, "--out", args.out)
@@ -163,7 +231,8 @@ def main(argv=None, prog=PROG):
         if args.threads < 1:
             p.error(f"--threads: expected >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
-    cfg = config_from_args(args)
+    absolute_paths(args)
+    cfg = resumed_config(p, args, argv) if args.resume else config_from_args(args)
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # started by torchrun: data-parallel rendering
     if distributed:
         import torch.distributed as dist
@@ -172,6 +241,13 @@ def main(argv=None, prog=PROG):
         optimize_print(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         return fail(prog, error)
+    except RunInterrupted as stop:
+        print(f"{prog}: {stop}; resume with: {prog} --out {shlex.quote(stop.folder)} --resume", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted before the optimisation began; nothing to resume (start it again)",
+              file=sys.stderr)
+        return 130
     finally:
         if distributed:
             dist.destroy_process_group()

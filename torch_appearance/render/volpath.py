@@ -6,6 +6,7 @@ import math
 
 import torch
 
+from .._ext import call_tracer
 from .scene import Scene, check_grid, check_medium
 from .trace_job import TraceJob
 
@@ -223,5 +224,6 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
     st = tables[0][used]
     lanes = 3 if torch.equal(st[:, 0], st[:, 1]) and torch.equal(st[:, 0], st[:, 2]) else 1
     options = job.scene_options(lanes, job.seed, tuple(index.shape), tables[0].dtype)
-    image, _ = _C.scene_forward_indexed(index, tables[0].t().contiguous(), tables[1].t().contiguous(), options)
+    image, _ = call_tracer(_C.scene_forward_indexed, index, tables[0].t().contiguous(), tables[1].t().contiguous(),
+                           options)
     return image

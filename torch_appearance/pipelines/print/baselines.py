@@ -14,7 +14,7 @@ import torch
 from ...color import rgb_to_lab
 from ...fabrication.quantize import hold_fixed_fractions, micro_grid_pitch, quantize_mixture, source_index
 from ...nn.mixture import mix_inks
-from .rendering import render, replay_seed, slab_scene
+from .rendering import render, render_indexed, replay_seed, slab_scene
 
 __all__ = ["homogeneous_table", "naive_extrusion", "quantize", "render_quantized", "render_slab"]
 
@@ -113,6 +113,9 @@ def naive_extrusion(target_rgb, inks, cfg, table_spp=64):
 def render_quantized(indices, inks, cfg, macro_hw, faces, spp, seed):
     """Render a printer-resolution material-index volume and average its texels back to the macro texel grid.
 
+    The tracer reads the uint8 volume and the ink tables (:func:`.rendering.render_indexed`): 1 byte per printer
+    voxel, no dense one-hot or σ_t/albedo copy of the printer volume; the same image as those dense grids, bitwise.
+
     Args:
         indices: (Dz, Hy, Wx) uint8 ink indices at ``cfg.printer_dpi``.
         macro_hw: (H, W) of the optimisation texel grid.
@@ -122,11 +125,9 @@ def render_quantized(indices, inks, cfg, macro_hw, faces, spp, seed):
     """
     h, w = macro_hw
     edges = micro_grid_pitch((cfg.depth, h, w), cfg.voxel_size, cfg.printer_dpi)  # exact box, not nominal DPI
-    idx = torch.as_tensor(indices.astype(np.int64))
-    onehot = torch.nn.functional.one_hot(idx, len(inks)).permute(3, 0, 1, 2).float().contiguous()
-    sigma_t, albedo = mix_inks(onehot, inks)
-    micro = render_slab(sigma_t.detach().contiguous(), albedo.detach().contiguous(), cfg, inks, faces, spp, seed,
-                          voxel_size=edges)
+    scene = slab_scene(edges, faces=faces, g=cfg.phase_g(inks), ior=cfg.ior)
+    micro = render_indexed(scene, np.ascontiguousarray(indices, np.uint8), inks, spp=spp, seed=seed)
+    micro = micro if faces == 2 else micro.unsqueeze(0)
     _, hy, wx, _ = micro.shape
     jy, ix = source_index(h, hy), source_index(w, wx)  # the macro texel holding each micro texel's centre
     cell = torch.as_tensor((jy[:, None] * w + ix[None, :]).reshape(-1))

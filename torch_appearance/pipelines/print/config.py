@@ -1,14 +1,18 @@
 """The settings of one print optimisation (:class:`PrintConfig`), the ink set they name, and the run's seeds."""
+import dataclasses
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Optional, Sequence, Tuple
 
-from ...fabrication.inks import DEFAULT_INKS, InkSet
+from ...fabrication.inks import DEFAULT_INKS, Ink, InkSet, ink_from_dict
 from ...fabrication.quantize import PRINTER_DPI
 from .fixed_fractions import parse_fixed
 
-__all__ = ["PrintConfig", "load_inks", "iteration_seed"]
+__all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts"]
+
+#: the settings a resumed run may change: where it is, that it resumes, how long it runs and how often it saves
+RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
 
 
 @dataclass
@@ -59,6 +63,7 @@ class PrintConfig:
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
     out: str = "results/print"
     resume: bool = False
+    checkpoint_s: float = 300.0  # write checkpoint.pt at least this often (wall seconds), besides every evaluation
 
     def validate(self):
         """Raise ValueError/TypeError naming the field for anything out of range."""
@@ -69,7 +74,7 @@ class PrintConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: expected > 0, got {value}")
 
-        for name in ("thickness_mm", "dpi", "lr", "shell_mm"):
+        for name in ("thickness_mm", "dpi", "lr", "shell_mm", "checkpoint_s"):
             positive(name, getattr(self, name))
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size"):
             positive(name, getattr(self, name), integer=True)
@@ -113,6 +118,22 @@ class PrintConfig:
             raise ValueError(f"thickness_mm: expected at least one voxel ({self.voxel_size:.4f} mm), "
                              f"got {self.thickness_mm}")
 
+    @classmethod
+    def from_record(cls, record):
+        """The config a run folder's ``config.json`` records (its other keys are ignored): tuples where the
+        fields are tuples, and the inks as the run's own :class:`~torch_appearance.fabrication.Ink` records (their
+        properties, not their names: a resumed run uses the inks it started with)."""
+        if not isinstance(record, dict):
+            raise TypeError(f"config: expected a dict (a run's config.json), got {type(record).__name__}")
+        values = {f.name: record[f.name] for f in fields(cls) if f.name in record}
+        for name in ("gamma", "printer_dpi", "fixed"):
+            if isinstance(values.get(name), list):
+                values[name] = tuple(values[name])
+        if isinstance(values.get("inks"), list):
+            values["inks"] = tuple(ink_from_dict(ink, f"config.json: inks[{k}]") if isinstance(ink, dict) else ink
+                                   for k, ink in enumerate(values["inks"]))
+        return cls(**values)
+
     @property
     def voxel_size(self):
         return 25.4 / self.dpi
@@ -128,13 +149,18 @@ class PrintConfig:
 
 
 def load_inks(spec):
-    """An :class:`~torch_appearance.fabrication.InkSet` from ink names (a list or a comma-separated string) or a JSON
-    ink file."""
+    """An :class:`~torch_appearance.fabrication.InkSet` from ink names (a list or a comma-separated string), a JSON
+    ink file, or :class:`~torch_appearance.fabrication.Ink` records (a resumed run's, :meth:`PrintConfig.from_record`)."""
+    if isinstance(spec, InkSet):
+        return spec
     if isinstance(spec, str):
         if spec.lower().endswith(".json"):
             return InkSet.load_json(spec)
         spec = [s.strip() for s in spec.split(",") if s.strip()]
-    return InkSet.from_names(list(spec))
+    spec = list(spec)
+    if spec and all(isinstance(ink, Ink) for ink in spec):
+        return InkSet(spec)
+    return InkSet.from_names(spec)
 
 
 def iteration_seed(seed, iteration):
@@ -143,3 +169,28 @@ def iteration_seed(seed, iteration):
     z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
     z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
     return (z ^ (z >> 31)) >> 1
+
+
+def _plain(value):
+    """Tuples and lists alike, ink sets as their properties: the form in which two settings are compared."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Ink):
+        return _plain(list(dataclasses.astuple(value)))
+    return value
+
+
+def config_conflicts(stored, mine, names=None):
+    """``[(field, mine, stored)]`` for the fields (``names``, default all but :data:`RESUME_MAY_CHANGE`) where two
+    :class:`PrintConfig` disagree; inks are compared by their properties (``load_inks`` of each)."""
+    names = [f.name for f in fields(PrintConfig) if f.name not in RESUME_MAY_CHANGE] if names is None else names
+    out = []
+    for name in names:
+        a, b = getattr(mine, name), getattr(stored, name)
+        if name == "inks":
+            same = _plain(list(load_inks(a))) == _plain(list(load_inks(b)))
+        else:
+            same = _plain(a) == _plain(b)
+        if not same:
+            out.append((name, a, b))
+    return out

@@ -24,11 +24,12 @@ from ...fabrication.export import export_slices, save_index_volume
 from ...nn.losses import AppearanceLoss
 from ...nn.mixture import MaterialMixture
 from .baselines import quantize
-from .config import PrintConfig, iteration_seed, load_inks
+from .config import PrintConfig, config_conflicts, iteration_seed, load_inks
 from .fixed_fractions import fixed_fractions
 from .object_target import ObjectTarget
 from .remap25d import MAX_SLAB_TEXELS, prepare_uv_slab, wrap_slab_weights
 from .report import write_figures
+from ..runs import RunInterrupted, lock_run_folder, sigint_deferred
 from .run_folder import CHECKPOINT, LOG_FIELDS, npz_bytes, save_torch, score
 from .slab_target import SlabTarget
 
@@ -60,8 +61,10 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     coloured point cloud ``.ply`` at the texels' surface points, and ``object.npz`` (the voxelisation);
     ``mixture.npz`` (weights N×D×H×W, ink names, voxel size); ``quantized.npz`` (uint8 material indices at the
     printer resolution, 255 = void outside an object); ``slices/`` (one PNG per printer layer +
-    ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation; ``cfg.resume`` continues from
-    it); ``summary.json``.
+    ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation, after ``cfg.checkpoint_s`` seconds
+    without one, and on Ctrl-C; ``cfg.resume`` continues from it with the settings of ``config.json``, of which only
+    :data:`.config.RESUME_MAY_CHANGE` may differ); ``summary.json``. The folder is locked while the run writes to it
+    (:func:`~torch_appearance.pipelines.runs.lock_run_folder`): a second run on it is refused.
 
     Args:
         cfg: the settings. progress: show a tqdm bar. log: where one-line messages go.
@@ -70,14 +73,17 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
 
     Returns:
         The summary dict (also written to ``summary.json``).
+
+    Raises:
+        ValueError, TypeError: bad settings or inputs, a folder that holds another run or is locked by one, a slab
+            too large for this machine's memory; all before the run folder is written.
+        RunInterrupted: (a ``KeyboardInterrupt``) Ctrl-C during the optimisation, after the checkpoint was written.
     """
     cfg.validate()
     rank, world = distributed.rank_and_world()
     folder = cfg.out
     ckpt_path = os.path.join(folder, CHECKPOINT)
-    if os.path.exists(ckpt_path) and not cfg.resume:
-        raise ValueError(f"out: {folder!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
-                         f"continue it or choose another folder")
+    _check_not_a_run(cfg, ckpt_path)
     inks = load_inks(cfg.inks)
     if cfg.g is None:
         inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
@@ -93,13 +99,22 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         import tempfile
         folder = tempfile.mkdtemp(prefix=f"optimize_print_rank{rank}_")
         progress, log = False, (lambda *args, **kwargs: None)
-    os.makedirs(folder, exist_ok=True)  # only once the inputs are known to be good: no partial run folder
-    try:
-        return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world).run(progress)
-    finally:
-        if rank != 0:
+        try:
+            return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world).run(progress)
+        finally:
             import shutil
             shutil.rmtree(folder, ignore_errors=True)
+    # the folder is made only once the inputs are known to be good (no partial run folder), and locked while the run
+    # writes to it: a second run on the same folder is refused instead of mixing its files with this one's
+    with lock_run_folder(folder):
+        _check_not_a_run(cfg, ckpt_path)  # again under the lock: another run may have finished in the meantime
+        return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world).run(progress)
+
+
+def _check_not_a_run(cfg, ckpt_path):
+    if os.path.exists(ckpt_path) and not cfg.resume:
+        raise ValueError(f"out: {cfg.out!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
+                         f"continue it or choose another folder")
 
 
 def remap_baseline(target, inks, cfg, *, work_dir, log=print, progress=False, max_texels=MAX_SLAB_TEXELS):
@@ -146,15 +161,23 @@ class _Run:
         self.quant_seed = iteration_seed(cfg.seed, -2)
 
     def run(self, progress):
+        resuming = self.cfg.resume and os.path.exists(self.ckpt_path)
+        if resuming:
+            self.check_resumed_settings()  # before config.json is rewritten
         self.write_inputs()
-        if self.cfg.resume and os.path.exists(self.ckpt_path):
+        if resuming:
             self.resume()
         if not self.rows:
             self.start_fresh()
         if self.cfg.remap_baseline and self.remap is None:
             self.remap = self.remap_baseline()
         self.iterate(progress)
-        return self.finish()
+        try:
+            return self.finish()
+        except KeyboardInterrupt:
+            raise RunInterrupted(f"interrupted while writing the results of all {self.cfg.iterations} iterations; "
+                                 f"the checkpoint is in {self.folder}; --resume (Python: resume=True) writes them "
+                                 f"again", self.folder, self.cfg.iterations) from None
 
     # ---------------------------------------------------------------------------------------------- helpers
     def evaluate(self, spp=None):
@@ -188,6 +211,9 @@ class _Run:
 
     def resume(self):
         state = torch.load(self.ckpt_path, weights_only=False)
+        if state["iteration"] > self.cfg.iterations:
+            raise ValueError(f"iterations: the checkpoint in {self.folder!r} is at iteration {state['iteration']}; "
+                             f"expected at least that many, got {self.cfg.iterations}")
         if tuple(state["grid_dhw"]) != self.shape or state["inks"] != list(self.inks.names):
             raise ValueError(f"resume: the checkpoint in {self.folder!r} is for grid {state['grid_dhw']} and inks "
                              f"{state['inks']}, this run has {list(self.shape)} and {list(self.inks.names)}")
@@ -197,6 +223,17 @@ class _Run:
         self.ema = state.get("ema", self.ema)
         self.baseline, self.remap = state["baseline"], state.get("baseline_remap")
         self.log(f"optimize_print: resuming {self.folder} at iteration {self.start}")
+
+    def check_resumed_settings(self):
+        """A resumed run must have the settings it started with (:data:`.config.RESUME_MAY_CHANGE` aside)."""
+        path = os.path.join(self.cfg.out, "config.json")
+        if not os.path.isfile(path):
+            return
+        stored = PrintConfig.from_record(ta_io.read_json(path, name="config.json"))
+        differ = config_conflicts(stored, self.cfg)
+        if differ:
+            raise ValueError("resume: the run in " + repr(self.cfg.out) + " was made with other settings: " +
+                             "; ".join(f"{name} {mine!r} (the run has {theirs!r})" for name, mine, theirs in differ))
 
     def start_fresh(self):
         """The naive extrusion, quantised and scored the same way as the result; the warm start; row 0."""
@@ -228,34 +265,40 @@ class _Run:
         self.target.save_texels(self.folder, "baseline_remap", remap["image"])
         return remap
 
-    def step(self, seed):
-        """One optimiser step on a render with ``seed``; returns the loss and its parts."""
+    def step(self, seed, record):
+        """One optimiser step on a render with ``seed``. Ctrl-C may stop it anywhere before the step is applied,
+        leaving the state of the iteration before; the step, the running mean and ``record(loss, parts)`` (the log
+        row) are applied together, with Ctrl-C held back."""
         cfg = self.cfg
         sigma_t, albedo = self.model()
         image = self.target.render(sigma_t, albedo, cfg.spp, seed)
+        ema = None
         if cfg.estimator == "ema":
             # the loss's gradient with respect to the texel colours is taken at the running mean of the past
             # renders and applied to this render: the adjoint no longer shares this render's noise (that
             # correlation biases the plain estimator at low spp towards less noisy, not more accurate, media)
-            ema = self.ema
+            old = self.ema
             now = image.detach()
-            primal = now if ema["count"] == 0 else ema["sum"] / (1.0 - cfg.ema_beta ** ema["count"])
+            primal = now if old["count"] == 0 else old["sum"] / (1.0 - cfg.ema_beta ** old["count"])
             x = primal.clone().requires_grad_(True)
             loss, parts = self.target.appearance(self.criterion, x)
             (adjoint,) = torch.autograd.grad(loss, x)
-            ema["sum"] = (1.0 - cfg.ema_beta) * now + (0.0 if ema["sum"] is None else cfg.ema_beta * ema["sum"])
-            ema["count"] += 1
+            ema = {"sum": (1.0 - cfg.ema_beta) * now + (0.0 if old["sum"] is None else cfg.ema_beta * old["sum"]),
+                   "count": old["count"] + 1}
             surrogate = (adjoint * image).sum()
         else:
             loss, parts = self.target.appearance(self.criterion, image)
             surrogate = loss
         self.optimizer.zero_grad(set_to_none=True)
         surrogate.backward()
-        self.optimizer.step()
         # the full (3, D, H, W) grids of this iteration (1.4 GB for Spot at 40 mm) are not kept alive through the
         # evaluations, the quantisation and the next iteration's mixture
         del sigma_t, albedo, image, surrogate
-        return loss, parts
+        with sigint_deferred():
+            self.optimizer.step()
+            if ema is not None:
+                self.ema = ema
+            record(loss, parts)
 
     def checkpoint(self, iteration, wall_s):
         save_torch({"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "rows": self.rows,
@@ -266,6 +309,9 @@ class _Run:
         ta_io.write_csv(os.path.join(self.folder, "log.csv"), self.rows, LOG_FIELDS)
 
     def iterate(self, progress):
+        """The optimisation from ``self.start``: a checkpoint at every evaluation, after ``cfg.checkpoint_s``
+        seconds of wall time without one, and on Ctrl-C (then :class:`~torch_appearance.pipelines.runs.RunInterrupted`
+        says how to resume)."""
         cfg = self.cfg
         try:
             from tqdm import tqdm
@@ -275,20 +321,37 @@ class _Run:
             bar = None
         t_start = time.perf_counter() - self.wall_offset
         last_eval = self.rows[-1] if self.rows else {}
-        for it in range(self.start, cfg.iterations):
-            seed = iteration_seed(cfg.seed, it)
-            loss, parts = self.step(seed)
-            row = {"iteration": it + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()}, "seed": seed}
-            if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
-                row.update(self.score(self.evaluate()))
-                last_eval = row
-            row["wall_s"] = time.perf_counter() - t_start
-            self.rows.append(row)
-            if "dE00_mean" in row:
-                self.checkpoint(it + 1, row["wall_s"])
+        last_checkpoint = time.perf_counter()
+        done = self.start
+
+        def record(loss, parts):
+            nonlocal done
+            self.rows.append({"iteration": done + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()},
+                              "seed": seed, "wall_s": time.perf_counter() - t_start})
+            done += 1
+
+        try:
+            for it in range(self.start, cfg.iterations):
+                seed = iteration_seed(cfg.seed, it)
+                self.step(seed, record)
+                row = self.rows[-1]
+                if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
+                    row.update(self.score(self.evaluate()))
+                    row["wall_s"] = time.perf_counter() - t_start
+                    last_eval = row
+                if "dE00_mean" in row or time.perf_counter() - last_checkpoint > cfg.checkpoint_s:
+                    self.checkpoint(done, row["wall_s"])
+                    last_checkpoint = time.perf_counter()
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
+        except KeyboardInterrupt:
             if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
+                bar.close()
+            self.checkpoint(done, time.perf_counter() - t_start)
+            raise RunInterrupted(f"interrupted at iteration {done} of {cfg.iterations}; the checkpoint is in "
+                                 f"{self.folder}; continue with --resume (Python: resume=True)", self.folder,
+                                 done) from None
         if bar is not None:
             bar.close()
         ta_io.write_csv(os.path.join(self.folder, "log.csv"), self.rows, LOG_FIELDS)

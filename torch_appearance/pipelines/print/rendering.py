@@ -1,12 +1,15 @@
 """How the print targets render: a :class:`~torch_appearance.nn.SceneRenderer` per call, its sensor elements split
 over the ranks when the run is data-parallel (:mod:`torch_appearance.distributed`), and the slab's scene."""
+import torch
+
 from ... import distributed
+from ...nn.mixture import mix_inks
 from ...nn.renderer import SceneRenderer
 from ...render import BoxBoundary, ConstantEnvironment, FaceTexels, Scene
 from ...render.scene import derive_seed_grad
-from ...render.volpath import render_scene
+from ...render.volpath import render_scene, render_scene_indexed
 
-__all__ = ["replay_seed", "render", "slab_scene"]
+__all__ = ["replay_seed", "render", "render_indexed", "ink_tables", "slab_scene"]
 
 
 def replay_seed(seed, gradient_seed):
@@ -24,6 +27,24 @@ def render(scene, sigma_t, albedo, *, spp, seed, seed_grad):
         return renderer(sigma_t, albedo, seed=seed, seed_grad=seed_grad)
     return distributed.render(render_scene, renderer.scene, sigma_t=sigma_t, albedo=albedo, spp=renderer.spp, seed=seed,
                               seed_grad=seed_grad, chromatic=renderer.chromatic)
+
+
+def ink_tables(inks, dtype=torch.float32):
+    """(N, 3) σ_t and albedo tables of the inks as :func:`~torch_appearance.nn.mix_inks` gives them for a one-hot
+    mixture (σ_s + σ_a and σ_s / σ_t rounded as in a mixture), so that a palette render of a quantised volume equals
+    the render of its dense one-hot mixture bit for bit."""
+    sigma_t, albedo = mix_inks(torch.eye(len(inks), dtype=dtype).view(len(inks), len(inks), 1, 1), inks)
+    return sigma_t[:, :, 0, 0].t().contiguous(), albedo[:, :, 0, 0].t().contiguous()
+
+
+def render_indexed(scene, index, inks, *, spp, seed):
+    """The image of a quantised print: ``index`` (D, H, W) uint8 ink indices (< N) read by the tracer with the ink
+    tables (:func:`~torch_appearance.render.render_scene_indexed`, 1 byte per voxel instead of 24 for dense σ_t and
+    albedo); forward only, split over the ranks under ``torch.distributed``."""
+    sigma_t_table, albedo_table = ink_tables(inks)
+    with torch.no_grad():
+        return distributed.render(render_scene_indexed, scene, torch.as_tensor(index), sigma_t_table, albedo_table,
+                                  spp=spp, seed=seed)
 
 
 def slab_scene(voxel_size, *, faces, g, ior):

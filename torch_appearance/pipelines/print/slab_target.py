@@ -1,17 +1,20 @@
 """A slab as the print target: images of its top (and bottom) face, texel [j, i] = voxel column (j, i)."""
 import dataclasses
 import os
+import time
 
 import numpy as np
 import torch
 
 from ... import io as ta_io
+from ...nn.mixture import MaterialMixture
+from ..runs import check_memory
 from .baselines import naive_extrusion, render_quantized, render_slab
 from .report import heatmap_figure
 from .run_folder import save_image, score
 from .target_images import load_target
 
-__all__ = ["SlabTarget", "slab_texel_grid"]
+__all__ = ["SlabTarget", "slab_texel_grid", "slab_memory_bytes", "iteration_seconds"]
 
 
 def slab_texel_grid(faces_rgb, depth):
@@ -41,6 +44,39 @@ def slab_texel_grid(faces_rgb, depth):
     return grid, mask
 
 
+#: peak memory of a slab run (the naive baseline, the optimisation and the quantised render), measured on slabs of
+#: 128² to 640² × 12 voxels with 5 inks: about 0.35 GiB + (300 + 16 × inks) bytes per voxel (381 at 5 inks; the
+#: mixture's logits, their gradient, optimiser state and weights take 16 bytes per ink and voxel)
+SLAB_FIXED_BYTES = 0.35 * 2 ** 30
+SLAB_BYTES_PER_VOXEL = 300
+SLAB_BYTES_PER_INK_VOXEL = 16
+_PROBE = 24  # texels per side of the probe render of iteration_seconds
+
+
+def slab_memory_bytes(shape, n_inks):
+    """Expected peak memory in bytes of a print run on a (D, H, W) slab with ``n_inks`` inks (see
+    :data:`SLAB_BYTES_PER_VOXEL`).
+
+    Example:
+        >>> round(slab_memory_bytes((12, 1644, 1644), 5) / 2**30, 1)   # a 1644² photo at 300 DPI, 1 mm thick
+        11.8
+    """
+    d, h, w = (int(n) for n in shape)
+    return SLAB_FIXED_BYTES + d * h * w * (SLAB_BYTES_PER_VOXEL + SLAB_BYTES_PER_INK_VOXEL * n_inks)
+
+
+def iteration_seconds(cfg, inks, faces, texels):
+    """Expected seconds of one optimisation iteration's render and gradient replay on a slab of ``texels`` texels
+    per face: a timed render + replay of a 24 × 24 slab of the run's thickness in 97 % white (the longest paths of
+    the default inks; an even mixture without a white ink), scaled by the texel count."""
+    white = "white" if "white" in [n.lower() for n in inks.names] else None
+    probe = MaterialMixture(inks, (cfg.depth, _PROBE, _PROBE), init_ink=white)
+    sigma_t, albedo = probe()
+    start = time.perf_counter()
+    render_slab(sigma_t, albedo, cfg, inks, faces, cfg.spp, 0).sum().backward()
+    return (time.perf_counter() - start) * texels / (_PROBE * _PROBE)
+
+
 class SlabTarget:
     """Face texel images of a slab as the optimisation target; the same methods as
     :class:`~torch_appearance.pipelines.print.object_target.ObjectTarget`, so the loop never asks which it holds.
@@ -66,15 +102,30 @@ class SlabTarget:
         self.target_grid, self.mask = slab_texel_grid(self.target, cfg.depth)
 
     @classmethod
-    def from_config(cls, cfg, inks, log=print):
-        """The slab of ``cfg``: top (and bottom) images sized by the image at the voxel pitch or by width/height."""
+    def from_config(cls, cfg, inks, log=print, available=None):
+        """The slab of ``cfg``: top (and bottom) images sized by the image at the voxel pitch or by width/height.
+
+        A slab that would not fit in memory (:func:`slab_memory_bytes` against ``available`` bytes, default what
+        the machine has) is refused before any resampling or file; the log names its size, its memory and the
+        expected seconds per iteration (:func:`iteration_seconds`)."""
         top = load_target(cfg.target, name="target")
         size = None
+        h0, w0 = top.shape[:2]
         if cfg.width_mm is not None or cfg.height_mm is not None:
-            h0, w0 = top.shape[:2]
             width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
             height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
             size = (max(1, round(height / cfg.voxel_size)), max(1, round(width / cfg.voxel_size)))
+        h, w = size or (h0, w0)
+        faces = 1 if cfg.bottom_target is None else 2
+        what = (f"a {w}×{h}×{cfg.depth}-voxel slab ({w * cfg.voxel_size:.1f} × {h * cfg.voxel_size:.1f} × "
+                f"{cfg.thickness_mm:g} mm at {cfg.dpi:g} DPI)")
+        need = slab_memory_bytes((cfg.depth, h, w), len(inks))
+        check_memory("target" if size is None else "width_mm/height_mm", need, what,
+                     "print a smaller slab (width_mm/height_mm, --width-mm/--height-mm) or optimise at a lower dpi "
+                     "(--dpi)", available)
+        log(f"optimize_print: {what}, {faces * h * w} texels, about {need / 2**30:.1f} GiB of memory and "
+            f"{iteration_seconds(cfg, inks, faces, h * w):.2g} s per iteration at {cfg.spp} spp")
+        if size is not None:
             top = load_target(cfg.target, size=size, name="target")
         faces_target = [top]
         if cfg.bottom_target is not None:
