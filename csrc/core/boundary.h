@@ -31,7 +31,7 @@ struct SDFGrid {
   const T* sdf = nullptr;            // (D+1, H+1, W+1) corner values, mm
   const uint8_t* cell = nullptr;     // (D, H, W) CellKind, derived from sdf by the glue
 
-  TA_HD inline void corners(const Medium<T>& M, const int64_t idx[3], T c[8]) const {
+  TA_HD TA_INLINE void corners(const Medium<T>& M, const int64_t idx[3], T c[8]) const {
     const int64_t W1 = M.W + 1, HW1 = (M.H + 1) * W1;
     const T* base = sdf + idx[2] * HW1 + idx[1] * W1 + idx[0];
     c[0] = base[0];
@@ -45,7 +45,7 @@ struct SDFGrid {
   }
 
   // Trilinear value and world-space gradient (per mm) at the grid-local point p inside cell idx.
-  TA_HD inline T value_gradient(const Medium<T>& M, const int64_t idx[3], const T p[3], T grad[3]) const {
+  TA_HD TA_INLINE T value_gradient(const Medium<T>& M, const int64_t idx[3], const T p[3], T grad[3]) const {
     T c[8];
     corners(M, idx, c);
     T x[3];

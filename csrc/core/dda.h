@@ -23,7 +23,7 @@ struct VoxelDDA {
   T tnext[3], tdelta[3];
   int64_t step[3], dims[3];
 
-  TA_HD inline VoxelDDA(const Medium<T>& M, const T p[3], const T d[3], const int64_t cell[3]) {
+  TA_HD TA_INLINE VoxelDDA(const Medium<T>& M, const T p[3], const T d[3], const int64_t cell[3]) {
     dims[0] = M.W;
     dims[1] = M.H;
     dims[2] = M.D;
@@ -48,11 +48,11 @@ struct VoxelDDA {
   }
 
   // Flat index of the current voxel in one channel plane of the grid.
-  TA_HD inline int64_t voxel() const { return (idx[2] * dims[1] + idx[1]) * dims[0] + idx[0]; }
+  TA_HD TA_INLINE int64_t voxel() const { return (idx[2] * dims[1] + idx[1]) * dims[0] + idx[0]; }
 
   // Steps into the next voxel (t0 = the old t1). False when the ray leaves the grid instead: idx stays the last
   // voxel, t0 is where the ray leaves the grid and `axis` the axis of that face.
-  TA_HD inline bool next() {
+  TA_HD TA_INLINE bool next() {
     t0 = t1;
     idx[axis] += step[axis];
     if (idx[axis] < 0 || idx[axis] >= dims[axis]) {
@@ -65,7 +65,7 @@ struct VoxelDDA {
   }
 
  private:
-  TA_HD inline void pick() {
+  TA_HD TA_INLINE void pick() {
     axis = tnext[0] < tnext[1] ? (tnext[0] < tnext[2] ? 0 : 2) : (tnext[1] < tnext[2] ? 1 : 2);
     t1 = tnext[axis];
   }

@@ -21,7 +21,7 @@ struct Channels {
   bool plain = true;               // dense and not floored: read as is (the common, fast path)
   Channels() = default;
   TA_HD Channels(const T* dense) : data(dense) {}  // NOLINT(google-explicit-constructor): a plain grid pointer
-  TA_HD T operator[](int64_t i) const {
+  TA_HD TA_INLINE T operator[](int64_t i) const {
     if (plain) return data[i];
     if (index == nullptr) return tmax(data[i], floor);
     const int64_t c = i / voxels;
@@ -42,7 +42,7 @@ struct Medium {
   TA_HD T extent(int a) const { return T(dim(a)) * voxel[a]; }
   TA_HD int64_t index(const int64_t idx[3]) const { return (idx[2] * H + idx[1]) * W + idx[0]; }
   // Voxel containing the grid-local point p (mm), clamped to the grid.
-  TA_HD void locate(const T p[3], int64_t idx[3]) const {
+  TA_HD TA_INLINE void locate(const T p[3], int64_t idx[3]) const {
     for (int a = 0; a < 3; ++a) {
       const T f = tfloor(p[a] / voxel[a]);
       const int64_t n = dim(a);

@@ -8,7 +8,7 @@ namespace core {
 
 // Henyey–Greenstein: cosine of the angle between the old and new propagation directions, sampled exactly.
 template <typename T>
-TA_HD inline T sample_hg_cos(T g, T u) {
+TA_HD TA_INLINE T sample_hg_cos(T g, T u) {
   if (tabs(g) < T(1e-3)) return T(1) - T(2) * u;
   const T s = (T(1) - g * g) / (T(1) - g + T(2) * g * u);
   const T c = (T(1) + g * g - s * s) / (T(2) * g);
@@ -31,7 +31,7 @@ TA_HD inline void tangent_frame(const T n[3], T b1[3], T b2[3]) {
 
 // New unit direction at angle acos(cos_t) from d, azimuth 2π·u.
 template <typename T>
-TA_HD inline void rotate_direction(T d[3], T cos_t, T u) {
+TA_HD TA_INLINE void rotate_direction(T d[3], T cos_t, T u) {
   const T sin_t = tsqrt(tmax(T(0), T(1) - cos_t * cos_t));
   const T phi = T(6.283185307179586) * u;
   const T sp = tsin(phi), cp = tcos(phi);
@@ -46,7 +46,7 @@ TA_HD inline void rotate_direction(T d[3], T cos_t, T u) {
 // Unpolarised Fresnel reflectance for light going from index n_i to n_t, eta = n_i / n_t, cos_i in [0, 1].
 // Returns 1 under total internal reflection.
 template <typename T>
-TA_HD inline T fresnel_dielectric(T cos_i, T eta) {
+TA_HD TA_INLINE T fresnel_dielectric(T cos_i, T eta) {
   const T sin2_t = eta * eta * (T(1) - cos_i * cos_i);
   if (sin2_t >= T(1)) return T(1);
   const T cos_t = tsqrt(T(1) - sin2_t);
@@ -58,7 +58,7 @@ TA_HD inline T fresnel_dielectric(T cos_i, T eta) {
 // Mirror reflection of the propagation direction d at a surface whose unit normal n_inc faces the incident side
 // (dot(d, n_inc) = −cos_i <= 0).
 template <typename T>
-TA_HD inline void reflect(T d[3], const T n_inc[3], T cos_i) {
+TA_HD TA_INLINE void reflect(T d[3], const T n_inc[3], T cos_i) {
   for (int k = 0; k < 3; ++k) d[k] += T(2) * cos_i * n_inc[k];
   normalize3(d);
 }
@@ -66,7 +66,7 @@ TA_HD inline void reflect(T d[3], const T n_inc[3], T cos_i) {
 // Snell refraction of d through a surface with unit normal n_inc on the incident side, eta = n_i / n_t
 // (callers only refract when fresnel_dielectric < 1, i.e. no total internal reflection).
 template <typename T>
-TA_HD inline void refract(T d[3], const T n_inc[3], T cos_i, T eta) {
+TA_HD TA_INLINE void refract(T d[3], const T n_inc[3], T cos_i, T eta) {
   const T sin2_t = eta * eta * (T(1) - cos_i * cos_i);
   const T cos_t = tsqrt(tmax(T(0), T(1) - sin2_t));
   for (int k = 0; k < 3; ++k) d[k] = eta * d[k] + (eta * cos_i - cos_t) * n_inc[k];

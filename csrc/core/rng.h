@@ -45,7 +45,7 @@ struct PathRng {
   uint64_t key;
   uint32_t element, sample, channel;
   // Four uniforms in (0, 1) for event number `event` of this path.
-  TA_HD inline void draw(uint32_t event, T u[4]) const {
+  TA_HD TA_INLINE void draw(uint32_t event, T u[4]) const {
     uint32_t c[4] = {element, sample, channel, event};
     Philox4x32::generate(c, key);
     for (int i = 0; i < 4; ++i) u[i] = to_unit_open<T>(c[i]);

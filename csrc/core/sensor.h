@@ -42,7 +42,7 @@ struct Sensor {
   // kFaceTexels: the start of element `e` in the grid-local frame of a D×H×W grid with voxel edges vs (mm): the
   // point (u[0], u[1]) of the texel's footprint on its face, the inward normal d, and the voxel idx of the point
   // (u[2] is left for the Fresnel event at the face).
-  TA_HD inline void generate_on_face(int64_t e, int64_t D, int64_t H, int64_t W, const T vs[3], const T u[4], T p[3],
+  TA_HD TA_INLINE void generate_on_face(int64_t e, int64_t D, int64_t H, int64_t W, const T vs[3], const T u[4], T p[3],
                                      T d[3], int64_t idx[3]) const {
     const int64_t HW = H * W;
     const int f = face == kFaceBoth ? int(e / HW) : face;
@@ -60,7 +60,7 @@ struct Sensor {
 
   // World-space start ray of element `e` of the other kinds, from the uniforms u[0], u[1] (u[2] is left for the
   // first Fresnel event).
-  TA_HD inline void generate(int64_t e, const T u[4], T o[3], T d[3]) const {
+  TA_HD TA_INLINE void generate(int64_t e, const T u[4], T o[3], T d[3]) const {
     switch (kind) {
       case kSurfaceTexels: {
         const T* P = points + 3 * e;
