@@ -257,3 +257,21 @@ def test_ctrl_c_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     assert rc == 0, err
     assert json.load(open(out / "summary.json"))["iterations"] == 60
     assert [int(r) for r in ta_io_log_column(out, "iteration")] == list(range(61))
+
+
+def test_ctrl_c_in_the_remap_baseline_points_at_the_outer_run(tmp_path, monkeypatch):
+    """Ctrl-C inside the 2.5D remapped baseline's own slab run: the interruption names the object run's folder
+    (resuming it resumes the slab run too), not the nested one."""
+    glb = os.path.join(os.path.dirname(__file__), "data", "meshes", "BoxTextured.glb")
+    cfg = PrintConfig(mesh=glb, height_mm=2.0, dpi=100.0, shell_mm=0.5, spp=2, eval_spp=4, eval_every=2,
+                      iterations=2, table_steps=2, printer_dpi=(300.0, 300.0, 300.0), out=str(tmp_path / "run"),
+                      remap_baseline=True, views=0)
+
+    def interrupted(*args, **kwargs):
+        raise RunInterrupted("interrupted at iteration 1 of 2", str(tmp_path / "run" / "remap25d" / "slab"), 1)
+
+    monkeypatch.setattr(print_loop, "remap_baseline", interrupted)
+    with pytest.raises(RunInterrupted, match="2.5D remapped baseline's slab run .* continue this run with --resume") \
+            as stop:
+        optimize_print(cfg, **QUIET)
+    assert stop.value.folder == cfg.out

@@ -28,8 +28,8 @@ import sys
 from .. import io as ta_io
 from ..fabrication.inks import DEFAULT_INKS, INKS
 from ..pipelines.print.config import RESUME_MAY_CHANGE, PrintConfig, config_conflicts
-from ..pipelines.runs import RunInterrupted
 from ..pipelines.print.loop import optimize_print
+from ..pipelines.runs import RunInterrupted
 from .command import CommandParser, check_output_folder, fail
 
 __all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args", "ink_names_help",
@@ -172,6 +172,7 @@ def absolute_paths(args):
             setattr(args, name, absolute(getattr(args, name)))
     if isinstance(getattr(args, "inks", None), str) and args.inks.lower().endswith(".json"):
         args.inks = absolute(args.inks)
+
     def absolute_masks(spec):  # INK=FRACTION:TERM&TERM...
         head, sep, mask = spec.partition(":")
         return head + sep + "&".join(absolute(term.strip()) for term in mask.split("&")) if sep else spec

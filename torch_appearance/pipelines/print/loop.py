@@ -170,7 +170,12 @@ class _Run:
         if not self.rows:
             self.start_fresh()
         if self.cfg.remap_baseline and self.remap is None:
-            self.remap = self.remap_baseline()
+            try:
+                self.remap = self.remap_baseline()
+            except RunInterrupted as stop:  # the UV slab's own run: it is resumed through this one
+                raise RunInterrupted(f"interrupted in the 2.5D remapped baseline's slab run ({stop.folder}, its "
+                                     f"checkpoint at iteration {stop.iteration}); continue this run with --resume "
+                                     f"(Python: resume=True)", self.folder, 0) from None
         self.iterate(progress)
         try:
             return self.finish()
