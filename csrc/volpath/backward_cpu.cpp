@@ -126,12 +126,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     S.medium.ref_albedo.plain = !(albedo_floor > 0);
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
-    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
-                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
-      constexpr int L = decltype(lanes_c)::value;
-      constexpr bool HERO = decltype(hero_c)::value;
-      constexpr int B = decltype(bound_c)::value;
-      constexpr bool DIEL = decltype(diel_c)::value;
+    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       events = backward_kernel<T, L, B, DIEL, HERO>(S, g, pgs, pga,
                                                     Share(S.elements(), opt.part_rank, opt.part_world));
     });

@@ -1,31 +1,28 @@
 // Runtime scene flags → template instance of the kernels.
 #pragma once
 
-#include <cstdint>
-#include <type_traits>
-
 #include "core/boundary.h"
+#include "volpath/volpath.h"
 
 namespace ta {
 namespace volpath {
 namespace detail {
 
-// f(lanes, hero, boundary kind, dielectric) as integral constants (hero only with three lanes).
+// f.template operator()<LANES, HERO, BOUNDARY, DIELECTRIC>() for the scene flags of `opt` (hero only with three
+// lanes): call sites pass a template lambda, [&]<int L, bool HERO, int B, bool DIEL>() { ... }.
 template <typename F>
-void dispatch_scene(int64_t lanes, bool hero, int boundary, bool dielectric, const F& f) {
-  auto with_diel = [&](auto lanes_c, auto hero_c, auto bound_c) {
-    if (dielectric) f(lanes_c, hero_c, bound_c, std::true_type{});
-    else f(lanes_c, hero_c, bound_c, std::false_type{});
+void dispatch_scene(const SceneOptions& opt, const F& f) {
+  auto with_diel = [&]<int L, bool HERO, int B>() {
+    if (opt.boundary.ior > 0) f.template operator()<L, HERO, B, true>();
+    else f.template operator()<L, HERO, B, false>();
   };
-  auto with_bound = [&](auto lanes_c, auto hero_c) {
-    if (boundary == core::kSDFBoundary)
-      with_diel(lanes_c, hero_c, std::integral_constant<int, core::kSDFBoundary>{});
-    else
-      with_diel(lanes_c, hero_c, std::integral_constant<int, core::kBoxBoundary>{});
+  auto with_bound = [&]<int L, bool HERO>() {
+    if (opt.boundary.kind == core::kSDFBoundary) with_diel.template operator()<L, HERO, core::kSDFBoundary>();
+    else with_diel.template operator()<L, HERO, core::kBoxBoundary>();
   };
-  if (lanes == 3 && hero) with_bound(std::integral_constant<int, 3>{}, std::true_type{});
-  else if (lanes == 3) with_bound(std::integral_constant<int, 3>{}, std::false_type{});
-  else with_bound(std::integral_constant<int, 1>{}, std::false_type{});
+  if (opt.lanes == 3 && opt.hero) with_bound.template operator()<3, true>();
+  else if (opt.lanes == 3) with_bound.template operator()<3, false>();
+  else with_bound.template operator()<1, false>();
 }
 
 }  // namespace detail

@@ -98,12 +98,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
     using T = scalar_t;
     SceneStorage store;
     const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
-    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
-                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
-      constexpr int L = decltype(lanes_c)::value;
-      constexpr bool HERO = decltype(hero_c)::value;
-      constexpr int B = decltype(bound_c)::value;
-      constexpr bool DIEL = decltype(diel_c)::value;
+    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       const Share share(S.elements(), opt.part_rank, opt.part_world);
       counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
                      : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
@@ -137,12 +132,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
     al.palette = albedo_table.data_ptr<T>();
     S.medium.sigma_t = S.medium.ref_sigma_t = st;
     S.medium.albedo = S.medium.ref_albedo = al;
-    dispatch_scene(opt.lanes, opt.hero, opt.boundary.kind, opt.boundary.ior > 0,
-                   [&](auto lanes_c, auto hero_c, auto bound_c, auto diel_c) {
-      constexpr int L = decltype(lanes_c)::value;
-      constexpr bool HERO = decltype(hero_c)::value;
-      constexpr int B = decltype(bound_c)::value;
-      constexpr bool DIEL = decltype(diel_c)::value;
+    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       counts = forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
                                                                                       opt.part_world));
     });
