@@ -27,14 +27,25 @@ from _buildinfo import source_hash  # noqa: E402  (plain-python helper, no torch
 # The tracing core (csrc/core/*.h) is plain C++17 and host/device clean; the glue follows the C++ standard torch itself requires
 # (C++20 since torch 2.10), which CppExtension selects.
 sources = sorted(glob.glob(os.path.join("csrc", "**", "*.cpp"), recursive=True))
-cxx_flags = ["-O3", "-fopenmp", "-ffp-contract=off", "-Wall", "-Wno-unused-function",
-             f'-DTA_SOURCE_HASH="{source_hash(os.path.join(HERE, "csrc"))}"',
-             f'-DTA_TORCH_VERSION="{torch.__version__}"']
+cxx_flags = ["-O3", "-fopenmp", "-ffp-contract=off", "-Wall", "-Wno-unused-function"]
+
+# The source hash and torch version go into a generated header that only bindings.cpp includes (not onto every
+# command line, where a changed hash would make ninja recompile every file after any edit); it is rewritten only
+# when its text changes.
+GENERATED = os.path.join(HERE, "build", "generated")
+os.makedirs(GENERATED, exist_ok=True)
+_info = (f'#define TA_SOURCE_HASH "{source_hash(os.path.join(HERE, "csrc"))}"\n'
+         f'#define TA_TORCH_VERSION "{torch.__version__}"\n')
+_header = os.path.join(GENERATED, "ta_buildinfo.h")
+if not os.path.exists(_header) or open(_header).read() != _info:
+    with open(_header + ".tmp", "w") as fh:
+        fh.write(_info)
+    os.replace(_header + ".tmp", _header)
 
 # TA_SKIP_EXT=1 registers the editable install without compiling (the Makefile then builds in place once).
 ext_modules = [] if os.environ.get("TA_SKIP_EXT") == "1" else [
     CppExtension("torch_appearance._C", sources,
-                 include_dirs=[os.path.join(HERE, "csrc")],
+                 include_dirs=[os.path.join(HERE, "csrc"), GENERATED],
                  extra_compile_args={"cxx": cxx_flags},
                  extra_link_args=["-fopenmp"])]
 
