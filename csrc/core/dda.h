@@ -47,6 +47,20 @@ struct VoxelDDA {
     pick();
   }
 
+  // Moves on to voxel `cell`, which the ray p + t·d (the same p and d as at construction) enters at t: the walk
+  // then goes on as if it had stepped there (the exit distances are computed anew from p, not accumulated).
+  TA_HD TA_INLINE void restart(const Medium<T>& M, const T p[3], const T d[3], T t, const int64_t cell[3]) {
+    t0 = t;
+    for (int a = 0; a < 3; ++a) {
+      idx[a] = cell[a];
+      if (step[a] != 0) {
+        const T plane = T(step[a] > 0 ? idx[a] + 1 : idx[a]) * M.voxel[a];
+        tnext[a] = tmax(t, (plane - p[a]) / d[a]);
+      }
+    }
+    pick();
+  }
+
   // Flat index of the current voxel in one channel plane of the grid.
   TA_HD TA_INLINE int64_t voxel() const { return (idx[2] * dims[1] + idx[1]) * dims[0] + idx[0]; }
 

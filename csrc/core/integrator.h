@@ -101,12 +101,15 @@ struct PathResult {
   int zeros[LANES];        // number of exactly-zero factors (σ_c = 0 or α_c = 0 at a collision)
   T direction[3];          // escape direction (world), where the emitter is evaluated
   int64_t scatter_events = 0;
+  int64_t voxel_steps = 0;    // voxels visited by the free flights inside the object
+  int64_t outside_steps = 0;  // cells visited outside it, looking for the surface (find_entry)
 };
 
 // Entry of a ray from outside the object (grid-local p, unit d): moves p to the first surface point, sets the
-// cell idx there and the outward unit normal n. False when the ray leaves without hitting the object.
+// cell idx there and the outward unit normal n. False when the ray leaves without hitting the object. `steps`
+// counts the cells visited.
 template <typename T, int BOUNDARY>
-TA_HD TA_INLINE bool find_entry(const Scene<T>& S, T p[3], const T d[3], int64_t idx[3], T n[3]) {
+TA_HD TA_INLINE bool find_entry(const Scene<T>& S, T p[3], const T d[3], int64_t idx[3], T n[3], int64_t& steps) {
   const Medium<T>& M = S.medium;
   // clip to the grid box
   T tin = 0, tout = tinf<T>();
@@ -149,6 +152,35 @@ TA_HD TA_INLINE bool find_entry(const Scene<T>& S, T p[3], const T d[3], int64_t
     // escape into them, or GCC keeps that whole state in memory (measured 5-15 % slower on SDF scenes)
     const T pc[3] = {p[0], p[1], p[2]}, dc[3] = {d[0], d[1], d[2]};
     for (;;) {
+      ++steps;
+      if (const int k = S.sdf.skip_distance(dda.idx); k > 0) {
+        // every cell within k − 1 bricks of this one is outside: leave that box of cells in one move
+        T texit = tinf<T>();
+        int ax = -1;
+        int64_t lo[3], hi[3], cell[3];
+        for (int a = 0; a < 3; ++a) {
+          const int64_t b = dda.idx[a] / kSkipBrick;
+          lo[a] = tmax(int64_t(0), (b - (k - 1)) * kSkipBrick);
+          hi[a] = tmin(dda.dims[a], (b + k) * kSkipBrick);
+          if (dc[a] == T(0)) continue;
+          const T ta = (T(dc[a] > T(0) ? hi[a] : lo[a]) * M.voxel[a] - pc[a]) / dc[a];
+          if (ta < texit) {
+            texit = ta;
+            ax = a;
+          }
+        }
+        if (ax < 0) return false;  // no direction: cannot happen for a unit d
+        texit = tmax(texit, dda.t0);
+        for (int a = 0; a < 3; ++a) {
+          const T f = tfloor((pc[a] + dc[a] * texit) / M.voxel[a]);
+          // the point lies in the box up to rounding (NaN → lo: never an index out of range)
+          cell[a] = f >= T(hi[a] - 1) ? hi[a] - 1 : (f > T(lo[a]) ? int64_t(f) : lo[a]);
+        }
+        cell[ax] = dc[ax] > T(0) ? hi[ax] : lo[ax] - 1;
+        if (cell[ax] < 0 || cell[ax] >= dda.dims[ax]) return false;  // leaves the grid: nothing hit
+        dda.restart(M, pc, dc, texit, cell);
+        continue;
+      }
       if (S.sdf.cell[dda.voxel()] != kCellOutside) {
         const int64_t cell[3] = {dda.idx[0], dda.idx[1], dda.idx[2]};
         T th;
@@ -344,6 +376,7 @@ TA_HD TA_INLINE Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResul
   T ref_excess[3] = {0, 0, 0};  // HERO: Σ (σ̂_k − σ̂_h)·ℓ over the flight
   Flight f;
   for (;;) {
+    ++res.voxel_steps;
     const int64_t v = dda.voxel();
     T tend = dda.t1;
     bool hit_here = false;
@@ -562,7 +595,7 @@ template <typename T, int LANES, int BOUNDARY, bool DIELECTRIC, bool HERO>
 TA_HD TA_INLINE bool enter_from_outside(const Scene<T>& S, PathState<T, LANES>& st, PathResult<T, LANES>& res) {
   constexpr bool SDF = BOUNDARY == kSDFBoundary;
   T n[3];
-  if (!find_entry<T, BOUNDARY>(S, st.p, st.d, st.idx, n)) {
+  if (!find_entry<T, BOUNDARY>(S, st.p, st.d, st.idx, n, res.outside_steps)) {
     finish<HERO>(st, res, st.d);
     return false;
   }

@@ -39,7 +39,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
         return;
       }
     }
-    int64_t ev = 0, cut = 0;
+    int64_t ev = 0, cut = 0, vsteps = 0, osteps = 0;
     for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
       T Le[3];
@@ -49,6 +49,8 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
               core::trace_path<T, 3, B, DIEL, RATIO, false, false, HERO>(S, t, s, 0, nullptr, nullptr, none);
           ev += r.scatter_events;
           cut += r.truncated;
+          vsteps += r.voxel_steps;
+          osteps += r.outside_steps;
           if (constant) {
             for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]);
           } else if (r.escaped) {
@@ -60,6 +62,8 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
             const auto r = core::trace_path<T, 1, B, DIEL, RATIO, false>(S, t, s, ch, nullptr, nullptr, none);
             ev += r.scatter_events;
             cut += r.truncated;
+            vsteps += r.voxel_steps;
+            osteps += r.outside_steps;
             if (constant) {
               acc[ch] += double(r.value[0]);
             } else if (r.escaped) {
@@ -73,12 +77,14 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
         out[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
                                    : T(acc[ch] / double(S.spp));
     });
-    counts[c] = {ev, cut};
+    counts[c] = {ev, cut, vsteps, osteps};
   });
   ForwardCounts total;
   for (const auto& k : counts) {
     total.scatter_events += k.scatter_events;
     total.truncated_paths += k.truncated_paths;
+    total.voxel_steps += k.voxel_steps;
+    total.outside_steps += k.outside_steps;
   }
   return total;
 }

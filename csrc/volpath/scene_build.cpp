@@ -3,6 +3,9 @@
 
 #include <ATen/Parallel.h>
 
+#include <algorithm>
+#include <atomic>
+
 namespace ta {
 namespace volpath {
 namespace detail {
@@ -13,7 +16,64 @@ void copy3(const std::vector<double>& v, T out[3]) {
   for (int k = 0; k < 3; ++k) out[k] = T(v[k]);
 }
 
+std::atomic<bool> g_skipping{true};  // set_empty_space_skipping (tests)
+
+// One pass of the separable Chebyshev distance transform along lines of n values at stride `stride`:
+// g(i) = min_j max(|i − j|, f(j)), searched outwards from i until |i − j| reaches the best value found.
+void minmax_pass(std::vector<int32_t>& f, int64_t lines, int64_t n, int64_t stride,
+                 const std::vector<int64_t>& starts) {
+  at::parallel_for(0, lines, 1, [&](int64_t l0, int64_t l1) {
+    std::vector<int32_t> line(n), out(n);
+    for (int64_t l = l0; l < l1; ++l) {
+      const int64_t base = starts[l];
+      for (int64_t i = 0; i < n; ++i) line[i] = f[base + i * stride];
+      for (int64_t i = 0; i < n; ++i) {
+        int32_t best = line[i];
+        for (int64_t r = 1; r < best && (i - r >= 0 || i + r < n); ++r) {
+          if (i - r >= 0) best = std::min(best, std::max(int32_t(r), line[i - r]));
+          if (i + r < n) best = std::min(best, std::max(int32_t(r), line[i + r]));
+        }
+        out[i] = best;
+      }
+      for (int64_t i = 0; i < n; ++i) f[base + i * stride] = out[i];
+    }
+  });
+}
+
 }  // namespace
+
+std::vector<uint8_t> skip_distances(const uint8_t* cells, int64_t D, int64_t H, int64_t W, int64_t bricks[3]) {
+  const int64_t B = core::kSkipBrick;
+  const int64_t bx = (W + B - 1) / B, by = (H + B - 1) / B, bz = (D + B - 1) / B;
+  bricks[0] = bx;
+  bricks[1] = by;
+  bricks[2] = bz;
+  constexpr int32_t kFar = 255;
+  // 0 for a brick holding a cell that is not outside, kFar otherwise (then the three passes, x, y, z)
+  std::vector<int32_t> f(bx * by * bz, kFar);
+  at::parallel_for(0, bz, 1, [&](int64_t z0, int64_t z1) {
+    for (int64_t k = z0 * B; k < std::min(D, z1 * B); ++k)
+      for (int64_t j = 0; j < H; ++j) {
+        const uint8_t* row = cells + (k * H + j) * W;
+        int32_t* brow = f.data() + ((k / B) * by + j / B) * bx;
+        for (int64_t i = 0; i < W; ++i)
+          if (row[i] != core::kCellOutside) brow[i / B] = 0;
+      }
+  });
+  std::vector<int64_t> starts;
+  for (int64_t z = 0; z < bz; ++z)
+    for (int64_t y = 0; y < by; ++y) starts.push_back((z * by + y) * bx);
+  minmax_pass(f, bz * by, bx, 1, starts);
+  starts.clear();
+  for (int64_t z = 0; z < bz; ++z)
+    for (int64_t x = 0; x < bx; ++x) starts.push_back(z * by * bx + x);
+  minmax_pass(f, bz * bx, by, bx, starts);
+  starts.clear();
+  for (int64_t y = 0; y < by; ++y)
+    for (int64_t x = 0; x < bx; ++x) starts.push_back(y * bx + x);
+  minmax_pass(f, by * bx, bz, bx * by, starts);
+  return std::vector<uint8_t>(f.begin(), f.end());
+}
 
 // The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
 template <typename T>
@@ -48,6 +108,10 @@ core::Scene<T> make_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W
     });
     S.sdf.sdf = s;
     S.sdf.cell = cells;
+    if (g_skipping.load()) {
+      store.skip = skip_distances(cells, M.D, M.H, M.W, S.sdf.bricks);
+      S.sdf.skip = store.skip.data();
+    }
   }
   S.ior = T(o.boundary.ior > 0 ? o.boundary.ior : 1.0);
   auto& se = S.sensor;
@@ -124,5 +188,8 @@ std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
 }
 
 }  // namespace detail
+
+bool set_empty_space_skipping(bool on) { return detail::g_skipping.exchange(on); }
+
 }  // namespace volpath
 }  // namespace ta

@@ -18,7 +18,13 @@ namespace detail {
 struct SceneStorage {
   torch::Tensor sdf, points, normals, radius, map;
   std::vector<uint8_t> cells;
+  std::vector<uint8_t> skip;  // brick distances of empty-space skipping (core::SDFGrid::skip)
 };
+
+// The brick distances of empty-space skipping (core::kSkipBrick, core::SDFGrid::skip) of the (D, H, W) cell kinds:
+// the exact Chebyshev distance in bricks to the nearest brick holding a cell that is not kCellOutside, capped at 255.
+// Returns (⌈D/B⌉, ⌈H/B⌉, ⌈W/B⌉) values; `bricks` receives their counts along x, y, z.
+std::vector<uint8_t> skip_distances(const uint8_t* cells, int64_t D, int64_t H, int64_t W, int64_t bricks[3]);
 
 // The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
 template <typename T>

@@ -89,6 +89,10 @@ struct SceneOptions {
 struct ForwardCounts {
   int64_t scatter_events = 0;
   int64_t truncated_paths = 0;  // walks cut by max_depth (each channel's walk counts once)
+  // the scalar walk's voxel visits (the SIMD slab walk leaves them 0): by the free flights inside the object, and
+  // outside it in the search for the surface
+  int64_t voxel_steps = 0;
+  int64_t outside_steps = 0;
 };
 
 // General scenes. The image is (F, H, W, 3)/(H, W, 3) for face texels, (N, 3) for surface texels,
@@ -115,6 +119,9 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
 // Test-only: the initial per-thread tape capacity of the replay (segments; collisions get half). 0 makes every path
 // take the two-pass fallback, so tests can compare both replays. Returns the previous value.
 int64_t set_tape_capacity(int64_t segments);
+// Test-only: whether SDF scenes skip empty space outside the object in bricks (core::SDFGrid::skip; default on).
+// Returns the previous setting.
+bool set_empty_space_skipping(bool on);
 // The SIMD slab walk (slab_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
 // the level before.
 int64_t set_simd(int64_t mode);

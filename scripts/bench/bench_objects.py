@@ -13,7 +13,9 @@ is timed in its parts, after an untimed warm-up iteration at 1 spp:
   rest the gradient of the loss and of the dense scatter back to the shell's logits;
 * ``step_s``: the Adagrad step; ``iteration_s``: their sum;
 * ``events_per_path`` (scattering events of the forward per path; a path is one texel sample of one channel for the
-  per-channel estimator, of all three for hero), ``peak_rss_mb`` (VmHWM growth over the iteration),
+  per-channel estimator, of all three for hero), ``voxel_steps_per_path`` and ``outside_steps_per_path`` (voxels
+  visited by the flights inside the object, and cells visited outside it, where empty bricks are crossed in one
+  move each), ``peak_rss_mb`` (VmHWM growth over the iteration),
   and, with ``--ref-mult`` > 0, ``image_rmse`` against a render at ``ref-mult × spp`` with another seed (corrected
   for the reference's own noise) and ``efficiency`` = 1 / (RMSE² · (forward_s + replay_s)).
 
@@ -99,6 +101,8 @@ def run(args, height, chromatic):
            "replay_s": round(stats.get("backward_s", float("nan")), 4),
            "iteration_s": round(sum(parts.values()), 4),
            "events_per_path": round(stats["scatter_events"] / paths, 2),
+           "voxel_steps_per_path": round(stats["voxel_steps"] / paths, 2),
+           "outside_steps_per_path": round(stats["outside_steps"] / paths, 2),
            "peak_rss_mb": None if peak is None or base is None else round((peak - base) / 1024, 1)}
     if args.ref_mult > 0:
         from torch_appearance.render.volpath import render_scene

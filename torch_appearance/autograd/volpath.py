@@ -70,7 +70,8 @@ class VolumePathTrace(torch.autograd.Function):
     :func:`torch_appearance.render_texels`), the function to call. ``job`` is the
     :class:`torch_appearance.render.TraceJob` (scene, spp, seed, seed_grad, chromatic, partition) that builds the C++
     options of the forward walk and of the gradient replay; ``stats`` an optional dict that receives ``forward_s``,
-    ``scatter_events`` and, after backward, ``backward_s``, ``backward_scatter_events``.
+    ``scatter_events``, ``voxel_steps``, ``outside_steps`` (the scalar walk's voxel visits inside the object and
+    outside it) and, after backward, ``backward_s``, ``backward_scatter_events``.
     """
 
     @staticmethod
@@ -90,6 +91,8 @@ class VolumePathTrace(torch.autograd.Function):
             stats["forward_s"] = time.perf_counter() - start
             stats["scatter_events"] = counts.scatter_events
             stats["truncated_paths"] = counts.truncated_paths
+            stats["voxel_steps"] = counts.voxel_steps
+            stats["outside_steps"] = counts.outside_steps
             stats["lanes"] = options.lanes
             stats["hero"] = bool(options.hero)
         walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
