@@ -71,12 +71,14 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readwrite("lanes", &SceneOptions::lanes)
       .def_readwrite("hero", &SceneOptions::hero)
       .def_readwrite("part_rank", &SceneOptions::part_rank)
-      .def_readwrite("part_world", &SceneOptions::part_world);
+      .def_readwrite("part_world", &SceneOptions::part_world)
+      .def_readwrite("grad_support", &SceneOptions::grad_support);
 
   py::class_<ta::volpath::ForwardCounts>(m, "ForwardCounts")
       .def_readonly("scatter_events", &ta::volpath::ForwardCounts::scatter_events)
       .def_readonly("voxel_steps", &ta::volpath::ForwardCounts::voxel_steps)
       .def_readonly("outside_steps", &ta::volpath::ForwardCounts::outside_steps)
+      .def_readonly("core_events", &ta::volpath::ForwardCounts::core_events)
       .def_readonly("truncated_paths", &ta::volpath::ForwardCounts::truncated_paths);
 
   m.def("scene_forward", &ta::volpath::scene_forward_cpu, py::arg("sigma_t"), py::arg("albedo"),
@@ -107,6 +109,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       py::arg("cells"),
       "Test hook: the brick distances of empty-space skipping of (D, H, W) cell kinds (0 mixed, 1 inside, 2 "
       "outside), as (⌈D/4⌉, ⌈H/4⌉, ⌈W/4⌉).");
+  m.def("_set_core_walk", &ta::volpath::set_core_walk, py::arg("on"),
+        "Test hook: whether SDF scenes cross their homogeneous core in bricks (default on); returns the previous value.");
   m.def("_set_empty_space_skipping", &ta::volpath::set_empty_space_skipping, py::arg("on"),
         "Test hook: whether SDF scenes skip empty space outside the object (default on); returns the previous value.");
   m.def("_set_tape_capacity", &ta::volpath::set_tape_capacity, py::arg("segments"),

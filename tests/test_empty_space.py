@@ -18,7 +18,7 @@ from torch_appearance.render import (OrthographicCamera, PerspectiveCamera, Scen
 N = 40            # voxels per axis: 10 bricks
 H = 0.05          # voxel edge, mm
 ORIGIN = (-1.0, -1.0, -1.0)
-B = 4             # core::kSkipBrick
+B = 4             # core::kBrick
 
 
 def brute_force_distances(cells):

@@ -26,12 +26,10 @@ enum BoundaryKind : int { kBoxBoundary = 0, kSDFBoundary = 1 };
 // Classification of an SDF cell by its 8 corners: all < 0, all > 0, or mixed (may hold surface).
 enum CellKind : uint8_t { kCellMixed = 0, kCellInside = 1, kCellOutside = 2 };
 
-// Empty-space skipping outside the object: the cells are grouped in bricks of kSkipBrick³, and each brick holds the
+// Empty-space skipping outside the object: the cells are grouped in bricks of kBrick³ (medium.h), and each brick holds the
 // Chebyshev distance (in bricks, capped at 255) to the nearest brick with a cell that is not kCellOutside (0: it holds
 // one). A ray outside the object in a brick at distance k >= 1 can leave the box of bricks within k − 1 of it in one
 // move: every cell of that box is outside, so no surface is passed (find_entry, integrator.h).
-constexpr int64_t kSkipBrick = 4;
-
 template <typename T>
 struct SDFGrid {
   const T* sdf = nullptr;            // (D+1, H+1, W+1) corner values, mm
@@ -42,7 +40,7 @@ struct SDFGrid {
   // The brick distance of cell idx (0 without skipping).
   TA_HD TA_INLINE int skip_distance(const int64_t idx[3]) const {
     if (skip == nullptr) return 0;
-    return skip[((idx[2] / kSkipBrick) * bricks[1] + idx[1] / kSkipBrick) * bricks[0] + idx[0] / kSkipBrick];
+    return skip[brick_index(bricks, idx)];
   }
 
   TA_HD TA_INLINE void corners(const Medium<T>& M, const int64_t idx[3], T c[8]) const {

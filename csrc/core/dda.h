@@ -47,18 +47,66 @@ struct VoxelDDA {
     pick();
   }
 
-  // Moves on to voxel `cell`, which the ray p + t·d (the same p and d as at construction) enters at t: the walk
-  // then goes on as if it had stepped there (the exit distances are computed anew from p, not accumulated).
-  TA_HD TA_INLINE void restart(const Medium<T>& M, const T p[3], const T d[3], T t, const int64_t cell[3]) {
-    t0 = t;
+  // The box of whole bricks (kBrick³ voxels, medium.h) within k − 1 bricks of the current voxel's brick, clipped to
+  // the grid (the caller knows that box to be uniform: empty space, or homogeneous core), and where the ray p + t·d
+  // (the same p and d as at construction) leaves it.
+  struct BrickBox {
+    int64_t lo[3], hi[3];  // voxels, hi exclusive
+    T t;                   // where the ray leaves the box, mm (>= t0)
+    int axis;              // the axis of that face (-1: none, only for a zero direction)
+  };
+  TA_HD TA_INLINE BrickBox brick_box(const Medium<T>& M, const T p[3], const T d[3], int k) const {
+    BrickBox b;
+    b.t = tinf<T>();
+    b.axis = -1;
+    for (int a = 0; a < 3; ++a) {
+      const int64_t brick = idx[a] / kBrick;
+      b.lo[a] = tmax(int64_t(0), (brick - (k - 1)) * kBrick);
+      b.hi[a] = tmin(dims[a], (brick + k) * kBrick);
+      if (step[a] == 0) continue;
+      const T ta = (T(step[a] > 0 ? b.hi[a] : b.lo[a]) * M.voxel[a] - p[a]) / d[a];
+      if (ta < b.t) {
+        b.t = ta;
+        b.axis = a;
+      }
+    }
+    b.t = tmax(b.t, t0);
+    return b;
+  }
+
+  // The voxel of the point p + t·d of the box b, clamped to the box (against rounding; NaN → lo).
+  TA_HD TA_INLINE static void voxel_in(const BrickBox& b, const Medium<T>& M, const T p[3], const T d[3], T t,
+                                       int64_t cell[3]) {
+    for (int a = 0; a < 3; ++a) {
+      const T f = tfloor((p[a] + d[a] * t) / M.voxel[a]);
+      cell[a] = f >= T(b.hi[a] - 1) ? b.hi[a] - 1 : (f > T(b.lo[a]) ? int64_t(f) : b.lo[a]);
+    }
+  }
+
+  // Moves on past the box b to the voxel the ray enters where it leaves it, as if it had stepped there (the exit
+  // distances are computed anew from p, not accumulated). False when the ray leaves the grid there instead: idx is
+  // then the box's voxel at the exit, t0 where it leaves and `axis` the axis of that face, as next() leaves them.
+  TA_HD TA_INLINE bool leave(const BrickBox& b, const Medium<T>& M, const T p[3], const T d[3]) {
+    int64_t cell[3];
+    voxel_in(b, M, p, d, b.t, cell);
+    t0 = b.t;
+    if (b.axis < 0) return false;
+    const int64_t out = step[b.axis] > 0 ? b.hi[b.axis] : b.lo[b.axis] - 1;
+    if (out < 0 || out >= dims[b.axis]) {
+      for (int a = 0; a < 3; ++a) idx[a] = cell[a];
+      axis = b.axis;
+      return false;
+    }
+    cell[b.axis] = out;
     for (int a = 0; a < 3; ++a) {
       idx[a] = cell[a];
       if (step[a] != 0) {
         const T plane = T(step[a] > 0 ? idx[a] + 1 : idx[a]) * M.voxel[a];
-        tnext[a] = tmax(t, (plane - p[a]) / d[a]);
+        tnext[a] = tmax(t0, (plane - p[a]) / d[a]);
       }
     }
     pick();
+    return true;
   }
 
   // Flat index of the current voxel in one channel plane of the grid.

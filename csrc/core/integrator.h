@@ -103,6 +103,7 @@ struct PathResult {
   int64_t scatter_events = 0;
   int64_t voxel_steps = 0;    // voxels visited by the free flights inside the object
   int64_t outside_steps = 0;  // cells visited outside it, looking for the surface (find_entry)
+  int64_t core_events = 0;    // scattering events in the homogeneous core (Medium::core)
 };
 
 // Entry of a ray from outside the object (grid-local p, unit d): moves p to the first surface point, sets the
@@ -154,31 +155,8 @@ TA_HD TA_INLINE bool find_entry(const Scene<T>& S, T p[3], const T d[3], int64_t
     for (;;) {
       ++steps;
       if (const int k = S.sdf.skip_distance(dda.idx); k > 0) {
-        // every cell within k − 1 bricks of this one is outside: leave that box of cells in one move
-        T texit = tinf<T>();
-        int ax = -1;
-        int64_t lo[3], hi[3], cell[3];
-        for (int a = 0; a < 3; ++a) {
-          const int64_t b = dda.idx[a] / kSkipBrick;
-          lo[a] = tmax(int64_t(0), (b - (k - 1)) * kSkipBrick);
-          hi[a] = tmin(dda.dims[a], (b + k) * kSkipBrick);
-          if (dc[a] == T(0)) continue;
-          const T ta = (T(dc[a] > T(0) ? hi[a] : lo[a]) * M.voxel[a] - pc[a]) / dc[a];
-          if (ta < texit) {
-            texit = ta;
-            ax = a;
-          }
-        }
-        if (ax < 0) return false;  // no direction: cannot happen for a unit d
-        texit = tmax(texit, dda.t0);
-        for (int a = 0; a < 3; ++a) {
-          const T f = tfloor((pc[a] + dc[a] * texit) / M.voxel[a]);
-          // the point lies in the box up to rounding (NaN → lo: never an index out of range)
-          cell[a] = f >= T(hi[a] - 1) ? hi[a] - 1 : (f > T(lo[a]) ? int64_t(f) : lo[a]);
-        }
-        cell[ax] = dc[ax] > T(0) ? hi[ax] : lo[ax] - 1;
-        if (cell[ax] < 0 || cell[ax] >= dda.dims[ax]) return false;  // leaves the grid: nothing hit
-        dda.restart(M, pc, dc, texit, cell);
+        // every cell within k − 1 bricks of this one is outside: leave that box in one move
+        if (!dda.leave(dda.brick_box(M, pc, dc, k), M, pc, dc)) return false;  // left the grid: nothing hit
         continue;
       }
       if (S.sdf.cell[dda.voxel()] != kCellOutside) {
@@ -377,6 +355,36 @@ TA_HD TA_INLINE Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResul
   Flight f;
   for (;;) {
     ++res.voxel_steps;
+    if (const int k = SDF ? M.core_distance(dda.idx) : 0; k > 0) {
+      // the box of core bricks within k − 1 bricks of this one is homogeneous and inside the object, with no ratio
+      // weights and (in a replay) no gradient: the flight crosses it in one move, or collides in it
+      const auto box = dda.brick_box(M, p0, d0, k);
+      const T sref = M.core_sigma_t[ch0];
+      const T od = sref * (box.t - dda.t0);
+      const bool collided = acc + od >= tau;
+      const T len = collided ? (tau - acc) / sref : box.t - dda.t0;
+      if (RATIO) {
+        for (int l = 0; l < LANES; ++l) excess[l] += (M.core_sigma_t[LANES == 1 ? chan : l] - sref) * len;
+      }
+      if (HERO) {
+        for (int kk = 0; kk < 3; ++kk) ref_excess[kk] += (M.core_sigma_t[kk] - sref) * len;
+      }
+      if (collided) {
+        t = dda.t0 + len;
+        VoxelDDA<T>::voxel_in(box, M, p0, d0, t, dda.idx);
+        st.v = dda.voxel();
+        f.end = kCollided;
+        break;
+      }
+      acc += od;
+      if (!dda.leave(box, M, p0, d0)) {
+        t = dda.t0;
+        f.end = kLeftGrid;
+        f.axis = dda.axis;
+        break;
+      }
+      continue;
+    }
     const int64_t v = dda.voxel();
     T tend = dda.t1;
     bool hit_here = false;
@@ -467,15 +475,21 @@ TA_HD TA_INLINE bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathRes
     return false;
   }
   ++res.scatter_events;
+  // a collision in the homogeneous core reads the core's values (equal in the parameters and the reference) and
+  // carries no gradient (Medium::core)
+  const bool core = M.core_distance(st.idx) > 0;
+  res.core_events += core;
+  const auto sigma = [&](const Channels<T>& x, int c) { return core ? M.core_sigma_t[c] : x[c * N + v]; };
+  const auto alpha = [&](const Channels<T>& x, int c) { return core ? M.core_albedo[c] : x[c * N + v]; };
   // continuation probability: reference albedo (max over lanes), times roulette on the reference weight
   T ps, aref[LANES];
   if (LANES == 1) {
-    aref[0] = M.ref_albedo[chan * N + v];
+    aref[0] = alpha(M.ref_albedo, chan);
     ps = aref[0];
   } else {
     ps = 0;
     for (int l = 0; l < LANES; ++l) {
-      aref[l] = M.ref_albedo[l * N + v];
+      aref[l] = alpha(M.ref_albedo, l);
       ps = tmax(ps, aref[l]);
     }
   }
@@ -487,34 +501,34 @@ TA_HD TA_INLINE bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathRes
   }
   if (!(st.u[1] < ps * q)) return false;  // absorbed or killed by roulette: contributes 0
   const T inv_psq = T(1) / (ps * q);
+  const T sh = sigma(M.ref_sigma_t, ch0);  // the reference density that sampled the flight
   if constexpr (HERO) {  // the collision density ratios σ̂_k/σ̂_h of the path pdfs
-    const T sh = M.ref_sigma_t[ch0 * N + v];
     for (int k = 0; k < 3; ++k)
-      if (k != ch0) st.lrho[k] += st.log_ratio_memo(k, M.ref_sigma_t[k * N + v], sh);  // −inf for σ̂_k = 0
+      if (k != ch0) st.lrho[k] += st.log_ratio_memo(k, sigma(M.ref_sigma_t, k), sh);  // −inf for σ̂_k = 0
   }
   TapeCollision<T, LANES>* rec = nullptr;
-  if (RECORD) {
+  if (RECORD && !core) {
     rec = tape->collision(v);
     if (rec) {
-      rec->sref = M.ref_sigma_t[ch0 * N + v];
+      rec->sref = sh;
       rec->inv_psq = inv_psq;
     }
   }
   for (int l = 0; l < LANES; ++l) {
     const int c = LANES == 1 ? chan : l;
     st.wref[l] *= aref[l] * inv_psq;
-    const T fa = M.albedo[c * N + v] * inv_psq;  // albedo factor α_c/(p_s q)
-    T fs = T(1);                                 // collision factor σ_c/σ̂
-    if (RATIO) fs = M.sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
-    else if (HERO) fs = M.ref_sigma_t[c * N + v] / M.ref_sigma_t[ch0 * N + v];
+    const T fa = alpha(M.albedo, c) * inv_psq;  // albedo factor α_c/(p_s q)
+    T fs = T(1);                                // collision factor σ_c/σ̂
+    if (RATIO) fs = sigma(M.sigma_t, c) / sh;
+    else if (HERO) fs = sigma(M.ref_sigma_t, c) / sh;
     if (RECORD && rec) {
       rec->fs[l] = fs;
       rec->fa[l] = fa;
     }
-    if (ADJOINT) {
+    if (ADJOINT && !core) {
       if (A.grad_sigma_t)
         A.sigma_t(c * N + v, adj[l] * weight_without(fs, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) /
-                                 M.ref_sigma_t[ch0 * N + v]);
+                                 sh);
       if (A.grad_albedo)
         A.albedo(c * N + v,
                  adj[l] * weight_without(fa, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) * inv_psq);

@@ -29,6 +29,15 @@ struct Channels {
   }
 };
 
+// Bricks of kBrick³ voxels: the unit of empty-space skipping outside an object (boundary.h) and of the homogeneous
+// core inside it (Medium::core). A brick grid holds one byte per brick, (⌈D/4⌉, ⌈H/4⌉, ⌈W/4⌉), x fastest.
+constexpr int64_t kBrick = 4;
+
+// Flat index in a brick grid of `bricks` = (x, y, z) counts of the brick holding voxel idx.
+TA_HD TA_INLINE int64_t brick_index(const int64_t bricks[3], const int64_t idx[3]) {
+  return ((idx[2] / kBrick) * bricks[1] + idx[1] / kBrick) * bricks[0] + idx[0] / kBrick;
+}
+
 template <typename T>
 struct Medium {
   int64_t D = 0, H = 0, W = 0;  // grid size (z, y, x)
@@ -36,6 +45,18 @@ struct Medium {
   T origin[3] = {0, 0, 0};      // world position (mm) of the grid corner; voxel (k, j, i) spans
                                 // origin + [i, i+1]·sx × [j, j+1]·sy × [k, k+1]·sz
   Channels<T> sigma_t, albedo, ref_sigma_t, ref_albedo;
+  // The homogeneous core (objects; set by the glue, else absent): per brick the Chebyshev distance in bricks to the
+  // nearest brick that is not core (0: not core; capped at 255). Every voxel of a core brick lies inside the object
+  // and holds core_sigma_t and core_albedo in the parameters and in the reference alike (no ratio weights), and in a
+  // gradient replay lies outside the voxels whose gradients are asked for. A walk crosses a box of core bricks in
+  // one move and reads the core's values without touching the grids (integrator.h).
+  const uint8_t* core = nullptr;
+  int64_t core_bricks[3] = {0, 0, 0};
+  T core_sigma_t[3] = {0, 0, 0}, core_albedo[3] = {0, 0, 0};
+  // The core distance of voxel idx (0 without a core).
+  TA_HD TA_INLINE int core_distance(const int64_t idx[3]) const {
+    return core == nullptr ? 0 : core[brick_index(core_bricks, idx)];
+  }
 
   TA_HD int64_t voxels() const { return D * H * W; }
   TA_HD int64_t dim(int a) const { return a == 0 ? W : (a == 1 ? H : D); }

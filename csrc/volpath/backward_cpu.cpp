@@ -124,6 +124,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     S.medium.ref_albedo.floor = T(albedo_floor);
     S.medium.ref_sigma_t.plain = !(sigma_t_floor > 0);
     S.medium.ref_albedo.plain = !(albedo_floor > 0);
+    if (opt.grad_support.defined()) build_core(S, store, opt.grad_support.data_ptr<bool>());
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
     dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
@@ -132,6 +133,11 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     });
   });
   interrupt.throw_if_interrupted();
+  if (opt.grad_support.defined()) {  // only the asked voxels' gradients are complete: the others are 0
+    const auto keep = opt.grad_support.unsqueeze(0);
+    if (need_sigma_t) gs.mul_(keep);
+    if (need_albedo) ga.mul_(keep);
+  }
   return {gs, ga, events};
 }
 

@@ -105,6 +105,13 @@ void check_scene(const SceneOptions& o, int64_t D, int64_t H, int64_t W) {
   TORCH_CHECK(o.hero == 0 || o.lanes == 3, "hero: the hero-channel walk serves three lanes, got lanes=", o.lanes);
   TORCH_CHECK(o.part_world >= 1 && o.part_rank >= 0 && o.part_rank < o.part_world,
               "partition: expected 0 <= rank < world, got rank ", o.part_rank, " of ", o.part_world);
+  if (o.grad_support.defined()) {
+    const auto& m = o.grad_support;
+    TORCH_CHECK(m.device().is_cpu() && m.scalar_type() == at::kBool && m.is_contiguous() && m.dim() == 3 &&
+                    m.size(0) == D && m.size(1) == H && m.size(2) == W,
+                "grad_support: expected a contiguous CPU bool tensor of the grid's shape (", D, ", ", H, ", ", W,
+                "), got ", m.scalar_type(), " ", m.sizes());
+  }
   // boundary
   const auto& b = o.boundary;
   TORCH_CHECK(b.kind == 0 || b.kind == 1, "boundary: expected kind 0 (box) or 1 (sdf), got ", b.kind);

@@ -39,7 +39,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
         return;
       }
     }
-    int64_t ev = 0, cut = 0, vsteps = 0, osteps = 0;
+    int64_t ev = 0, cut = 0, vsteps = 0, osteps = 0, cevents = 0;
     for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
       double acc[3] = {0, 0, 0};
       T Le[3];
@@ -51,6 +51,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
           cut += r.truncated;
           vsteps += r.voxel_steps;
           osteps += r.outside_steps;
+          cevents += r.core_events;
           if (constant) {
             for (int l = 0; l < 3; ++l) acc[l] += double(r.value[l]);
           } else if (r.escaped) {
@@ -64,6 +65,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
             cut += r.truncated;
             vsteps += r.voxel_steps;
             osteps += r.outside_steps;
+            cevents += r.core_events;
             if (constant) {
               acc[ch] += double(r.value[0]);
             } else if (r.escaped) {
@@ -77,7 +79,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
         out[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
                                    : T(acc[ch] / double(S.spp));
     });
-    counts[c] = {ev, cut, vsteps, osteps};
+    counts[c] = {ev, cut, vsteps, osteps, cevents};
   });
   ForwardCounts total;
   for (const auto& k : counts) {
@@ -85,6 +87,7 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
     total.truncated_paths += k.truncated_paths;
     total.voxel_steps += k.voxel_steps;
     total.outside_steps += k.outside_steps;
+    total.core_events += k.core_events;
   }
   return total;
 }
@@ -103,7 +106,8 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_forward", [&] {
     using T = scalar_t;
     SceneStorage store;
-    const Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
+    build_core(S, store, nullptr);
     dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       const Share share(S.elements(), opt.part_rank, opt.part_world);
       counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
@@ -138,6 +142,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
     al.palette = albedo_table.data_ptr<T>();
     S.medium.sigma_t = S.medium.ref_sigma_t = st;
     S.medium.albedo = S.medium.ref_albedo = al;
+    build_core(S, store, nullptr);
     dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       counts = forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
                                                                                       opt.part_world));

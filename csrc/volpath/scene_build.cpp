@@ -4,7 +4,10 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
+#include <cmath>
+#include <map>
 
 namespace ta {
 namespace volpath {
@@ -17,6 +20,7 @@ void copy3(const std::vector<double>& v, T out[3]) {
 }
 
 std::atomic<bool> g_skipping{true};  // set_empty_space_skipping (tests)
+std::atomic<bool> g_core_walk{true};  // set_core_walk (tests)
 
 // One pass of the separable Chebyshev distance transform along lines of n values at stride `stride`:
 // g(i) = min_j max(|i − j|, f(j)), searched outwards from i until |i − j| reaches the best value found.
@@ -42,24 +46,11 @@ void minmax_pass(std::vector<int32_t>& f, int64_t lines, int64_t n, int64_t stri
 
 }  // namespace
 
-std::vector<uint8_t> skip_distances(const uint8_t* cells, int64_t D, int64_t H, int64_t W, int64_t bricks[3]) {
-  const int64_t B = core::kSkipBrick;
-  const int64_t bx = (W + B - 1) / B, by = (H + B - 1) / B, bz = (D + B - 1) / B;
-  bricks[0] = bx;
-  bricks[1] = by;
-  bricks[2] = bz;
-  constexpr int32_t kFar = 255;
-  // 0 for a brick holding a cell that is not outside, kFar otherwise (then the three passes, x, y, z)
-  std::vector<int32_t> f(bx * by * bz, kFar);
-  at::parallel_for(0, bz, 1, [&](int64_t z0, int64_t z1) {
-    for (int64_t k = z0 * B; k < std::min(D, z1 * B); ++k)
-      for (int64_t j = 0; j < H; ++j) {
-        const uint8_t* row = cells + (k * H + j) * W;
-        int32_t* brow = f.data() + ((k / B) * by + j / B) * bx;
-        for (int64_t i = 0; i < W; ++i)
-          if (row[i] != core::kCellOutside) brow[i / B] = 0;
-      }
-  });
+namespace {
+
+// The exact Chebyshev distance transform of a brick grid (bx, by, bz) in which f holds 0 for the bricks that count
+// and 255 for the others, capped at 255.
+std::vector<uint8_t> chebyshev_bricks(std::vector<int32_t>& f, int64_t bx, int64_t by, int64_t bz) {
   std::vector<int64_t> starts;
   for (int64_t z = 0; z < bz; ++z)
     for (int64_t y = 0; y < by; ++y) starts.push_back((z * by + y) * bx);
@@ -74,6 +65,105 @@ std::vector<uint8_t> skip_distances(const uint8_t* cells, int64_t D, int64_t H, 
   minmax_pass(f, by * bx, bz, bx * by, starts);
   return std::vector<uint8_t>(f.begin(), f.end());
 }
+
+}  // namespace
+
+std::vector<uint8_t> skip_distances(const uint8_t* cells, int64_t D, int64_t H, int64_t W, int64_t bricks[3]) {
+  const int64_t B = core::kBrick;
+  const int64_t bx = (W + B - 1) / B, by = (H + B - 1) / B, bz = (D + B - 1) / B;
+  bricks[0] = bx;
+  bricks[1] = by;
+  bricks[2] = bz;
+  // 0 for a brick holding a cell that is not outside, 255 otherwise
+  std::vector<int32_t> f(bx * by * bz, 255);
+  at::parallel_for(0, bz, 1, [&](int64_t z0, int64_t z1) {
+    for (int64_t k = z0 * B; k < std::min(D, z1 * B); ++k)
+      for (int64_t j = 0; j < H; ++j) {
+        const uint8_t* row = cells + (k * H + j) * W;
+        int32_t* brow = f.data() + ((k / B) * by + j / B) * bx;
+        for (int64_t i = 0; i < W; ++i)
+          if (row[i] != core::kCellOutside) brow[i / B] = 0;
+      }
+  });
+  return chebyshev_bricks(f, bx, by, bz);
+}
+
+template <typename T>
+void build_core(core::Scene<T>& S, SceneStorage& store, const bool* asked) {
+  auto& M = S.medium;
+  M.core = nullptr;
+  if (!g_core_walk.load() || S.sdf.cell == nullptr) return;
+  const int64_t B = core::kBrick, D = M.D, H = M.H, W = M.W, N = M.voxels();
+  const int64_t bx = (W + B - 1) / B, by = (H + B - 1) / B, bz = (D + B - 1) / B;
+  // the values of voxel v: σ_t and albedo per channel, in the parameters and in the reference
+  const auto values = [&](int64_t v, T out[12]) {
+    for (int c = 0; c < 3; ++c) {
+      out[c] = M.sigma_t[c * N + v];
+      out[3 + c] = M.albedo[c * N + v];
+      out[6 + c] = M.ref_sigma_t[c * N + v];
+      out[9 + c] = M.ref_albedo[c * N + v];
+    }
+  };
+  // per brick, its first voxel if the brick is uniform (else -1)
+  std::vector<int64_t> first(bx * by * bz, -1);
+  at::parallel_for(0, bz, 1, [&](int64_t z0, int64_t z1) {
+    T ref[12], val[12];
+    for (int64_t z = z0; z < z1; ++z)
+      for (int64_t y = 0; y < by; ++y)
+        for (int64_t x = 0; x < bx; ++x) {
+          int64_t v0 = -1;
+          bool uniform = true;
+          for (int64_t k = z * B; uniform && k < std::min(D, (z + 1) * B); ++k)
+            for (int64_t j = y * B; uniform && j < std::min(H, (y + 1) * B); ++j)
+              for (int64_t i = x * B; uniform && i < std::min(W, (x + 1) * B); ++i) {
+                const int64_t v = (k * H + j) * W + i;
+                if (S.sdf.cell[v] != core::kCellInside || (asked != nullptr && asked[v])) {
+                  uniform = false;
+                } else if (v0 < 0) {
+                  v0 = v;
+                  values(v, ref);
+                  for (int c = 0; c < 3; ++c)
+                    uniform &= std::isfinite(ref[c]) && ref[c] > T(0) && std::isfinite(ref[3 + c]) &&
+                               ref[6 + c] == ref[c] && ref[9 + c] == ref[3 + c];
+                } else {
+                  values(v, val);
+                  for (int m = 0; m < 12; ++m) uniform &= val[m] == ref[m];
+                }
+              }
+          first[(z * by + y) * bx + x] = uniform ? v0 : -1;
+        }
+  });
+  // the tuple that most uniform bricks hold (ties: the smallest tuple)
+  std::map<std::array<T, 6>, int64_t> count;
+  const auto tuple = [&](int64_t v) {
+    T val[12];
+    values(v, val);
+    std::array<T, 6> t;
+    for (int m = 0; m < 6; ++m) t[m] = val[m];
+    return t;
+  };
+  for (int64_t v : first)
+    if (v >= 0) ++count[tuple(v)];
+  if (count.empty()) return;
+  auto best = count.begin();
+  for (auto it = count.begin(); it != count.end(); ++it)
+    if (it->second > best->second) best = it;
+  std::vector<int32_t> f(first.size(), 0);  // 0 for the bricks that are not core
+  for (size_t b = 0; b < first.size(); ++b)
+    if (first[b] >= 0 && tuple(first[b]) == best->first) f[b] = 255;
+  store.core = chebyshev_bricks(f, bx, by, bz);
+  M.core = store.core.data();
+  M.core_bricks[0] = bx;
+  M.core_bricks[1] = by;
+  M.core_bricks[2] = bz;
+  for (int c = 0; c < 3; ++c) {
+    M.core_sigma_t[c] = best->first[c];
+    M.core_albedo[c] = best->first[3 + c];
+  }
+}
+
+template void build_core<float>(core::Scene<float>&, SceneStorage&, const bool*);
+template void build_core<double>(core::Scene<double>&, SceneStorage&, const bool*);
 
 // The scene of a D×H×W grid without its medium values (the caller points S.medium's channels at them).
 template <typename T>
@@ -190,6 +280,7 @@ std::vector<int64_t> image_shape(const SceneOptions& o, int64_t H, int64_t W) {
 }  // namespace detail
 
 bool set_empty_space_skipping(bool on) { return detail::g_skipping.exchange(on); }
+bool set_core_walk(bool on) { return detail::g_core_walk.exchange(on); }
 
 }  // namespace volpath
 }  // namespace ta

@@ -84,6 +84,9 @@ struct SceneOptions {
   int64_t part_rank = 0;   // data-parallel share: this process traces the sensor elements t with
   int64_t part_world = 1;  // t % part_world == part_rank (others: 0 in the image, no gradient); the random
                            // numbers are keyed by the global t, so the shares of all ranks sum to the full image
+  // optional (D, H, W) bool: the voxels whose gradients the backward returns (0 elsewhere), so that the replay may
+  // cross the homogeneous core without gradient bookkeeping (core::Medium::core); undefined: every voxel's
+  torch::Tensor grad_support;
 };
 
 struct ForwardCounts {
@@ -93,6 +96,7 @@ struct ForwardCounts {
   // outside it in the search for the surface
   int64_t voxel_steps = 0;
   int64_t outside_steps = 0;
+  int64_t core_events = 0;  // scattering events in the homogeneous core (core::Medium::core)
 };
 
 // General scenes. The image is (F, H, W, 3)/(H, W, 3) for face texels, (N, 3) for surface texels,
@@ -122,6 +126,9 @@ int64_t set_tape_capacity(int64_t segments);
 // Test-only: whether SDF scenes skip empty space outside the object in bricks (core::SDFGrid::skip; default on).
 // Returns the previous setting.
 bool set_empty_space_skipping(bool on);
+// Test-only: whether SDF scenes cross their homogeneous core in bricks (core::Medium::core; default on). Returns the
+// previous setting.
+bool set_core_walk(bool on);
 // The SIMD slab walk (slab_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
 // the level before.
 int64_t set_simd(int64_t mode);

@@ -9,13 +9,15 @@ is timed in its parts, after an untimed warm-up iteration at 1 spp:
 * ``mix_s``: the mixture → dense (3, D, H, W) σ_t and albedo of the bounding box (``MaterialMixture.forward``);
 * ``forward_s``: the tracer's forward (surface texels, smooth dielectric SDF boundary, ``--spp`` per texel);
 * ``loss_s``: the appearance loss on the texels (sparse texel path) against a target of the texture's colours;
-* ``backward_s``: ``loss.backward()``, of which ``replay_s`` is the tracer's path replay (its own timer) and the
+* ``backward_s``: ``loss.backward()``, of which ``replay_s`` is the tracer's path replay (its own timer; gradients
+  only in the shell, ``grad_support``, as the print loop asks) and the
   rest the gradient of the loss and of the dense scatter back to the shell's logits;
 * ``step_s``: the Adagrad step; ``iteration_s``: their sum;
 * ``events_per_path`` (scattering events of the forward per path; a path is one texel sample of one channel for the
   per-channel estimator, of all three for hero), ``voxel_steps_per_path`` and ``outside_steps_per_path`` (voxels
   visited by the flights inside the object, and cells visited outside it, where empty bricks are crossed in one
-  move each), ``peak_rss_mb`` (VmHWM growth over the iteration),
+  move each), ``core_event_share`` (the share of the scattering events in the homogeneous white core, crossed in
+  bricks; ``--shortcuts off,on`` times each height without and with the two brick shortcuts), ``peak_rss_mb`` (VmHWM growth over the iteration),
   and, with ``--ref-mult`` > 0, ``image_rmse`` against a render at ``ref-mult × spp`` with another seed (corrected
   for the reference's own noise) and ``efficiency`` = 1 / (RMSE² · (forward_s + replay_s)).
 
@@ -67,7 +69,8 @@ def iteration(target, model, criterion, optimizer, spp, seed, chromatic):
     t = [time.perf_counter()]
     sigma_t, albedo = model()
     t.append(time.perf_counter())
-    image = render_scene(target.scene, sigma_t, albedo, spp=spp, seed=seed, stats=stats, chromatic=chromatic)
+    image = render_scene(target.scene, sigma_t, albedo, spp=spp, seed=seed, stats=stats, chromatic=chromatic,
+                         grad_support=target.support)
     t.append(time.perf_counter())
     loss, _ = target.appearance(criterion, image)
     t.append(time.perf_counter())
@@ -103,6 +106,8 @@ def run(args, height, chromatic):
            "events_per_path": round(stats["scatter_events"] / paths, 2),
            "voxel_steps_per_path": round(stats["voxel_steps"] / paths, 2),
            "outside_steps_per_path": round(stats["outside_steps"] / paths, 2),
+           "core_event_share": round(stats["core_events"] / max(1, stats["scatter_events"]), 4),
+           "shortcuts": args.shortcuts_now,
            "peak_rss_mb": None if peak is None or base is None else round((peak - base) / 1024, 1)}
     if args.ref_mult > 0:
         from torch_appearance.render.volpath import render_scene
@@ -129,6 +134,9 @@ def main(argv=None):
                    "(default: %(default)s)")
     p.add_argument("--ref-mult", type=int, default=0, help="reference spp = this × spp for image_rmse; 0: none "
                    "(default: %(default)s)")
+    p.add_argument("--shortcuts", default="on", help="comma-separated: on, off: the walk's brick shortcuts (empty space "
+                   "outside the object, its homogeneous core) for before/after figures in one run (default: "
+                   "%(default)s)")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="(default: torch's)")
     p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
     p.add_argument("--out", default="results/bench/objects.jsonl", help="(default: %(default)s)")
@@ -140,15 +148,25 @@ def main(argv=None):
     chromatic = [c.strip() for c in args.chromatic.split(",")]
     if any(c not in ("per_channel", "hero") for c in chromatic):
         p.error(f"--chromatic: expected per_channel and/or hero, got {args.chromatic!r}")
+    shortcuts = [c.strip() for c in args.shortcuts.split(",")]
+    if any(c not in ("on", "off") for c in shortcuts):
+        p.error(f"--shortcuts: expected on and/or off, got {args.shortcuts!r}")
     if args.spp < 1 or args.threads < 1 or args.ref_mult < 0:
         p.error("--spp and --threads: expected >= 1; --ref-mult: expected >= 0")
     torch.set_num_threads(args.threads)
     rows = []
+    from torch_appearance import _C
     for height in heights:
         for c in chromatic:
-            row = run(args, height, c)
-            print(json.dumps(row), flush=True)
-            rows.append(row)
+            for mode in shortcuts:
+                args.shortcuts_now = mode
+                _C._set_empty_space_skipping(mode == "on")
+                _C._set_core_walk(mode == "on")
+                row = run(args, height, c)
+                print(json.dumps(row), flush=True)
+                rows.append(row)
+    _C._set_empty_space_skipping(True)
+    _C._set_core_walk(True)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     ta_io.atomic_write_bytes(args.out, "".join(json.dumps(r) + "\n" for r in rows).encode())
     return 0

@@ -71,7 +71,7 @@ class VolumePathTrace(torch.autograd.Function):
     :class:`torch_appearance.render.TraceJob` (scene, spp, seed, seed_grad, chromatic, partition) that builds the C++
     options of the forward walk and of the gradient replay; ``stats`` an optional dict that receives ``forward_s``,
     ``scatter_events``, ``voxel_steps``, ``outside_steps`` (the scalar walk's voxel visits inside the object and
-    outside it) and, after backward, ``backward_s``, ``backward_scatter_events``.
+    outside it), ``core_events`` (scattering events in the homogeneous core) and, after backward, ``backward_s``, ``backward_scatter_events``.
     """
 
     @staticmethod
@@ -93,6 +93,7 @@ class VolumePathTrace(torch.autograd.Function):
             stats["truncated_paths"] = counts.truncated_paths
             stats["voxel_steps"] = counts.voxel_steps
             stats["outside_steps"] = counts.outside_steps
+            stats["core_events"] = counts.core_events
             stats["lanes"] = options.lanes
             stats["hero"] = bool(options.hero)
         walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)

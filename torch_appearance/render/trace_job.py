@@ -3,7 +3,7 @@
 :func:`torch_appearance.render_scene` (and through it :func:`torch_appearance.render_texels`) and
 :func:`torch_appearance.render.render_scene_indexed` build a :class:`TraceJob`; the autograd Function
 (:class:`torch_appearance.autograd.VolumePathTrace`) takes nothing else. The job validates itself: the scene's type,
-``spp``, the two 64-bit seeds, the ``chromatic`` estimator and the ``partition``.
+``spp``, the two 64-bit seeds, the ``chromatic`` estimator, the ``partition`` and the ``grad_support``.
 """
 from dataclasses import dataclass
 from typing import Optional, Tuple
@@ -11,7 +11,21 @@ from typing import Optional, Tuple
 from ..checks import check_seed, check_spp, is_int
 from .scene import Scene, check_chromatic, default_sigma_t_floor, derive_seed_grad
 
-__all__ = ["TraceJob", "check_partition"]
+__all__ = ["TraceJob", "check_grad_support", "check_partition"]
+
+
+def check_grad_support(grad_support):
+    """``grad_support``: None, or a CPU bool tensor (D, H, W) (the grid's shape is checked against the medium's
+    by :meth:`TraceJob.check_grid`), returned contiguous."""
+    if grad_support is None:
+        return None
+    import torch
+    if not isinstance(grad_support, torch.Tensor):
+        raise TypeError(f"grad_support: expected a bool tensor (D, H, W) or None, got {type(grad_support).__name__}")
+    if grad_support.dtype != torch.bool or grad_support.dim() != 3 or grad_support.device.type != "cpu":
+        raise ValueError(f"grad_support: expected a CPU bool tensor (D, H, W), got {grad_support.dtype} "
+                         f"{tuple(grad_support.shape)} on {grad_support.device}")
+    return grad_support.detach().contiguous()
 
 
 def check_partition(partition):
@@ -45,6 +59,9 @@ class TraceJob:
         chromatic: estimator for a sampling density that differs between channels (see
             :data:`torch_appearance.render.scene.CHROMATIC`).
         partition: optional (rank, world): trace only the sensor elements t with t % world == rank.
+        grad_support: optional (D, H, W) bool tensor: the voxels whose gradients the backward returns (the others
+            get 0). The replay then crosses the homogeneous core outside it without gradient bookkeeping (a print's
+            fixed core ink; see ``Medium::core`` in csrc/core/medium.h).
         name: the entry point that made the job, for messages.
 
     Example:
@@ -63,6 +80,7 @@ class TraceJob:
     seed_grad: Optional[int] = None
     chromatic: str = "per_channel"
     partition: Optional[Tuple[int, int]] = None
+    grad_support: Optional[object] = None
     name: str = "render_scene"
 
     def __post_init__(self):
@@ -74,6 +92,13 @@ class TraceJob:
         object.__setattr__(self, "seed_grad", seed_grad)
         object.__setattr__(self, "chromatic", check_chromatic(self.chromatic))
         object.__setattr__(self, "partition", check_partition(self.partition))
+        object.__setattr__(self, "grad_support", check_grad_support(self.grad_support))
+
+    def check_grid(self, grid_shape):
+        """Raises ValueError when ``grad_support`` is not of the medium's (D, H, W) ``grid_shape``."""
+        if self.grad_support is not None and tuple(self.grad_support.shape) != tuple(grid_shape):
+            raise ValueError(f"grad_support: expected the grid's shape {tuple(grid_shape)}, got "
+                             f"{tuple(self.grad_support.shape)}")
 
     @property
     def albedo_floor(self):
@@ -104,4 +129,6 @@ class TraceJob:
         opt.lanes = lanes
         if self.partition is not None:
             opt.part_rank, opt.part_world = self.partition
+        if self.grad_support is not None:
+            opt.grad_support = self.grad_support
         return opt

@@ -106,7 +106,7 @@ def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
 
 
 def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, sampling_sigma_t=None,
-                 sampling_albedo=None, stats=None, partition=None, chromatic="per_channel"):
+                 sampling_albedo=None, stats=None, partition=None, chromatic="per_channel", grad_support=None):
     """Render what ``scene``'s sensor sees of a heterogeneous voxel medium, differentiably.
 
     The medium (per-voxel, per-channel σ_t and albedo, piecewise constant, exact regular tracking) fills the grid
@@ -129,13 +129,16 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
         seed: 64-bit seed of the forward pass; results are reproducible for a seed, independent of threads.
         seed_grad: 64-bit seed of the gradient replay; default :func:`derive_seed_grad` (seed).
         sampling_sigma_t, sampling_albedo: optional detached (3, D, H, W) sampling medium (see render_texels).
-        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``lanes``, ``hero`` and, after backward,
-            ``backward_s`` and ``backward_scatter_events``.
+        stats: optional dict, filled with ``forward_s``, ``scatter_events``, ``voxel_steps``, ``outside_steps``,
+            ``core_events``, ``lanes``, ``hero`` and, after backward, ``backward_s`` and ``backward_scatter_events``.
         partition: optional (rank, world): trace only the sensor elements t (flat texel or pixel index) with
             t % world == rank; the others are 0 and get no gradient. The random numbers are keyed by the global t,
             so the images of all ranks sum to the full image (see :mod:`torch_appearance.distributed`).
         chromatic: "per_channel" or "hero", the estimator for a sampling density that differs between channels
             (see :func:`render_texels`).
+        grad_support: optional (D, H, W) bool tensor, the voxels whose gradients are wanted: the others get 0, and
+            the replay crosses a homogeneous core outside them (a print's fixed core ink) in bricks, without
+            gradient bookkeeping. The image does not depend on it.
 
     Returns:
         Linear RGB radiance: (rows, cols, 3) for a camera (row 0 is the camera's up side), (N, 3) for surface texels,
@@ -161,9 +164,11 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     """
     from ..autograd.volpath import VolumePathTrace
 
-    job = TraceJob(scene, spp=spp, seed=seed, seed_grad=seed_grad, chromatic=chromatic, partition=partition)
+    job = TraceJob(scene, spp=spp, seed=seed, seed_grad=seed_grad, chromatic=chromatic, partition=partition,
+                   grad_support=grad_support)
     check_medium(sigma_t, albedo)
     scene.check_grid_shape(tuple(sigma_t.shape[1:]))
+    job.check_grid(tuple(sigma_t.shape[1:]))
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
 

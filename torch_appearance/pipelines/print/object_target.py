@@ -130,7 +130,9 @@ class ObjectTarget:
     def render(self, sigma_t, albedo, spp, seed, scene=None):
         """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
         scene = self.scene if scene is None else scene
-        return render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, self.gradient_seed))
+        # only the shell carries parameters: the replay crosses the fixed white core without gradient bookkeeping
+        return render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, self.gradient_seed),
+                      grad_support=self.support)
 
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)

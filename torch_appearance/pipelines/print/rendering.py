@@ -18,15 +18,16 @@ def replay_seed(seed, gradient_seed):
     return seed if gradient_seed == "same" else derive_seed_grad(seed)
 
 
-def render(scene, sigma_t, albedo, *, spp, seed, seed_grad):
+def render(scene, sigma_t, albedo, *, spp, seed, seed_grad, grad_support=None):
     """``SceneRenderer(scene, spp)(sigma_t, albedo, seed=seed, seed_grad=seed_grad)``: the sensor's linear RGB image,
-    differentiable. Under ``torch.distributed`` every rank traces its interleaved share of the sensor elements and
-    the image and the gradients are summed over the ranks (the same image as one process)."""
+    differentiable (only in the (D, H, W) ``grad_support`` when given). Under ``torch.distributed`` every rank
+    traces its interleaved share of the sensor elements and the image and the gradients are summed over the ranks
+    (the same image as one process)."""
     renderer = SceneRenderer(scene, spp=spp)
     if distributed.rank_and_world()[1] == 1:
-        return renderer(sigma_t, albedo, seed=seed, seed_grad=seed_grad)
+        return renderer(sigma_t, albedo, seed=seed, seed_grad=seed_grad, grad_support=grad_support)
     return distributed.render(render_scene, renderer.scene, sigma_t=sigma_t, albedo=albedo, spp=renderer.spp, seed=seed,
-                              seed_grad=seed_grad, chromatic=renderer.chromatic)
+                              seed_grad=seed_grad, chromatic=renderer.chromatic, grad_support=grad_support)
 
 
 def ink_tables(inks, dtype=torch.float32):
