@@ -78,8 +78,8 @@ struct VoxelDDA {
   TA_HD TA_INLINE static void voxel_in(const BrickBox& b, const Medium<T>& M, const T p[3], const T d[3], T t,
                                        int64_t cell[3]) {
     for (int a = 0; a < 3; ++a) {
-      const T f = tfloor((p[a] + d[a] * t) / M.voxel[a]);
-      cell[a] = f >= T(b.hi[a] - 1) ? b.hi[a] - 1 : (f > T(b.lo[a]) ? int64_t(f) : b.lo[a]);
+      const T q = (p[a] + d[a] * t) / M.voxel[a];  // floor(q) by truncation, q > lo >= 0 (as Medium::locate)
+      cell[a] = q >= T(b.hi[a] - 1) ? b.hi[a] - 1 : (q > T(b.lo[a]) ? int64_t(q) : b.lo[a]);
     }
   }
 

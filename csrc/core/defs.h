@@ -17,12 +17,16 @@
 // The small helpers of the walk's inner loops (the voxel DDA, the optics, the sensors' ray generation, the entry
 // search) are forced inline too: once the steps are inlined the walk is large, GCC's growth limits then left them
 // out of line, and a call per voxel step made objects 10-15 % slower than the one-function walk (c845e46).
+// TA_INLINE_LAMBDA does the same for a lambda (placed after its parameter list).
 #if defined(__CUDACC__)
 #define TA_INLINE __forceinline__
+#define TA_INLINE_LAMBDA
 #elif defined(__GNUC__)
 #define TA_INLINE inline __attribute__((always_inline))
+#define TA_INLINE_LAMBDA __attribute__((always_inline))
 #else
 #define TA_INLINE inline
+#define TA_INLINE_LAMBDA
 #endif
 
 namespace ta {

@@ -479,8 +479,8 @@ TA_HD TA_INLINE bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathRes
   // carries no gradient (Medium::core)
   const bool core = M.core_distance(st.idx) > 0;
   res.core_events += core;
-  const auto sigma = [&](const Channels<T>& x, int c) { return core ? M.core_sigma_t[c] : x[c * N + v]; };
-  const auto alpha = [&](const Channels<T>& x, int c) { return core ? M.core_albedo[c] : x[c * N + v]; };
+  const auto sigma = [&](const Channels<T>& x, int c) TA_INLINE_LAMBDA { return core ? M.core_sigma_t[c] : x[c * N + v]; };
+  const auto alpha = [&](const Channels<T>& x, int c) TA_INLINE_LAMBDA { return core ? M.core_albedo[c] : x[c * N + v]; };
   // continuation probability: reference albedo (max over lanes), times roulette on the reference weight
   T ps, aref[LANES];
   if (LANES == 1) {

@@ -65,9 +65,10 @@ struct Medium {
   // Voxel containing the grid-local point p (mm), clamped to the grid.
   TA_HD TA_INLINE void locate(const T p[3], int64_t idx[3]) const {
     for (int a = 0; a < 3; ++a) {
-      const T f = tfloor(p[a] / voxel[a]);
+      // floor(q) by truncation where q is in [0, n) (no call to floorf: x86-64 without SSE4.1 has no instruction)
+      const T q = p[a] / voxel[a];
       const int64_t n = dim(a);
-      idx[a] = f >= T(0) ? (f < T(n) ? int64_t(f) : n - 1) : 0;  // NaN → 0: never an index out of range
+      idx[a] = q >= T(0) ? (q < T(n) ? int64_t(q) : n - 1) : 0;  // NaN → 0: never an index out of range
     }
   }
 };
