@@ -112,6 +112,13 @@ struct VoxelDDA {
   // Flat index of the current voxel in one channel plane of the grid.
   TA_HD TA_INLINE int64_t voxel() const { return (idx[2] * dims[1] + idx[1]) * dims[0] + idx[0]; }
 
+  // Flat index of the voxel that next() will step into (the current one where the ray leaves the grid there).
+  TA_HD TA_INLINE int64_t next_voxel() const {
+    int64_t n[3] = {idx[0], idx[1], idx[2]};
+    n[axis] = tmin(dims[axis] - 1, tmax(int64_t(0), n[axis] + step[axis]));
+    return (n[2] * dims[1] + n[1]) * dims[0] + n[0];
+  }
+
   // Steps into the next voxel (t0 = the old t1). False when the ray leaves the grid instead: idx stays the last
   // voxel, t0 is where the ray leaves the grid and `axis` the axis of that face.
   TA_HD TA_INLINE bool next() {

@@ -38,6 +38,16 @@ template <typename T>
 TA_HD inline T tmax(T a, T b) { return (a < b) ? b : a; }  // same tie rule as std::max
 
 TA_HD inline float tsqrt(float x) { return sqrtf(x); }
+
+// A hint that *p will be read soon: no effect on any result (a no-op on a GPU or without the builtin).
+template <typename T>
+TA_HD TA_INLINE void prefetch(const T* p) {
+#if defined(__GNUC__) && !defined(__CUDA_ARCH__)
+  __builtin_prefetch(p);
+#else
+  (void)p;
+#endif
+}
 TA_HD inline double tsqrt(double x) { return sqrt(x); }
 TA_HD inline float texp(float x) { return expf(x); }
 TA_HD inline double texp(double x) { return exp(x); }

@@ -386,6 +386,12 @@ TA_HD TA_INLINE Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResul
       continue;
     }
     const int64_t v = dda.voxel();
+    {  // ask for the next voxel's values while this one is worked on: the walk waits on these loads (cache misses)
+      const int64_t nv = dda.next_voxel();
+      if (M.ref_sigma_t.data != nullptr) prefetch(M.ref_sigma_t.data + ch0 * N + nv);
+      if (LANES == 1 && M.ref_albedo.data != nullptr) prefetch(M.ref_albedo.data + chan * N + nv);
+      if (SDF) prefetch(S.sdf.cell + nv);
+    }
     T tend = dda.t1;
     bool hit_here = false;
     if (SDF && S.sdf.cell[v] != kCellInside) {
