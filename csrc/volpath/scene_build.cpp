@@ -44,10 +44,6 @@ void minmax_pass(std::vector<int32_t>& f, int64_t lines, int64_t n, int64_t stri
   });
 }
 
-}  // namespace
-
-namespace {
-
 // The exact Chebyshev distance transform of a brick grid (bx, by, bz) in which f holds 0 for the bricks that count
 // and 255 for the others, capped at 255.
 std::vector<uint8_t> chebyshev_bricks(std::vector<int32_t>& f, int64_t bx, int64_t by, int64_t bz) {
@@ -66,14 +62,20 @@ std::vector<uint8_t> chebyshev_bricks(std::vector<int32_t>& f, int64_t bx, int64
   return std::vector<uint8_t>(f.begin(), f.end());
 }
 
+// The counts of bricks (core::kBrick³ voxels) along x, y, z of a D×H×W grid.
+void brick_counts(int64_t D, int64_t H, int64_t W, int64_t bricks[3]) {
+  const int64_t B = core::kBrick;
+  bricks[0] = (W + B - 1) / B;
+  bricks[1] = (H + B - 1) / B;
+  bricks[2] = (D + B - 1) / B;
+}
+
 }  // namespace
 
 std::vector<uint8_t> skip_distances(const uint8_t* cells, int64_t D, int64_t H, int64_t W, int64_t bricks[3]) {
   const int64_t B = core::kBrick;
-  const int64_t bx = (W + B - 1) / B, by = (H + B - 1) / B, bz = (D + B - 1) / B;
-  bricks[0] = bx;
-  bricks[1] = by;
-  bricks[2] = bz;
+  brick_counts(D, H, W, bricks);
+  const int64_t bx = bricks[0], by = bricks[1], bz = bricks[2];
   // 0 for a brick holding a cell that is not outside, 255 otherwise
   std::vector<int32_t> f(bx * by * bz, 255);
   at::parallel_for(0, bz, 1, [&](int64_t z0, int64_t z1) {
@@ -94,7 +96,8 @@ void build_core(core::Scene<T>& S, SceneStorage& store, const bool* asked) {
   M.core = nullptr;
   if (!g_core_walk.load() || S.sdf.cell == nullptr) return;
   const int64_t B = core::kBrick, D = M.D, H = M.H, W = M.W, N = M.voxels();
-  const int64_t bx = (W + B - 1) / B, by = (H + B - 1) / B, bz = (D + B - 1) / B;
+  brick_counts(D, H, W, M.core_bricks);
+  const int64_t bx = M.core_bricks[0], by = M.core_bricks[1], bz = M.core_bricks[2];
   // the values of voxel v: σ_t and albedo per channel, in the parameters and in the reference
   const auto values = [&](int64_t v, T out[12]) {
     for (int c = 0; c < 3; ++c) {
@@ -153,9 +156,6 @@ void build_core(core::Scene<T>& S, SceneStorage& store, const bool* asked) {
     if (first[b] >= 0 && tuple(first[b]) == best->first) f[b] = 255;
   store.core = chebyshev_bricks(f, bx, by, bz);
   M.core = store.core.data();
-  M.core_bricks[0] = bx;
-  M.core_bricks[1] = by;
-  M.core_bricks[2] = bz;
   for (int c = 0; c < 3; ++c) {
     M.core_sigma_t[c] = best->first[c];
     M.core_albedo[c] = best->first[3 + c];
