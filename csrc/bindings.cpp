@@ -79,6 +79,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readonly("voxel_steps", &ta::volpath::ForwardCounts::voxel_steps)
       .def_readonly("outside_steps", &ta::volpath::ForwardCounts::outside_steps)
       .def_readonly("core_events", &ta::volpath::ForwardCounts::core_events)
+      .def_readonly("tally", &ta::volpath::ForwardCounts::tally)
       .def_readonly("truncated_paths", &ta::volpath::ForwardCounts::truncated_paths);
 
   m.def("scene_forward", &ta::volpath::scene_forward_cpu, py::arg("sigma_t"), py::arg("albedo"),
@@ -109,6 +110,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       py::arg("cells"),
       "Test hook: the brick distances of empty-space skipping of (D, H, W) cell kinds (0 mixed, 1 inside, 2 "
       "outside), as (⌈D/4⌉, ⌈H/4⌉, ⌈W/4⌉).");
+  m.def("_set_tally", [](const std::optional<torch::Tensor>& bins) { ta::volpath::set_tally(bins ? *bins : torch::Tensor()); },
+        py::arg("bins"),
+        "Diagnostics: a (D, H, W) uint8 tensor of bins by which the scalar walk of later forward passes counts its "
+        "scattering events and voxel moves (stats['tally']: (256, 2) per bin), or None: off.");
   m.def("_set_core_walk", &ta::volpath::set_core_walk, py::arg("on"),
         "Test hook: whether SDF scenes cross their homogeneous core in bricks (default on); returns the previous value.");
   m.def("_set_empty_space_skipping", &ta::volpath::set_empty_space_skipping, py::arg("on"),

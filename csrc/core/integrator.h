@@ -78,6 +78,11 @@ struct Scene {
   T ior = 1;            // DIELECTRIC only
   int64_t spp = 1;
   uint64_t seed = 0;
+  // Diagnostics, off unless set (the glue's tally, one buffer per thread): per voxel a bin (D, H, W), and per bin
+  // the scattering events and the flights' voxel moves (a core box crossed in one move counts once, in the bin of
+  // the voxel where it starts), counted into tally[2·bin] and tally[2·bin + 1].
+  const uint8_t* tally_bin = nullptr;
+  int64_t* tally = nullptr;
   int64_t max_depth = 1;  // interactions (scatterings + internal reflections; SDF: also crossings) before a cut
   int64_t rr_depth = 1;   // interactions before Russian roulette starts
 
@@ -355,6 +360,7 @@ TA_HD TA_INLINE Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResul
   Flight f;
   for (;;) {
     ++res.voxel_steps;
+    if (S.tally != nullptr) ++S.tally[2 * S.tally_bin[dda.voxel()] + 1];
     if (const int k = SDF ? M.core_distance(dda.idx) : 0; k > 0) {
       // the box of core bricks within k − 1 bricks of this one is homogeneous and inside the object, with no ratio
       // weights and (in a replay) no gradient: the flight crosses it in one move, or collides in it
@@ -481,6 +487,7 @@ TA_HD TA_INLINE bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathRes
     return false;
   }
   ++res.scatter_events;
+  if (S.tally != nullptr) ++S.tally[2 * S.tally_bin[v]];
   // a collision in the homogeneous core reads the core's values (equal in the parameters and the reference) and
   // carries no gradient (Medium::core)
   const bool core = M.core_distance(st.idx) > 0;

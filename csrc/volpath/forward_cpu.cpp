@@ -2,6 +2,7 @@
 // walks of every sample (core::trace_path, or the SIMD slab walk where it serves), summed in sample order.
 #include <ATen/Parallel.h>
 
+#include <mutex>
 #include <type_traits>
 #include <vector>
 
@@ -22,22 +23,47 @@ using core::Adjoint;
 using core::Scene;
 using namespace detail;
 
+torch::Tensor g_tally;  // set_tally
+std::mutex g_tally_mutex;
+
 template <typename T, int LANES, int B, bool DIEL, bool RATIO, bool HERO>
-ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
+ForwardCounts forward_kernel(const Scene<T>& S0, T* out, const Share& share) {
+  std::vector<int64_t> tally;
+  const uint8_t* bins = nullptr;
+  torch::Tensor held;  // keeps the bins alive through the walk
+  {
+    const std::lock_guard<std::mutex> lock(g_tally_mutex);
+    if (g_tally.defined()) {
+      TORCH_CHECK(g_tally.dim() == 3 && g_tally.size(0) == S0.medium.D && g_tally.size(1) == S0.medium.H &&
+                      g_tally.size(2) == S0.medium.W,
+                  "tally: expected bins of the grid's shape (", S0.medium.D, ", ", S0.medium.H, ", ", S0.medium.W,
+                  "), got ", g_tally.sizes());
+      held = g_tally;
+      bins = held.data_ptr<uint8_t>();
+      tally.assign(512, 0);
+    }
+  }
+  std::mutex tally_mutex;
   const int64_t nchunks = num_chunks(share.count);
-  const bool constant = S.emitter.kind == core::kConstant;
+  const bool constant = S0.emitter.kind == core::kConstant;
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
-  const bool simd = simd_serves<T, LANES, B, HERO>(S);
+  const bool simd = simd_serves<T, LANES, B, HERO>(S0);
   std::vector<float> ref_pair;
   if constexpr (std::is_same_v<T, float>)
-    if (simd) ref_pair = pack_reference(S);
+    if (simd) ref_pair = pack_reference(S0);
   for_each_chunk(nchunks, [&](int64_t c) {
     if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
       if (simd) {
-        counts[c] = simd_forward_chunk<DIEL, RATIO>(S, ref_pair.data(), out, c, nchunks, share);
+        counts[c] = simd_forward_chunk<DIEL, RATIO>(S0, ref_pair.data(), out, c, nchunks, share);
         return;
       }
+    }
+    std::vector<int64_t> local(bins != nullptr ? 512 : 0, 0);  // this chunk's tally
+    Scene<T> S = S0;
+    if (bins != nullptr) {
+      S.tally_bin = bins;
+      S.tally = local.data();
     }
     int64_t ev = 0, cut = 0, vsteps = 0, osteps = 0, cevents = 0;
     for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
@@ -79,7 +105,11 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
         out[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
                                    : T(acc[ch] / double(S.spp));
     });
-    counts[c] = {ev, cut, vsteps, osteps, cevents};
+    counts[c] = {ev, cut, vsteps, osteps, cevents, {}};
+    if (bins != nullptr) {
+      const std::lock_guard<std::mutex> lock(tally_mutex);
+      for (int i = 0; i < 512; ++i) tally[i] += local[i];
+    }
   });
   ForwardCounts total;
   for (const auto& k : counts) {
@@ -89,10 +119,19 @@ ForwardCounts forward_kernel(const Scene<T>& S, T* out, const Share& share) {
     total.outside_steps += k.outside_steps;
     total.core_events += k.core_events;
   }
+  total.tally = std::move(tally);
   return total;
 }
 
 }  // namespace
+
+void set_tally(const torch::Tensor& bins) {
+  if (bins.defined())
+    TORCH_CHECK(bins.dim() == 3 && bins.scalar_type() == torch::kUInt8, "bins: expected a (D, H, W) uint8 tensor, got ",
+                bins.sizes(), " ", bins.scalar_type());
+  const std::lock_guard<std::mutex> lock(g_tally_mutex);
+  g_tally = bins.defined() ? bins.contiguous() : torch::Tensor();
+}
 
 std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                                                            const torch::Tensor& ref_sigma_t,

@@ -97,6 +97,8 @@ struct ForwardCounts {
   int64_t voxel_steps = 0;
   int64_t outside_steps = 0;
   int64_t core_events = 0;  // scattering events in the homogeneous core (core::Medium::core)
+  // with set_tally: per bin b of its labels, tally[2b] scattering events and tally[2b + 1] voxel moves
+  std::vector<int64_t> tally;
 };
 
 // General scenes. The image is (F, H, W, 3)/(H, W, 3) for face texels, (N, 3) for surface texels,
@@ -129,6 +131,10 @@ bool set_empty_space_skipping(bool on);
 // Test-only: whether SDF scenes cross their homogeneous core in bricks (core::Medium::core; default on). Returns the
 // previous setting.
 bool set_core_walk(bool on);
+// Diagnostics: a (D, H, W) uint8 tensor of bins (or an undefined tensor: off) by which the scalar walk of the
+// next forward passes counts its scattering events and voxel moves (ForwardCounts::tally; the SIMD slab walk
+// counts nothing). The forward refuses a grid of another shape.
+void set_tally(const torch::Tensor& bins);
 // The SIMD slab walk (slab_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
 // the level before.
 int64_t set_simd(int64_t mode);

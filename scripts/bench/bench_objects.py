@@ -18,6 +18,10 @@ is timed in its parts, after an untimed warm-up iteration at 1 spp:
   visited by the flights inside the object, and cells visited outside it, where empty bricks are crossed in one
   move each), ``core_event_share`` (the share of the scattering events in the homogeneous white core, crossed in
   bricks; ``--shortcuts off,on`` times each height without and with the two brick shortcuts), ``peak_rss_mb`` (VmHWM growth over the iteration),
+  with ``--depth-bin-mm`` > 0, ``by_depth``: one more, untimed forward at ``--spp`` whose walk counts its scattering
+  events and voxel moves by the depth of their voxel below the surface, in bins of that width (``[depth_from_mm,
+  share of the events, share of the moves]`` per bin; the last bin holds everything deeper), and ``events_per_mm3``
+  per bin (events per path per mm³ of that bin's volume inside the object);
   and, with ``--ref-mult`` > 0, ``image_rmse`` against a render at ``ref-mult × spp`` with another seed (corrected
   for the reference's own noise) and ``efficiency`` = 1 / (RMSE² · (forward_s + replay_s)).
 
@@ -83,6 +87,41 @@ def iteration(target, model, criterion, optimizer, spp, seed, chromatic):
     return parts, stats, image.detach()
 
 
+def events_by_depth(target, model, start, args, chromatic, paths):
+    """The forward's events and voxel moves by depth below the surface (the walk's tally, _C._set_tally)."""
+    from torch_appearance import _C
+    from torch_appearance.render.volpath import render_scene
+    sdf = target.scene.boundary.sdf.double()  # (D+1, H+1, W+1) corner distances, mm, negative inside
+    centre = sum(sdf[k:k + sdf.shape[0] - 1, j:j + sdf.shape[1] - 1, i:i + sdf.shape[2] - 1]
+                 for k in (0, 1) for j in (0, 1) for i in (0, 1)) / 8
+    depth = -centre
+    last = 254
+    bins = (depth / args.depth_bin_mm).floor().clamp(0, last).to(torch.uint8)
+    bins[depth < 0] = 255  # outside (a walk's moves there are rounding at the surface)
+    model.load_state_dict(start)
+    stats = {}
+    with torch.no_grad():
+        sigma_t, albedo = model()
+        _C._set_tally(bins)
+        try:
+            render_scene(target.scene, sigma_t, albedo, spp=args.spp, seed=args.seed, stats=stats, chromatic=chromatic)
+        finally:
+            _C._set_tally(None)
+    tally = stats["tally"].double()
+    share = tally / tally.sum(0).clamp(min=1)
+    voxel_mm3 = float(torch.tensor(target.scene.voxel_size, dtype=torch.float64).prod()) if isinstance(
+        target.scene.voxel_size, (tuple, list)) else float(target.scene.voxel_size) ** 3
+    counts = torch.bincount(bins.flatten().long(), minlength=256).double()
+    rows, per_mm3 = [], []
+    for b in range(last + 1):
+        if tally[b].sum() == 0:
+            continue
+        rows.append([round(b * args.depth_bin_mm, 3), round(float(share[b, 0]), 4), round(float(share[b, 1]), 4)])
+        per_mm3.append(round(float(tally[b, 0]) / paths / (float(counts[b]) * voxel_mm3), 5))
+    return {"by_depth": rows, "events_per_mm3": per_mm3,
+            "events_outside_share": round(float(share[255, 0]), 5)}
+
+
 def run(args, height, chromatic):
     torch.manual_seed(args.seed)
     target, model, criterion, prepare_s = build(args, height)
@@ -109,6 +148,8 @@ def run(args, height, chromatic):
            "core_event_share": round(stats["core_events"] / max(1, stats["scatter_events"]), 4),
            "shortcuts": args.shortcuts_now,
            "peak_rss_mb": None if peak is None or base is None else round((peak - base) / 1024, 1)}
+    if args.depth_bin_mm > 0:
+        row.update(events_by_depth(target, model, start, args, chromatic, paths))
     if args.ref_mult > 0:
         from torch_appearance.render.volpath import render_scene
         model.load_state_dict(start)
@@ -137,6 +178,8 @@ def main(argv=None):
     p.add_argument("--shortcuts", default="on", help="comma-separated: on, off: the walk's brick shortcuts (empty space "
                    "outside the object, its homogeneous core) for before/after figures in one run (default: "
                    "%(default)s)")
+    p.add_argument("--depth-bin-mm", type=float, default=0.0, help="> 0: also count the events and voxel moves by "
+                   "depth below the surface in bins of this width, in one more forward (default: off)")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="(default: torch's)")
     p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
     p.add_argument("--out", default="results/bench/objects.jsonl", help="(default: %(default)s)")

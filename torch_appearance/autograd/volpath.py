@@ -94,6 +94,8 @@ class VolumePathTrace(torch.autograd.Function):
             stats["voxel_steps"] = counts.voxel_steps
             stats["outside_steps"] = counts.outside_steps
             stats["core_events"] = counts.core_events
+            if counts.tally:  # diagnostics (_C._set_tally): (events, voxel moves) per bin
+                stats["tally"] = torch.tensor(counts.tally, dtype=torch.int64).view(-1, 2)
             stats["lanes"] = options.lanes
             stats["hero"] = bool(options.hero)
         walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
