@@ -91,13 +91,20 @@ def events_by_depth(target, model, start, args, chromatic, paths):
     """The forward's events and voxel moves by depth below the surface (the walk's tally, _C._set_tally)."""
     from torch_appearance import _C
     from torch_appearance.render.volpath import render_scene
-    sdf = target.scene.boundary.sdf.double()  # (D+1, H+1, W+1) corner distances, mm, negative inside
+    import numpy as np
+    from scipy import ndimage
+    sdf = target.scene.boundary.sdf  # (D+1, H+1, W+1) corner distances, mm, negative inside (a narrow band)
     centre = sum(sdf[k:k + sdf.shape[0] - 1, j:j + sdf.shape[1] - 1, i:i + sdf.shape[2] - 1]
-                 for k in (0, 1) for j in (0, 1) for i in (0, 1)) / 8
-    depth = -centre
+                 for k in (0, 1) for j in (0, 1) for i in (0, 1))
+    inside = (centre < 0).numpy()
+    del centre
+    sx, sy, sz = target.scene.voxel_size
+    # depth of each inside voxel's centre: the distance to the nearest voxel centre outside (within half a voxel)
+    depth = torch.from_numpy(ndimage.distance_transform_edt(inside, sampling=(sz, sy, sx)).astype(np.float32))
     last = 254
     bins = (depth / args.depth_bin_mm).floor().clamp(0, last).to(torch.uint8)
-    bins[depth < 0] = 255  # outside (a walk's moves there are rounding at the surface)
+    bins[torch.from_numpy(~inside)] = 255  # outside (a walk's moves there are rounding at the surface)
+    voxel_mm3 = sx * sy * sz
     model.load_state_dict(start)
     stats = {}
     with torch.no_grad():
@@ -109,8 +116,6 @@ def events_by_depth(target, model, start, args, chromatic, paths):
             _C._set_tally(None)
     tally = stats["tally"].double()
     share = tally / tally.sum(0).clamp(min=1)
-    voxel_mm3 = float(torch.tensor(target.scene.voxel_size, dtype=torch.float64).prod()) if isinstance(
-        target.scene.voxel_size, (tuple, list)) else float(target.scene.voxel_size) ** 3
     counts = torch.bincount(bins.flatten().long(), minlength=256).double()
     rows, per_mm3 = [], []
     for b in range(last + 1):
