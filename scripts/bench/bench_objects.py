@@ -199,6 +199,8 @@ def main(argv=None):
     shortcuts = [c.strip() for c in args.shortcuts.split(",")]
     if any(c not in ("on", "off") for c in shortcuts):
         p.error(f"--shortcuts: expected on and/or off, got {args.shortcuts!r}")
+    if not args.depth_bin_mm >= 0:
+        p.error(f"--depth-bin-mm: expected a width >= 0 (0: off), got {args.depth_bin_mm}")
     if args.spp < 1 or args.threads < 1 or args.ref_mult < 0:
         p.error("--spp and --threads: expected >= 1; --ref-mult: expected >= 0")
     torch.set_num_threads(args.threads)
