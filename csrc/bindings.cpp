@@ -91,6 +91,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("need_albedo"), py::arg("options"), py::arg("sigma_t_floor") = 0.0, py::arg("albedo_floor") = 0.0,
         py::call_guard<py::gil_scoped_release>(),
         "General-scene path replay: (grad_sigma_t, grad_albedo, scatter events).");
+  m.def("scene_forward_backward", &ta::volpath::scene_forward_backward_cpu, py::arg("grad_output"),
+        py::arg("sigma_t"), py::arg("albedo"), py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("need_sigma_t"),
+        py::arg("need_albedo"), py::arg("options"), py::arg("sigma_t_floor") = 0.0, py::arg("albedo_floor") = 0.0,
+        py::call_guard<py::gil_scoped_release>(),
+        "Image and path replay of one set of walks for a grad_output known before the render: (image, "
+        "grad_sigma_t, grad_albedo, ForwardCounts).");
   m.def("scene_forward_indexed", &ta::volpath::scene_forward_indexed_cpu, py::arg("index"),
         py::arg("sigma_t_table"), py::arg("albedo_table"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
         "General-scene radiance of a palette medium (uint8 index volume, (3, P) tables) and ForwardCounts.");

@@ -171,11 +171,11 @@ def test_interrupted_and_resumed_equals_uninterrupted(tmp_path, monkeypatch):
     calls = {"n": 0}
     render = print_loop.SlabTarget.render
 
-    def interrupting(self, *args):
+    def interrupting(self, *args, **kwargs):
         calls["n"] += 1
         if calls["n"] == 5:  # the render of iteration 3 (renders: initial, 1, 2, eval at 2, 3)
             raise KeyboardInterrupt
-        return render(self, *args)
+        return render(self, *args, **kwargs)
 
     monkeypatch.setattr(print_loop.SlabTarget, "render", interrupting)
     with pytest.raises(RunInterrupted, match="interrupted at iteration 2 of 5; the checkpoint is in") as stop:

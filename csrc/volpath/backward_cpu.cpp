@@ -1,4 +1,5 @@
-// The backward kernel (radiative backpropagation by path replay) and its entry point scene_backward_cpu: per sensor
+// The backward kernel (radiative backpropagation by path replay) and its entry points scene_backward_cpu and
+// scene_forward_backward_cpu (the image of the same walks too, for an adjoint known before the render): per sensor
 // element, each sample's path replayed (replay.h, or the SIMD slab walk where it serves), deposited into per-chunk
 // gradient buffers that are added in chunk order.
 #include <ATen/Parallel.h>
@@ -31,8 +32,12 @@ using core::Adjoint;
 using core::Scene;
 using namespace detail;
 
+// With `image` (not null): forward and backward share the walk (scene_forward_backward). Every channel of every
+// element is walked (not only those with a non-zero grad_output) and each walk's term goes into the element's image,
+// summed in sample order and scaled as in the forward kernel; `cut` takes the truncated walks.
 template <typename T, int LANES, int B, bool DIEL, bool HERO>
-int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share) {
+int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share, T* image = nullptr,
+                        int64_t* cut = nullptr) {
   const int64_t nchunks = num_chunks(share.count);
   const int64_t n = 3 * S.medium.voxels();
   // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
@@ -41,7 +46,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     if (gs) bufs_s.emplace_back(n);
     if (ga) bufs_a.emplace_back(n);
   }
-  std::vector<int64_t> events(nchunks, 0);
+  std::vector<int64_t> events(nchunks, 0), truncated(nchunks, 0);
   const bool constant = S.emitter.kind == core::kConstant;
   const bool simd = simd_serves<T, LANES, B, HERO>(S);
   std::vector<float> ref_pair;
@@ -61,33 +66,46 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     TapeStore<T, LANES> store;
     if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
       if (simd) {
-        events[c] = simd_backward_chunk<DIEL>(S, ref_pair.data(), grad_out, A, store, c, nchunks, share);
+        events[c] = simd_backward_chunk<DIEL>(S, ref_pair.data(), grad_out, A, store, c, nchunks, share, image,
+                                              &truncated[c]);
         return;
       }
     }
+    ImageTerms terms;
     for_chunk_elements(S, c, nchunks, share, [&](int64_t t) {
       const T* g = grad_out + t * 3;
-      bool live[3], any = false;  // channels whose paths can carry a derivative
+      bool live[3], any = false;  // channels whose paths can carry a derivative (or, with an image, any light)
       for (int ch = 0; ch < 3; ++ch) {
-        live[ch] = g[ch] != T(0) && !(constant && S.emitter.radiance[ch] == T(0));
+        live[ch] = (image != nullptr || g[ch] != T(0)) && !(constant && S.emitter.radiance[ch] == T(0));
         any |= live[ch];
       }
-      if (!any) return;
-      for (int64_t s = 0; s < S.spp; ++s) {
-        if constexpr (LANES == 3) {
-          ev += replay<T, 3, B, DIEL, HERO>(S, t, s, 0, g, A, store);
-        } else {
-          for (int ch = 0; ch < 3; ++ch)
-            if (live[ch]) ev += replay<T, 1, B, DIEL, false>(S, t, s, ch, g, A, store);
+      double acc[3] = {0, 0, 0};
+      terms.acc = image != nullptr ? acc : nullptr;
+      ImageTerms* ip = image != nullptr ? &terms : nullptr;
+      if (any) {
+        for (int64_t s = 0; s < S.spp; ++s) {
+          if constexpr (LANES == 3) {
+            ev += replay<T, 3, B, DIEL, HERO>(S, t, s, 0, g, A, store, ip);
+          } else {
+            for (int ch = 0; ch < 3; ++ch)
+              if (live[ch]) ev += replay<T, 1, B, DIEL, false>(S, t, s, ch, g, A, store, ip);
+          }
         }
       }
+      if (image != nullptr)
+        for (int ch = 0; ch < 3; ++ch)
+          image[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
+                                       : T(acc[ch] / double(S.spp));
     });
     events[c] = ev;
+    truncated[c] = terms.truncated;
   });
   reduce_in_chunk_order(gs, bufs_s, n);
   reduce_in_chunk_order(ga, bufs_a, n);
   int64_t total = 0;
   for (int64_t e : events) total += e;
+  if (cut != nullptr)
+    for (int64_t k : truncated) *cut += k;
   return total;
 }
 
@@ -98,10 +116,14 @@ int64_t set_tape_capacity(int64_t segments) {
   return g_initial_tape_segments.exchange(segments);
 }
 
-std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
+namespace {
+
+// The replay of scene_backward_cpu, and `with_image` also the image of the same walks (scene_forward_backward_cpu).
+// Returns (image or undefined, grad_sigma_t, grad_albedo, scatter events, truncated walks).
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t, int64_t> backward_impl(
     const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
-    const SceneOptions& opt, double sigma_t_floor, double albedo_floor) {
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor, bool with_image) {
   check_floors(sigma_t_floor, albedo_floor);
   check_all(sigma_t, albedo, ref_sigma_t, ref_albedo, opt, sigma_t_floor);
   int64_t expected = 1;
@@ -111,8 +133,12 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
   torch::Tensor gs, ga;
   if (need_sigma_t) gs = torch::zeros_like(sigma_t);
   if (need_albedo) ga = torch::zeros_like(albedo);
-  int64_t events = 0;
-  if (!need_sigma_t && !need_albedo) return {gs, ga, events};
+  int64_t events = 0, cut = 0;
+  torch::Tensor image;
+  if (with_image)
+    image = opt.part_world > 1 ? torch::zeros(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options())
+                               : torch::empty(image_shape(opt, sigma_t.size(2), sigma_t.size(3)), sigma_t.options());
+  if (!need_sigma_t && !need_albedo && !with_image) return {image, gs, ga, events, cut};
   const InterruptScope interrupt;
   AT_DISPATCH_FLOATING_TYPES(sigma_t.scalar_type(), "volpath_backward", [&] {
     using T = scalar_t;
@@ -127,9 +153,10 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     if (opt.grad_support.defined()) build_core(S, store, opt.grad_support.data_ptr<bool>());
     T* pgs = need_sigma_t ? gs.data_ptr<T>() : nullptr;
     T* pga = need_albedo ? ga.data_ptr<T>() : nullptr;
+    T* pim = image.defined() ? image.data_ptr<T>() : nullptr;
     dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
-      events = backward_kernel<T, L, B, DIEL, HERO>(S, g, pgs, pga,
-                                                    Share(S.elements(), opt.part_rank, opt.part_world));
+      events = backward_kernel<T, L, B, DIEL, HERO>(S, g, pgs, pga, Share(S.elements(), opt.part_rank,
+                                                                         opt.part_world), pim, &cut);
     });
   });
   interrupt.throw_if_interrupted();
@@ -138,7 +165,30 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     if (need_sigma_t) gs.mul_(keep);
     if (need_albedo) ga.mul_(keep);
   }
+  return {image, gs, ga, events, cut};
+}
+
+}  // namespace
+
+std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
+    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor) {
+  auto [image, gs, ga, events, cut] = backward_impl(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo,
+                                                    need_sigma_t, need_albedo, opt, sigma_t_floor, albedo_floor, false);
   return {gs, ga, events};
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, ForwardCounts> scene_forward_backward_cpu(
+    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor) {
+  auto [image, gs, ga, events, cut] = backward_impl(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo,
+                                                    need_sigma_t, need_albedo, opt, sigma_t_floor, albedo_floor, true);
+  ForwardCounts counts;
+  counts.scatter_events = events;
+  counts.truncated_paths = cut;
+  return {image, gs, ga, counts};
 }
 
 }  // namespace volpath

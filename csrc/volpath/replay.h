@@ -41,19 +41,37 @@ struct TapeStore {
   }
 };
 
+// What a replay adds to its element's image when forward and backward share the walk (scene_forward_backward):
+// acc[c] += V_c · L_e,c (V_c alone for a constant emitter, which the caller multiplies by its radiance), in the
+// forward kernel's terms; `truncated` counts the walks cut by max_depth.
+struct ImageTerms {
+  double* acc = nullptr;  // 3 channels of the element
+  int64_t truncated = 0;
+};
+
 // Replays one path: a single walk that records its events in the tape, then the deposit of ∂/∂θ (only escaped paths
 // that see a non-zero emitter carry any). A path that does not fit the tape is walked once more, depositing as it
-// goes (the two-pass replay). `g` is grad_output of the element (3 channels). Returns the walks' scatter events.
+// goes (the two-pass replay). `g` is grad_output of the element (3 channels); `image` (optional) takes the walk's
+// term of the image. Returns the walks' scatter events.
 template <typename T, int LANES, int B, bool DIEL, bool HERO>
 inline int64_t replay(const core::Scene<T>& S, int64_t t, int64_t s, int ch, const T* g, const core::Adjoint<T>& A,
-                      TapeStore<T, LANES>& store) {
+                      TapeStore<T, LANES>& store, ImageTerms* image = nullptr) {
   auto& tape = store.tape;
   tape.clear();
   const auto r1 =
       core::trace_path<T, LANES, B, DIEL, true, false, true, HERO>(S, t, s, ch, nullptr, nullptr, A, &tape);
+  T Le[3];
+  if (r1.escaped) S.emitter.eval(r1.direction, Le);
+  if (image != nullptr) {
+    image->truncated += r1.truncated;
+    for (int l = 0; l < LANES; ++l) {
+      const int c = LANES == 1 ? ch : l;
+      if (S.emitter.kind == core::kConstant) image->acc[c] += double(r1.value[l]);
+      else if (r1.escaped) image->acc[c] += double(r1.value[l]) * double(Le[c]);
+    }
+  }
   if (!r1.escaped) return r1.scatter_events;
-  T Le[3], adj[LANES];
-  S.emitter.eval(r1.direction, Le);
+  T adj[LANES];
   bool any = false;
   for (int l = 0; l < LANES; ++l) {
     const int c = LANES == 1 ? ch : l;

@@ -197,7 +197,7 @@ template ForwardCounts simd_forward_chunk<true, true>(const Scene<float>&, const
 template <bool DIEL>
 int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const float* grad_out,
                             const Adjoint<float>& A, TapeStore<float, 1>& store, int64_t c, int64_t nchunks,
-                            const Share& share) {
+                            const Share& share, float* image, int64_t* cut) {
   simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
   const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
@@ -216,8 +216,10 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
     const Adjoint<float>* A;
     TapeStore<float, 1>* store;
     const int64_t* elems;
-    int64_t ev = 0;
-  } ctx{&S, grad_out, &A, &store, nullptr};
+    bool image;
+    std::vector<float> values;  // with an image: each path's value, by item
+    int64_t ev = 0, cut = 0;
+  } ctx{&S, grad_out, &A, &store, nullptr, image != nullptr};
   std::vector<int64_t> elems;
   std::vector<uint8_t> live;
   elems.reserve(kSimdBatch);
@@ -225,9 +227,11 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
   const bool constant = S.emitter.kind == core::kConstant;
   auto flush = [&]() {
     if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
     ctx.elems = elems.data();
+    if (image != nullptr) ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
     slab_walks(
-        W, elems.data(), live.data(), int64_t(elems.size()), true, &tapes,
+        W, elems.data(), live.data(), n, true, &tapes,
         [](void* p, const simd::WalkOut& o) {
           auto* x = static_cast<Ctx*>(p);
           const Scene<float>& S = *x->S;
@@ -236,16 +240,32 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
           const int64_t s = (o.item / 3) % spp, t = x->elems[o.item / (3 * spp)];
           const float* g = x->grad_out + t * 3;
           x->ev += o.scatter_events;
+          x->cut += o.truncated;
           if (o.overflow) {  // too long for the lane's tape: the scalar replay walks it again and deposits
-            x->ev += replay<float, 1, core::kBoxBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store);
+            double acc[3] = {0, 0, 0};
+            ImageTerms terms;
+            terms.acc = acc;
+            x->ev += replay<float, 1, core::kBoxBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store,
+                                                                       x->image ? &terms : nullptr);
+            if (x->image) x->values[size_t(o.item)] = float(acc[ch]);  // the value of the walk that deposited
             return;
           }
+          if (x->image) x->values[size_t(o.item)] = o.value;
           if (!o.escaped) return;
           const float adj[1] = {g[ch] * S.emitter.radiance[ch] / float(spp)};
           if (adj[0] == 0.0f) return;
           deposit_simd_tape(o, ch, adj[0], *x->A, S.medium.voxels());
         },
         &ctx);
+    if (image != nullptr) {
+      for (int64_t k = 0; k < n; ++k) {
+        double acc[3] = {0, 0, 0};
+        for (int64_t s = 0; s < S.spp; ++s)
+          for (int ch = 0; ch < 3; ++ch) acc[ch] += double(ctx.values[size_t((k * S.spp + s) * 3 + ch)]);
+        for (int ch = 0; ch < 3; ++ch)
+          image[elems[k] * 3 + ch] = float(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp));
+      }
+    }
     elems.clear();
     live.clear();
   };
@@ -253,20 +273,22 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
     const float* g = grad_out + t * 3;
     uint8_t bitsv = 0;
     for (int ch = 0; ch < 3; ++ch)
-      if (g[ch] != 0.0f && !(constant && S.emitter.radiance[ch] == 0.0f)) bitsv |= uint8_t(1 << ch);
-    if (!bitsv) return;
+      if ((image != nullptr || g[ch] != 0.0f) && !(constant && S.emitter.radiance[ch] == 0.0f))
+        bitsv |= uint8_t(1 << ch);
+    if (!bitsv && image == nullptr) return;
     elems.push_back(t);
     live.push_back(bitsv);
     if (int64_t(elems.size()) == kSimdBatch) flush();
   });
   flush();
+  if (cut != nullptr) *cut = ctx.cut;
   return ctx.ev;
 }
 
 template int64_t simd_backward_chunk<false>(const Scene<float>&, const float*, const float*, const Adjoint<float>&,
-                                            TapeStore<float, 1>&, int64_t, int64_t, const Share&);
+                                            TapeStore<float, 1>&, int64_t, int64_t, const Share&, float*, int64_t*);
 template int64_t simd_backward_chunk<true>(const Scene<float>&, const float*, const float*, const Adjoint<float>&,
-                                           TapeStore<float, 1>&, int64_t, int64_t, const Share&);
+                                           TapeStore<float, 1>&, int64_t, int64_t, const Share&, float*, int64_t*);
 
 }  // namespace detail
 

@@ -46,11 +46,13 @@ ForwardCounts simd_forward_chunk(const core::Scene<float>& S, const float* ref_p
 
 // Gradient replay of chunk c with the SIMD walk: the lanes record their paths' tapes, and each path is deposited
 // when it ends; a path longer than its lane's tape is replayed by the scalar code from the start (walk and deposit),
-// so every deposit belongs to the walk that produced its weight. Returns the scatter events.
+// so every deposit belongs to the walk that produced its weight. With `image` (not null) every channel is walked and
+// the elements' image of these walks is written as simd_forward_chunk writes it (scene_forward_backward); `cut`
+// takes the truncated walks. Returns the scatter events.
 template <bool DIEL>
 int64_t simd_backward_chunk(const core::Scene<float>& S, const float* ref_pair, const float* grad_out,
                             const core::Adjoint<float>& A, TapeStore<float, 1>& store, int64_t c, int64_t nchunks,
-                            const Share& share);
+                            const Share& share, float* image, int64_t* cut);
 
 }  // namespace detail
 }  // namespace volpath

@@ -114,6 +114,17 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> scene_backward_cpu(
     const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
     const SceneOptions& opt, double sigma_t_floor, double albedo_floor);
 
+// The image and the replay of one set of walks, for a grad_output (the adjoint) known before the render, e.g. a loss's
+// gradient taken at a running mean of past renders: each walk samples the replay's medium max(ref, floor) with
+// the options' seed, adds its term to the image and deposits its derivative, so forward and backward cost one walk.
+// The image is that of scene_forward_cpu(ratio = true) with the floored reference and the same seed (bitwise on the
+// scalar walk); the gradients those of scene_backward_cpu. Every channel is walked (grad_output may hold zeros).
+// Returns (image, grad_sigma_t, grad_albedo, counts: scatter events of the walks, truncated walks).
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, ForwardCounts> scene_forward_backward_cpu(
+    const torch::Tensor& grad_output, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
+    const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, bool need_sigma_t, bool need_albedo,
+    const SceneOptions& opt, double sigma_t_floor, double albedo_floor);
+
 // Forward only, of a palette medium: index (D, H, W) uint8 entries of the (3, P) tables sigma_t_table and
 // albedo_table (a quantised print: one byte per voxel instead of 2 × 3 values). Equals scene_forward_cpu of the
 // dense grids table[:, index] (paths sampled from the medium itself, no ratio weights).

@@ -17,13 +17,22 @@ is timed in its parts, after an untimed warm-up iteration at 1 spp:
   per-channel estimator, of all three for hero), ``voxel_steps_per_path`` and ``outside_steps_per_path`` (voxels
   visited by the flights inside the object, and cells visited outside it, where empty bricks are crossed in one
   move each), ``core_event_share`` (the share of the scattering events in the homogeneous white core, crossed in
-  bricks; ``--shortcuts off,on`` times each height without and with the two brick shortcuts), ``peak_rss_mb`` (VmHWM growth over the iteration),
+  bricks; ``--shortcuts off,on`` times each height without and with the two brick shortcuts), ``peak_rss_mb`` (VmHWM
+  growth over the iteration); ``--walks two,one`` times the iteration with a forward and a replay, and as the
+  ``ema`` estimator runs it from its second iteration on (the loss's gradient at the running mean first, here the
+  warm-up's render, then one walk for the render and its gradient: ``replay_s`` is then 0),
   with ``--depth-bin-mm`` > 0, ``by_depth``: one more, untimed forward at ``--spp`` whose walk counts its scattering
   events and voxel moves by the depth of their voxel below the surface, in bins of that width (``[depth_from_mm,
   share of the events, share of the moves]`` per bin; the last bin holds everything deeper), and ``events_per_mm3``
   per bin (events per path per mm³ of that bin's volume inside the object);
   and, with ``--ref-mult`` > 0, ``image_rmse`` against a render at ``ref-mult × spp`` with another seed (corrected
   for the reference's own noise) and ``efficiency`` = 1 / (RMSE² · (forward_s + replay_s)).
+
+With ``--baseline REV`` each height is also timed on the extension built from git revision REV (built once into
+build/baseline-<sha>/, as ``bench_volpath.py --baseline`` does): the tracer's raw forward and replay of the
+iteration above (the same grids, options and adjoint; the new build gets ``grad_support`` as the print loop passes
+it, an old build without that option replays every voxel), old and new alternating in worker processes
+``--reps`` times, with the medians and new / old ratios in a ``"compare": "new/old"`` line.
 
 One JSON line per height and estimator (``--chromatic per_channel,hero``); all lines are also written atomically
 to ``--out``. Numbers go to scripts/bench/README.md with the date and the command.
@@ -32,11 +41,16 @@ Usage::
 
     python scripts/bench/bench_objects.py --heights-mm 10,20 --spp 8 --threads 2
     python scripts/bench/bench_objects.py --heights-mm 25 --spp 32 --chromatic per_channel,hero --ref-mult 4
+    python scripts/bench/bench_objects.py --heights-mm 25 --spp 8 --walks two,one
+    python scripts/bench/bench_objects.py --heights-mm 25 --spp 8 --baseline c845e46 --reps 2
 """
 import argparse
 import json
 import os
+import statistics
+import subprocess
 import sys
+import tempfile
 import time
 
 import torch
@@ -66,24 +80,39 @@ def build(args, height):
     return target, model, AppearanceLoss(gamma=(1.0, 3.0, 1.0)), prepare_s
 
 
-def iteration(target, model, criterion, optimizer, spp, seed, chromatic):
-    """One timed iteration; returns the timings and the tracer's statistics."""
+def iteration(target, model, criterion, optimizer, spp, seed, chromatic, primal=None):
+    """One timed iteration; returns the timings and the tracer's statistics. With ``primal`` (texel colours, as the
+    print loop's running mean) the iteration is the ``ema`` estimator's: the loss's gradient at ``primal`` first
+    (``loss_s``), then one walk for the render and its gradient (``forward_s``; render_scene's ``adjoint``)."""
     from torch_appearance.render.volpath import render_scene
-    stats = {}
-    t = [time.perf_counter()]
+    stats, parts = {}, {}
+    clock = [time.perf_counter()]
+
+    def lap(name):
+        clock.append(time.perf_counter())
+        parts[name] = clock[-1] - clock[-2]
+
     sigma_t, albedo = model()
-    t.append(time.perf_counter())
-    image = render_scene(target.scene, sigma_t, albedo, spp=spp, seed=seed, stats=stats, chromatic=chromatic,
-                         grad_support=target.support)
-    t.append(time.perf_counter())
-    loss, _ = target.appearance(criterion, image)
-    t.append(time.perf_counter())
+    lap("mix_s")
+    kw = dict(spp=spp, seed=seed, stats=stats, chromatic=chromatic, grad_support=target.support)
+    if primal is None:
+        image = render_scene(target.scene, sigma_t, albedo, **kw)
+        lap("forward_s")
+        loss, _ = target.appearance(criterion, image)
+        lap("loss_s")
+    else:
+        x = primal.clone().requires_grad_(True)
+        value, _ = target.appearance(criterion, x)
+        (adjoint,) = torch.autograd.grad(value, x)
+        lap("loss_s")
+        image = render_scene(target.scene, sigma_t, albedo, adjoint=adjoint, **kw)
+        lap("forward_s")
+        loss = (adjoint * image).sum()
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    t.append(time.perf_counter())
+    lap("backward_s")
     optimizer.step()
-    t.append(time.perf_counter())
-    parts = dict(zip(("mix_s", "forward_s", "loss_s", "backward_s", "step_s"), (b - a for a, b in zip(t, t[1:]))))
+    lap("step_s")
     return parts, stats, image.detach()
 
 
@@ -132,12 +161,13 @@ def run(args, height, chromatic):
     target, model, criterion, prepare_s = build(args, height)
     start = {k: v.clone() for k, v in model.state_dict().items()}  # 97 % white
     optimizer = torch.optim.Adagrad(model.parameters(), lr=1.0)
-    iteration(target, model, criterion, optimizer, 1, args.seed + 1, chromatic)  # warm-up (filter matrices, pages)
+    _, _, warm = iteration(target, model, criterion, optimizer, 1, args.seed + 1, chromatic)  # warm-up (pages)
     model.load_state_dict(start)
     optimizer = torch.optim.Adagrad(model.parameters(), lr=1.0)
     base = status_kb("VmRSS")
     reset_peak_rss()
-    parts, stats, image = iteration(target, model, criterion, optimizer, args.spp, args.seed, chromatic)
+    primal = warm if args.walks_now == "one" else None  # the warm-up's render stands for the running mean
+    parts, stats, image = iteration(target, model, criterion, optimizer, args.spp, args.seed, chromatic, primal)
     peak = status_kb("VmHWM")
     texels = image.shape[0]
     paths = texels * args.spp * (3 if stats.get("lanes", 1) == 1 and not stats.get("hero") else 1)
@@ -148,10 +178,12 @@ def run(args, height, chromatic):
            "replay_s": round(stats.get("backward_s", float("nan")), 4),
            "iteration_s": round(sum(parts.values()), 4),
            "events_per_path": round(stats["scatter_events"] / paths, 2),
-           "voxel_steps_per_path": round(stats["voxel_steps"] / paths, 2),
-           "outside_steps_per_path": round(stats["outside_steps"] / paths, 2),
-           "core_event_share": round(stats["core_events"] / max(1, stats["scatter_events"]), 4),
-           "shortcuts": args.shortcuts_now,
+           # (the one walk counts its scattering events only)
+           "voxel_steps_per_path": round(stats["voxel_steps"] / paths, 2) if "voxel_steps" in stats else None,
+           "outside_steps_per_path": round(stats["outside_steps"] / paths, 2) if "outside_steps" in stats else None,
+           "core_event_share": (round(stats["core_events"] / max(1, stats["scatter_events"]), 4)
+                                if "core_events" in stats else None),
+           "shortcuts": args.shortcuts_now, "walks": args.walks_now,
            "peak_rss_mb": None if peak is None or base is None else round((peak - base) / 1024, 1)}
     if args.depth_bin_mm > 0:
         row.update(events_by_depth(target, model, start, args, chromatic, paths))
@@ -165,6 +197,109 @@ def run(args, height, chromatic):
         row["image_rmse"] = mse ** 0.5
         row["efficiency"] = 1.0 / (mse * (parts["forward_s"] + row["replay_s"]))
     return row
+
+
+# --------------------------------------------------------------------------------------------------------------
+# old code against new code (--baseline)
+# --------------------------------------------------------------------------------------------------------------
+# Runs in a fresh interpreter: loads one build of the extension (two builds cannot share a process), rebuilds the
+# options from plain values (fields the build does not know are dropped and reported), times one forward and one
+# replay after a 1-spp warm-up of both, prints JSON.
+_WORKER = r"""
+import importlib.util, json, sys, time, torch
+so, data, threads = sys.argv[1], sys.argv[2], int(sys.argv[3])
+torch.set_num_threads(threads)
+spec = importlib.util.spec_from_file_location("ta_bench_ext._C", so)
+C = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(C)
+d = torch.load(data)
+dropped = set()
+def build(spec):
+    o = getattr(C, spec["type"])()
+    for k, v in spec["fields"].items():
+        if not hasattr(o, k):
+            dropped.add(spec["type"] + "." + k)
+            continue
+        setattr(o, k, build(v) if isinstance(v, dict) else v)
+    return o
+fwd, bwd = build(d["forward"]), build(d["backward"])
+s, a, rs, ra, g = d["sigma_t"], d["albedo"], d["ref_sigma_t"], d["ref_albedo"], d["grad"]
+spp = fwd.spp
+fwd.spp = bwd.spp = 1
+C.scene_forward(s, a, s, a, False, fwd)
+C.scene_backward(g, s, a, rs, ra, True, True, bwd, d["sigma_t_floor"], d["albedo_floor"])
+fwd.spp = bwd.spp = spp
+t0 = time.perf_counter()
+image, counts = C.scene_forward(s, a, s, a, False, fwd)
+t1 = time.perf_counter()
+gs, ga, _ = C.scene_backward(g, s, a, rs, ra, True, True, bwd, d["sigma_t_floor"], d["albedo_floor"])
+t2 = time.perf_counter()
+with open("/proc/self/status") as f:
+    peak = [int(l.split()[1]) / 1024 for l in f if l.startswith("VmHWM:")]
+print(json.dumps({"forward_s": t1 - t0, "replay_s": t2 - t1, "checksum": float(image.double().sum()),
+                  "scatter_events": counts.scatter_events, "dropped": sorted(dropped),
+                  "peak_rss_mb": peak[0] if peak else None}))
+"""
+
+
+def _plain(options):
+    """A pybind options object as plain values: {"type": class name, "fields": {name: value}}, nested options
+    (objects of the extension's own classes) likewise."""
+    fields = {}
+    for k in dir(options):
+        v = getattr(options, k)
+        if k.startswith("_") or callable(v) or v is None:  # None: an unset tensor, left at its default
+            continue
+        fields[k] = _plain(v) if type(v).__module__ == type(options).__module__ else v
+    return {"type": type(options).__name__, "fields": fields}
+
+
+def compare_baseline(args, height, chromatic, old_so, sha):
+    """new / old times of the tracer's forward and replay of one Spot iteration, in alternating worker processes."""
+    from torch_appearance import _C
+    from torch_appearance.autograd.volpath import _floored, _floored_lanes, walk_options
+    from torch_appearance.render import TraceJob
+    torch.manual_seed(args.seed)
+    target, model, _, _ = build(args, height)
+    with torch.no_grad():
+        sigma_t, albedo = (x.contiguous() for x in model())
+    job = TraceJob(target.scene, spp=args.spp, seed=args.seed, chromatic=chromatic, grad_support=target.support)
+    grid = tuple(sigma_t.shape[1:])
+    forward = walk_options(job, sigma_t, job.seed, grid, sigma_t.dtype)
+    ref_s, floor_s = _floored(sigma_t, None, job.sigma_t_floor(sigma_t.shape))
+    ref_a, floor_a = _floored(albedo, None, job.albedo_floor)
+    backward = walk_options(job, ref_s, job.seed_grad, grid, sigma_t.dtype, lanes=_floored_lanes(ref_s, floor_s))
+    image, _ = _C.scene_forward(sigma_t, albedo, sigma_t, albedo, False, forward)
+    grad = torch.rand(image.shape, generator=torch.Generator().manual_seed(args.seed), dtype=torch.float64)
+    grad = (grad - 0.5).to(image.dtype).contiguous()  # a fixed adjoint of both signs
+    del image
+    new_so = _C.__file__
+    with tempfile.TemporaryDirectory() as tmp:
+        data = os.path.join(tmp, "scene.pt")
+        torch.save(dict(sigma_t=sigma_t, albedo=albedo, ref_sigma_t=ref_s, ref_albedo=ref_a, grad=grad,
+                        sigma_t_floor=floor_s, albedo_floor=floor_a, forward=_plain(forward),
+                        backward=_plain(backward)), data)
+        del target, model, sigma_t, albedo, ref_s, ref_a
+        runs = {"old": [], "new": []}
+        for _ in range(args.reps):
+            for which, so in (("old", old_so), ("new", new_so)):
+                out = subprocess.run([sys.executable, "-c", _WORKER, so, data, str(args.threads)], check=True,
+                                     capture_output=True, text=True).stdout
+                runs[which].append(json.loads(out.strip().splitlines()[-1]))
+    med = {w: {k: statistics.median(r[k] for r in runs[w]) for k in ("forward_s", "replay_s")} for w in runs}
+    return {
+        "compare": "new/old", "baseline": sha[:12], "height_mm": height, "chromatic": chromatic, "spp": args.spp,
+        "threads": args.threads, "reps": args.reps,
+        **{f"{w}_{k}": round(med[w][k], 4) for w in ("old", "new") for k in ("forward_s", "replay_s")},
+        "ratio_forward": round(med["new"]["forward_s"] / med["old"]["forward_s"], 4),
+        "ratio_replay": round(med["new"]["replay_s"] / med["old"]["replay_s"], 4),
+        "ratio_iteration": round(sum(med["new"].values()) / sum(med["old"].values()), 4),
+        "old_peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in runs["old"]),
+        "new_peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in runs["new"]),
+        "same_image": runs["old"][0]["checksum"] == runs["new"][0]["checksum"],
+        "same_scatter_events": runs["old"][0]["scatter_events"] == runs["new"][0]["scatter_events"],
+        "old_dropped_options": runs["old"][0]["dropped"],
+    }
 
 
 def main(argv=None):
@@ -183,8 +318,15 @@ def main(argv=None):
     p.add_argument("--shortcuts", default="on", help="comma-separated: on, off: the walk's brick shortcuts (empty space "
                    "outside the object, its homogeneous core) for before/after figures in one run (default: "
                    "%(default)s)")
+    p.add_argument("--walks", default="two", help="comma-separated: two (a forward, then the replay of the loss's "
+                   "gradient), one (the ema estimator's adjoint known first: one walk for the render and its "
+                   "gradient) (default: %(default)s)")
     p.add_argument("--depth-bin-mm", type=float, default=0.0, help="> 0: also count the events and voxel moves by "
                    "depth below the surface in bins of this width, in one more forward (default: off)")
+    p.add_argument("--baseline", metavar="REV", default=None,
+                   help="also time the tracer's forward and replay on the extension of git revision REV, old and new "
+                        "alternating in worker processes, and print new/old ratios")
+    p.add_argument("--reps", type=int, default=2, help="--baseline: rounds of old and new (default: %(default)s)")
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="(default: torch's)")
     p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
     p.add_argument("--out", default="results/bench/objects.jsonl", help="(default: %(default)s)")
@@ -199,20 +341,33 @@ def main(argv=None):
     shortcuts = [c.strip() for c in args.shortcuts.split(",")]
     if any(c not in ("on", "off") for c in shortcuts):
         p.error(f"--shortcuts: expected on and/or off, got {args.shortcuts!r}")
+    walks = [w.strip() for w in args.walks.split(",")]
+    if any(w not in ("one", "two") for w in walks):
+        p.error(f"--walks: expected one and/or two, got {args.walks!r}")
     if not args.depth_bin_mm >= 0:
         p.error(f"--depth-bin-mm: expected a width >= 0 (0: off), got {args.depth_bin_mm}")
-    if args.spp < 1 or args.threads < 1 or args.ref_mult < 0:
-        p.error("--spp and --threads: expected >= 1; --ref-mult: expected >= 0")
+    if args.spp < 1 or args.threads < 1 or args.ref_mult < 0 or args.reps < 1:
+        p.error("--spp, --threads and --reps: expected >= 1; --ref-mult: expected >= 0")
     torch.set_num_threads(args.threads)
     rows = []
     from torch_appearance import _C
+    if args.baseline is not None:
+        from bench_volpath import build_baseline  # this folder is on the path when the script runs
+        old_so, sha = build_baseline(args.baseline)
     for height in heights:
         for c in chromatic:
             for mode in shortcuts:
-                args.shortcuts_now = mode
-                _C._set_empty_space_skipping(mode == "on")
-                _C._set_core_walk(mode == "on")
-                row = run(args, height, c)
+                for w in walks:
+                    args.shortcuts_now, args.walks_now = mode, w
+                    _C._set_empty_space_skipping(mode == "on")
+                    _C._set_core_walk(mode == "on")
+                    row = run(args, height, c)
+                    print(json.dumps(row), flush=True)
+                    rows.append(row)
+            if args.baseline is not None:
+                _C._set_empty_space_skipping(True)
+                _C._set_core_walk(True)
+                row = compare_baseline(args, height, c, old_so, sha)
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     _C._set_empty_space_skipping(True)

@@ -3,7 +3,8 @@
 
 For each scene and thread count: one warm-up run (forward + backward), then ``--reps`` timed repetitions;
 the medians are reported. The backward pass is that of ``loss = (image * w).sum()`` with fixed random
-weights ``w``, with ``sigma_t`` and ``albedo`` both requiring grad. Scenes (all 64 x 64 texels, 0.085 mm
+weights ``w``, with ``sigma_t`` and ``albedo`` both requiring grad. ``--one-walk`` also times the render and that
+gradient as one walk with ``w`` given first (``adjoint=w``, as the print loop's ema estimator runs). Scenes (all 64 x 64 texels, 0.085 mm
 voxels, smooth dielectric boundary with IOR 1.5, HG g = 0.4, top face):
 
     ink-slab     1 mm (D = 12); sigma_t ~ U(2, 24) mm^-1 and albedo ~ U(0.05, 0.9997), independently per
@@ -250,6 +251,23 @@ def _run_once(sigma_t, albedo, weights, spp, seed, ior, g, scene=None, voxel_siz
     return forward_s, backward_s, stats
 
 
+def _run_one_walk(sigma_t, albedo, weights, spp, seed, ior, g, scene=None, voxel_size=VOXEL_SIZE,
+                  chromatic="per_channel"):
+    """The same render and gradient with the adjoint ``weights`` known first (render's ``adjoint``: one walk for
+    both, as the print loop's ema estimator from its second iteration on); returns wall seconds."""
+    st = sigma_t.detach().clone().requires_grad_()
+    al = albedo.detach().clone().requires_grad_()
+    start = time.perf_counter()
+    if scene is None:
+        image = torch_appearance.render_texels(
+            st, al, voxel_size=voxel_size, face="top", g=g, ior=ior, environment=1.0, spp=spp, seed=seed,
+            chromatic=chromatic, adjoint=weights)
+    else:
+        image = torch_appearance.render_scene(scene, st, al, spp=spp, seed=seed, chromatic=chromatic, adjoint=weights)
+    (image * weights).sum().backward()
+    return time.perf_counter() - start
+
+
 def _reference(name, sigma_t, albedo, weights, spp, args, scene, voxel_size):
     """Image and gradients at ``args.ref_mult`` × spp with an independent seed, cached in <out>/reference/."""
     ref_spp = spp * args.ref_mult
@@ -301,6 +319,11 @@ def bench_scene(name, threads, args, chromatic="per_channel", ref_var=None):
     forward_s = statistics.median(r[0] for r in runs)
     backward_s = statistics.median(r[1] for r in runs)
     stats = runs[-1][2]
+    one_walk = {}
+    if args.one_walk:
+        one_s = statistics.median(_run_one_walk(sigma_t, albedo, weights, spp, args.seed, args.ior, args.g, scene,
+                                                voxel_size, chromatic) for _ in range(args.reps))
+        one_walk = {"one_walk_s": round(one_s, 6), "two_walks_over_one": round((forward_s + backward_s) / one_s, 4)}
 
     def _median_stat(key):
         values = [r[2][key] for r in runs if r[2].get(key) is not None]
@@ -348,6 +371,7 @@ def bench_scene(name, threads, args, chromatic="per_channel", ref_var=None):
         "maxrss_mb": round(_maxrss_mb(), 1),
         "grid_mb": round((sigma_t.numel() + albedo.numel()) * sigma_t.element_size() / 2**20, 3),
         **error,
+        **one_walk,
         "reps": args.reps,
         "seed": args.seed,
     }
@@ -548,6 +572,9 @@ def parse_args(argv=None):
                              "sixteen paths per thread in SIMD lanes, float32 slabs on CPUs with the instruction set; "
                              "auto: the widest that serves); rows after the first carry speed-ups and error-per-second "
                              "ratios against it (default: auto)")
+    parser.add_argument("--one-walk", action="store_true",
+                        help="also time the render and its gradient as one walk, the adjoint (the weights) known "
+                             "first (one_walk_s, two_walks_over_one)")
     parser.add_argument("--baseline", metavar="REV", default=None,
                         help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)

@@ -5,6 +5,10 @@ replay (csrc/core/integrator.h): each path is regenerated once from its counter-
 are kept in a bounded per-thread record (csrc/core/tape.h) and ∂(path contribution)/∂θ is deposited into the voxels
 it touched when the path ends. Linear time, no tape of the render, memory independent of path length; gradient
 work only for inputs with ``requires_grad``.
+
+``VolumePathTraceWithAdjoint``: the same for a caller that knows the gradient it will send back before the render
+(e.g. a loss's gradient taken at a running mean of past renders): one set of walks gives the image and deposits that
+adjoint's derivative, so forward and backward cost one walk instead of two.
 """
 import time
 import warnings
@@ -14,7 +18,7 @@ from torch.autograd.function import once_differentiable
 
 from .._ext import _C, call_tracer
 
-__all__ = ["VolumePathTrace", "reference_medium", "sampling_lanes", "walk_options"]
+__all__ = ["VolumePathTrace", "VolumePathTraceWithAdjoint", "reference_medium", "sampling_lanes", "walk_options"]
 
 _TRUNCATION_WARN = 1e-3  # warn when more than this fraction of paths was cut by max_depth
 
@@ -117,26 +121,31 @@ class VolumePathTrace(torch.autograd.Function):
         if not (need_s or need_a):
             return None, None, None, None, None, None
         sigma_t, albedo, samp_s, samp_a = ctx.saved_tensors
-        job = ctx.job
-        # the sampling medium: explicit references as given, else the parameters floored on the fly in C++
-        # (max(σ_t, floor), max(α, floor): the same numbers as clamp_min, without two copies of the grids)
-        ref_s, floor_s = _floored(sigma_t, samp_s, job.sigma_t_floor(sigma_t.shape))
-        ref_a, floor_a = _floored(albedo, samp_a, job.albedo_floor)
-        options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
-                               lanes=_floored_lanes(ref_s, floor_s))
-        start = time.perf_counter()
-        grad_s, grad_a, events = call_tracer(_C.scene_backward, grad_image.to(sigma_t.dtype).contiguous(),
-                                             sigma_t.detach(), albedo.detach(), ref_s, ref_a, need_s, need_a, options,
-                                             floor_s, floor_a)
-        if ctx.stats is not None:
-            ctx.stats["backward_s"] = time.perf_counter() - start
-            ctx.stats["backward_scatter_events"] = int(events)
+        grad_s, grad_a = _replay(ctx.job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, ctx.stats)
         return (grad_s if need_s else None,
                 grad_a if need_a else None,
                 None,  # sampling_sigma_t: detached by definition
                 None,  # sampling_albedo
                 None,  # job
                 None)  # stats
+
+
+def _replay(job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, stats):
+    """(grad_sigma_t, grad_albedo) of ``grad_image`` by path replay of ``job``'s gradient walks."""
+    # the sampling medium: explicit references as given, else the parameters floored on the fly in C++
+    # (max(σ_t, floor), max(α, floor): the same numbers as clamp_min, without two copies of the grids)
+    ref_s, floor_s = _floored(sigma_t, samp_s, job.sigma_t_floor(sigma_t.shape))
+    ref_a, floor_a = _floored(albedo, samp_a, job.albedo_floor)
+    options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
+                           lanes=_floored_lanes(ref_s, floor_s))
+    start = time.perf_counter()
+    grad_s, grad_a, events = call_tracer(_C.scene_backward, grad_image.to(sigma_t.dtype).contiguous(),
+                                         sigma_t.detach(), albedo.detach(), ref_s, ref_a, need_s, need_a, options,
+                                         floor_s, floor_a)
+    if stats is not None:
+        stats["backward_s"] = time.perf_counter() - start
+        stats["backward_scatter_events"] = int(events)
+    return grad_s, grad_a
 
 
 def _floored(x, sampling, floor):
@@ -156,3 +165,66 @@ def _floored_lanes(ref_sigma_t, floor, chunk=1 << 22):
         if not (torch.equal(c[0], c[1]) and torch.equal(c[0], c[2])):
             return 1
     return 3
+
+
+class VolumePathTraceWithAdjoint(torch.autograd.Function):
+    """:class:`VolumePathTrace` for an ``adjoint`` (the image's gradient) known before the render.
+
+    The forward walks the replay's paths (the detached reference medium with the job's density floors, drawn with
+    ``job.seed_grad``): each walk adds its term to the image and deposits its derivative weighted by ``adjoint``
+    (``_C.scene_forward_backward``), so the render and its gradient take one walk. The image is an unbiased
+    estimate like the plain forward's: bitwise the ratio-weighted forward of that floored reference with seed
+    ``job.seed_grad`` on the scalar walk. The backward returns the deposited gradients when the gradient that
+    reaches the image equals ``adjoint`` (as from ``(adjoint * image).sum()``); for any other gradient it replays
+    the paths as :class:`VolumePathTrace` does (correct, but a second walk).
+    """
+
+    @staticmethod
+    def forward(ctx, sigma_t, albedo, sampling_sigma_t, sampling_albedo, adjoint, job, stats):
+        from ..render.trace_job import TraceJob
+
+        if not isinstance(job, TraceJob):
+            raise TypeError(f"job: expected a torch_appearance.render.TraceJob, got {type(job).__name__}")
+        sigma_t = sigma_t.contiguous()
+        albedo = albedo.contiguous()
+        adjoint = adjoint.detach().to(sigma_t.dtype).contiguous()
+        ref_s, floor_s = _floored(sigma_t, sampling_sigma_t, job.sigma_t_floor(sigma_t.shape))
+        ref_a, floor_a = _floored(albedo, sampling_albedo, job.albedo_floor)
+        options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
+                               lanes=_floored_lanes(ref_s, floor_s))
+        need_s, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        start = time.perf_counter()
+        image, grad_s, grad_a, counts = call_tracer(_C.scene_forward_backward, adjoint, sigma_t.detach(),
+                                                    albedo.detach(), ref_s, ref_a, need_s, need_a, options,
+                                                    floor_s, floor_a)
+        if stats is not None:
+            stats["forward_s"] = time.perf_counter() - start
+            stats["scatter_events"] = counts.scatter_events
+            stats["truncated_paths"] = counts.truncated_paths
+            stats["lanes"] = options.lanes
+            stats["hero"] = bool(options.hero)
+            stats["with_adjoint"] = True
+        walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
+        if counts.truncated_paths > _TRUNCATION_WARN * walks:
+            warnings.warn(f"{job.name}: {counts.truncated_paths} of {walks} paths were cut at max_depth="
+                          f"{options.max_depth} interactions; the image is biased dark by up to that fraction. "
+                          f"Raise max_depth (optically very thick, bright media have heavy-tailed path lengths).",
+                          RuntimeWarning, stacklevel=3)
+        ctx.job, ctx.stats = job, stats
+        ctx.grads = (grad_s, grad_a)
+        ctx.save_for_backward(sigma_t, albedo, sampling_sigma_t, sampling_albedo, adjoint)
+        return image
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_image):
+        sigma_t, albedo, samp_s, samp_a, adjoint = ctx.saved_tensors
+        grad_s, grad_a = ctx.grads
+        ctx.grads = None
+        need_s, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if not torch.equal(grad_image.to(adjoint.dtype), adjoint):  # another gradient: replay the paths for it
+            grad_s, grad_a = _replay(ctx.job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, ctx.stats)
+        elif ctx.stats is not None:
+            ctx.stats["backward_s"] = 0.0
+            ctx.stats["backward_scatter_events"] = 0
+        return (grad_s if need_s else None, grad_a if need_a else None, None, None, None, None, None)

@@ -73,9 +73,10 @@ class SceneRenderer(torch.nn.Module):
         return SceneRenderer(scene, spp=spp, seed=seed, chromatic=chromatic, gradient_seed=gradient_seed)
 
     def forward(self, sigma_t, albedo, seed=None, seed_grad=None, sampling_sigma_t=None, sampling_albedo=None,
-                grad_support=None):
+                grad_support=None, adjoint=None):
         """(3, D, H, W) σ_t [mm⁻¹] and albedo → the sensor's linear RGB image (see render_scene; ``grad_support``:
-        the (D, H, W) voxels whose gradients are wanted)."""
+        the (D, H, W) voxels whose gradients are wanted; ``adjoint``: the image's gradient when known before the
+        render, so that forward and backward share one walk)."""
         if seed is None:
             seed = self.next_seed
             self.next_seed += 1
@@ -84,7 +85,8 @@ class SceneRenderer(torch.nn.Module):
         self.last_stats = {}
         return render_scene(self.scene, sigma_t, albedo, spp=self.spp, seed=seed, seed_grad=seed_grad,
                             sampling_sigma_t=sampling_sigma_t, sampling_albedo=sampling_albedo,
-                            stats=self.last_stats, chromatic=self.chromatic, grad_support=grad_support)
+                            stats=self.last_stats, chromatic=self.chromatic, grad_support=grad_support,
+                            adjoint=adjoint)
 
     def extra_repr(self):
         return (f"sensor={type(self.scene.sensor).__name__}, boundary={type(self.scene.boundary).__name__}, "

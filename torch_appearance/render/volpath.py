@@ -16,7 +16,7 @@ __all__ = ["render_texels", "render_scene", "render_scene_indexed"]
 def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, environment=1.0, spp=16, seed=0,
                   max_depth=None, rr_depth=None, sampling_sigma_t=None, sampling_albedo=None,
                   sigma_t_floor=None, albedo_floor=0.05, stats=None, seed_grad=None, partition=None,
-                  chromatic="per_channel"):
+                  chromatic="per_channel", adjoint=None):
     """Render the radiance leaving a voxel slab along the face normal, one texel per voxel column.
 
     The slab is D×H×W voxels of edge ``voxel_size`` mm occupying [0, W·sx]×[0, H·sy]×[0, D·sz] (x ↔ W,
@@ -64,6 +64,8 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
             channel) or "hero" (one walk, hero-channel distance sampling with the balance heuristic over the
             channels; see :data:`torch_appearance.render.scene.CHROMATIC`). Applies to the forward and the
             gradient replay alike.
+        adjoint: optional, the image's gradient when known before the render: one walk gives the image and its
+            gradient (see :func:`render_scene`).
 
     Returns:
         (H, W, 3) linear RGB texel radiance for one face, (2, H, W, 3) for "both" (0 = top, 1 = bottom).
@@ -86,7 +88,7 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
     seed_grad = seed if seed_grad is None else seed_grad  # documented default: replay the forward's own paths
     return render_scene(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=seed_grad,
                         sampling_sigma_t=sampling_sigma_t, sampling_albedo=sampling_albedo, stats=stats,
-                        partition=partition, chromatic=chromatic)
+                        partition=partition, chromatic=chromatic, adjoint=adjoint)
 
 
 def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
@@ -106,7 +108,8 @@ def _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats):
 
 
 def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, sampling_sigma_t=None,
-                 sampling_albedo=None, stats=None, partition=None, chromatic="per_channel", grad_support=None):
+                 sampling_albedo=None, stats=None, partition=None, chromatic="per_channel", grad_support=None,
+                 adjoint=None):
     """Render what ``scene``'s sensor sees of a heterogeneous voxel medium, differentiably.
 
     The medium (per-voxel, per-channel σ_t and albedo, piecewise constant, exact regular tracking) fills the grid
@@ -139,6 +142,14 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
         grad_support: optional (D, H, W) bool tensor, the voxels whose gradients are wanted: the others get 0, and
             the replay crosses a homogeneous core outside them (a print's fixed core ink) in bricks, without
             gradient bookkeeping. The image does not depend on it.
+        adjoint: optional tensor of the image's shape, the gradient the caller will send back to the image, known
+            before the render (e.g. a loss's gradient taken at a running mean of past renders, as the print loop's
+            ``ema`` estimator does). The render then walks the gradient replay's paths once (``seed_grad``, the
+            floored reference medium): each walk adds its term to the image and deposits its derivative, so forward
+            and backward cost one walk instead of two. The image is an unbiased estimate as the plain forward's
+            (that of ``seed_grad``'s paths, with ratio weights where the floors bind); a backward with exactly this
+            gradient (``(adjoint * image).sum().backward()``) costs nothing more, any other gradient is replayed.
+            Only when the medium requires grad (else ignored). ``stats`` then has ``with_adjoint = True``.
 
     Returns:
         Linear RGB radiance: (rows, cols, 3) for a camera (row 0 is the camera's up side), (N, 3) for surface texels,
@@ -170,7 +181,24 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     scene.check_grid_shape(tuple(sigma_t.shape[1:]))
     job.check_grid(tuple(sigma_t.shape[1:]))
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
+    if adjoint is not None:
+        _check_adjoint(adjoint, scene.output_shape(tuple(sigma_t.shape[1:])))
+        if torch.is_grad_enabled() and (sigma_t.requires_grad or albedo.requires_grad):
+            from ..autograd.volpath import VolumePathTraceWithAdjoint
+            return VolumePathTraceWithAdjoint.apply(sigma_t, albedo, samp_s, samp_a, adjoint, job, stats)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
+
+
+def _check_adjoint(adjoint, shape):
+    if not isinstance(adjoint, torch.Tensor):
+        raise TypeError(f"adjoint: expected a tensor of the image's shape {tuple(shape)}, got "
+                        f"{type(adjoint).__name__}")
+    if tuple(adjoint.shape) != tuple(shape):
+        raise ValueError(f"adjoint: expected the image's shape {tuple(shape)}, got {tuple(adjoint.shape)}")
+    if not adjoint.dtype.is_floating_point or adjoint.device.type != "cpu":
+        raise ValueError(f"adjoint: expected a floating-point CPU tensor, got {adjoint.dtype} on {adjoint.device}")
+    if not bool(torch.isfinite(adjoint).all()):
+        raise ValueError("adjoint: expected finite values, got NaN or inf")
 
 
 def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, seed=0, partition=None):

@@ -21,13 +21,17 @@ __all__ = ["homogeneous_table", "naive_extrusion", "quantize", "render_quantized
 _MATCH_BLOCK = 1 << 14  # texels per block of the naive extrusion's table matching
 
 
-def render_slab(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None):
+def render_slab(sigma_t, albedo, cfg, inks, faces, spp, seed, voxel_size=None, adjoint=None):
     """Face texels (F, H, W, 3) linear RGB of a slab medium (3, D, H, W) rendered with the run's settings: its
     voxel pitch (or ``voxel_size``, e.g. the printer's micro-voxel edges), IOR, the inks' common g unless ``cfg.g``
-    overrides it, and its gradient replay seed (``cfg.gradient_seed``); F = ``faces`` (1: top, 2: top and bottom)."""
+    overrides it, and its gradient replay seed (``cfg.gradient_seed``); F = ``faces`` (1: top, 2: top and bottom).
+    ``adjoint``: the texels' (F, H, W, 3) gradient when known before the render (see :func:`.rendering.render`)."""
     scene = slab_scene(cfg.voxel_size if voxel_size is None else voxel_size, faces=faces, g=cfg.phase_g(inks),
                        ior=cfg.ior)
-    image = render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, cfg.gradient_seed))
+    if adjoint is not None and faces != 2:
+        adjoint = adjoint[0]  # the tracer's image of one face is (H, W, 3)
+    image = render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, cfg.gradient_seed),
+                   adjoint=adjoint)
     return image if faces == 2 else image.unsqueeze(0)
 
 

@@ -276,22 +276,32 @@ class _Run:
         row) are applied together, with Ctrl-C held back."""
         cfg = self.cfg
         sigma_t, albedo = self.model()
-        image = self.target.render(sigma_t, albedo, cfg.spp, seed)
         ema = None
         if cfg.estimator == "ema":
             # the loss's gradient with respect to the texel colours is taken at the running mean of the past
             # renders and applied to this render: the adjoint no longer shares this render's noise (that
-            # correlation biases the plain estimator at low spp towards less noisy, not more accurate, media)
+            # correlation biases the plain estimator at low spp towards less noisy, not more accurate, media).
+            # From the second iteration on that mean is known before the render, and so is the adjoint: one walk
+            # then gives the render and its gradient (render_scene's ``adjoint``).
             old = self.ema
+
+            def adjoint_at(primal):
+                x = primal.clone().requires_grad_(True)
+                loss, parts = self.target.appearance(self.criterion, x)
+                return torch.autograd.grad(loss, x)[0], loss, parts
+
+            if old["count"] == 0:
+                image = self.target.render(sigma_t, albedo, cfg.spp, seed)
+                adjoint, loss, parts = adjoint_at(image.detach())
+            else:
+                adjoint, loss, parts = adjoint_at(old["sum"] / (1.0 - cfg.ema_beta ** old["count"]))
+                image = self.target.render(sigma_t, albedo, cfg.spp, seed, adjoint=adjoint)
             now = image.detach()
-            primal = now if old["count"] == 0 else old["sum"] / (1.0 - cfg.ema_beta ** old["count"])
-            x = primal.clone().requires_grad_(True)
-            loss, parts = self.target.appearance(self.criterion, x)
-            (adjoint,) = torch.autograd.grad(loss, x)
             ema = {"sum": (1.0 - cfg.ema_beta) * now + (0.0 if old["sum"] is None else cfg.ema_beta * old["sum"]),
                    "count": old["count"] + 1}
             surrogate = (adjoint * image).sum()
         else:
+            image = self.target.render(sigma_t, albedo, cfg.spp, seed)
             loss, parts = self.target.appearance(self.criterion, image)
             surrogate = loss
         self.optimizer.zero_grad(set_to_none=True)

@@ -127,12 +127,13 @@ class ObjectTarget:
         return Scene(voxel_size=voxel_size, origin=self.obj.origin, boundary=SDFBoundary(sdf.contiguous(), ior=self.ior),
                      sensor=sensor, emitter=self.emitter, g=self.g)
 
-    def render(self, sigma_t, albedo, spp, seed, scene=None):
-        """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
+    def render(self, sigma_t, albedo, spp, seed, scene=None, adjoint=None):
+        """(N, 3) texel colours (linear RGB) of the medium (3, D, H, W), differentiable (``adjoint``: the texels'
+        gradient when known before the render; see :func:`.rendering.render`)."""
         scene = self.scene if scene is None else scene
         # only the shell carries parameters: the replay crosses the fixed white core without gradient bookkeeping
         return render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, self.gradient_seed),
-                      grad_support=self.support)
+                      grad_support=self.support, adjoint=adjoint)
 
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)

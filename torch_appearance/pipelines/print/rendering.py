@@ -18,14 +18,15 @@ def replay_seed(seed, gradient_seed):
     return seed if gradient_seed == "same" else derive_seed_grad(seed)
 
 
-def render(scene, sigma_t, albedo, *, spp, seed, seed_grad, grad_support=None):
+def render(scene, sigma_t, albedo, *, spp, seed, seed_grad, grad_support=None, adjoint=None):
     """``SceneRenderer(scene, spp)(sigma_t, albedo, seed=seed, seed_grad=seed_grad)``: the sensor's linear RGB image,
-    differentiable (only in the (D, H, W) ``grad_support`` when given). Under ``torch.distributed`` every rank
-    traces its interleaved share of the sensor elements and the image and the gradients are summed over the ranks
-    (the same image as one process)."""
+    differentiable (only in the (D, H, W) ``grad_support`` when given). ``adjoint``: the image's gradient when known
+    before the render (see :func:`~torch_appearance.render_scene`: one walk for the image and its gradient; a single
+    process only). Under ``torch.distributed`` every rank traces its interleaved share of the sensor elements and
+    the image and the gradients are summed over the ranks (the same image as one process)."""
     renderer = SceneRenderer(scene, spp=spp)
     if distributed.rank_and_world()[1] == 1:
-        return renderer(sigma_t, albedo, seed=seed, seed_grad=seed_grad, grad_support=grad_support)
+        return renderer(sigma_t, albedo, seed=seed, seed_grad=seed_grad, grad_support=grad_support, adjoint=adjoint)
     return distributed.render(render_scene, renderer.scene, sigma_t=sigma_t, albedo=albedo, spp=renderer.spp, seed=seed,
                               seed_grad=seed_grad, chromatic=renderer.chromatic, grad_support=grad_support)
 

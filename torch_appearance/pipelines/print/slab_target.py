@@ -68,12 +68,15 @@ def slab_memory_bytes(shape, n_inks):
 def iteration_seconds(cfg, inks, faces, texels):
     """Expected seconds of one optimisation iteration's render and gradient replay on a slab of ``texels`` texels
     per face: a timed render + replay of a 24 × 24 slab of the run's thickness in 97 % white (the longest paths of
-    the default inks; an even mixture without a white ink), scaled by the texel count."""
+    the default inks; an even mixture without a white ink), scaled by the texel count. With the ``ema`` estimator
+    the probe is one walk for the render and its gradient, as the loop's iterations after the first."""
     white = "white" if "white" in [n.lower() for n in inks.names] else None
     probe = MaterialMixture(inks, (cfg.depth, _PROBE, _PROBE), init_ink=white)
     sigma_t, albedo = probe()
+    adjoint = torch.ones((faces, _PROBE, _PROBE, 3)) if cfg.estimator == "ema" else None
     start = time.perf_counter()
-    render_slab(sigma_t, albedo, cfg, inks, faces, cfg.spp, 0).sum().backward()
+    image = render_slab(sigma_t, albedo, cfg, inks, faces, cfg.spp, 0, adjoint=adjoint)
+    (image if adjoint is None else adjoint * image).sum().backward()
     return (time.perf_counter() - start) * texels / (_PROBE * _PROBE)
 
 
@@ -141,9 +144,10 @@ class SlabTarget:
         self.inks, self.cfg = inks, cfg
 
     # ------------------------------------------------------------------------------------------ rendering
-    def render(self, sigma_t, albedo, spp, seed):
-        """(F, H, W, 3) face texel colours (linear RGB) of the medium (3, D, H, W), differentiable."""
-        return render_slab(sigma_t, albedo, self.cfg, self.inks, self.faces, spp, seed)
+    def render(self, sigma_t, albedo, spp, seed, adjoint=None):
+        """(F, H, W, 3) face texel colours (linear RGB) of the medium (3, D, H, W), differentiable (``adjoint``: the
+        texels' gradient when known before the render; see :func:`.rendering.render`)."""
+        return render_slab(sigma_t, albedo, self.cfg, self.inks, self.faces, spp, seed, adjoint=adjoint)
 
     def to_grid(self, texels):
         return slab_texel_grid(texels, self.cfg.depth)[0]
