@@ -102,12 +102,7 @@ class VolumePathTrace(torch.autograd.Function):
                 stats["tally"] = torch.tensor(counts.tally, dtype=torch.int64).view(-1, 2)
             stats["lanes"] = options.lanes
             stats["hero"] = bool(options.hero)
-        walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
-        if counts.truncated_paths > _TRUNCATION_WARN * walks:
-            warnings.warn(f"{job.name}: {counts.truncated_paths} of {walks} paths were cut at max_depth="
-                          f"{options.max_depth} interactions; the image is biased dark by up to that fraction. "
-                          f"Raise max_depth (optically very thick, bright media have heavy-tailed path lengths).",
-                          RuntimeWarning, stacklevel=3)
+        _warn_truncated(job, options, counts, image)
         ctx.job, ctx.stats = job, stats
         ctx.save_for_backward(sigma_t, albedo,
                               sampling_sigma_t if sampling_sigma_t is not None else None,
@@ -128,6 +123,16 @@ class VolumePathTrace(torch.autograd.Function):
                 None,  # sampling_albedo
                 None,  # job
                 None)  # stats
+
+
+def _warn_truncated(job, options, counts, image):
+    """Warns when more than _TRUNCATION_WARN of the image's walks were cut at max_depth (a bias towards dark)."""
+    walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
+    if counts.truncated_paths > _TRUNCATION_WARN * walks:
+        warnings.warn(f"{job.name}: {counts.truncated_paths} of {walks} paths were cut at max_depth="
+                      f"{options.max_depth} interactions; the image is biased dark by up to that fraction. "
+                      f"Raise max_depth (optically very thick, bright media have heavy-tailed path lengths).",
+                      RuntimeWarning, stacklevel=4)
 
 
 def _replay(job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, stats):
@@ -204,12 +209,7 @@ class VolumePathTraceWithAdjoint(torch.autograd.Function):
             stats["lanes"] = options.lanes
             stats["hero"] = bool(options.hero)
             stats["with_adjoint"] = True
-        walks = image.numel() // 3 * options.spp * (3 if options.lanes == 1 else 1)
-        if counts.truncated_paths > _TRUNCATION_WARN * walks:
-            warnings.warn(f"{job.name}: {counts.truncated_paths} of {walks} paths were cut at max_depth="
-                          f"{options.max_depth} interactions; the image is biased dark by up to that fraction. "
-                          f"Raise max_depth (optically very thick, bright media have heavy-tailed path lengths).",
-                          RuntimeWarning, stacklevel=3)
+        _warn_truncated(job, options, counts, image)
         ctx.job, ctx.stats = job, stats
         ctx.grads = (grad_s, grad_a)
         ctx.save_for_backward(sigma_t, albedo, sampling_sigma_t, sampling_albedo, adjoint)
