@@ -200,3 +200,16 @@ def test_print_loop_walks_once_from_its_second_iteration(tmp_path, monkeypatch):
     # its own render, so it alone replays
     assert calls.count("scene_forward_backward") == 4
     assert calls.count("scene_backward") == 1
+
+
+def test_a_second_backward_gets_the_same_gradients():
+    """retain_graph: the deposited gradients serve every backward with the adjoint, not only the first."""
+    scene = object_scene("sphere", "texels")
+    sigma_t, albedo = medium((N, N, N), 11)
+    adjoint = adjoint_for((30, 3), 12, torch.float64)
+    s = sigma_t.clone().requires_grad_()
+    surrogate = (adjoint * ta.render_scene(scene, s, albedo, spp=2, seed=4, adjoint=adjoint)).sum()
+    (first,) = torch.autograd.grad(surrogate, (s,), retain_graph=True)
+    (second,) = torch.autograd.grad(surrogate, (s,))
+    assert float(first.abs().max()) > 0
+    assert torch.equal(first, second)

@@ -220,7 +220,6 @@ class VolumePathTraceWithAdjoint(torch.autograd.Function):
     def backward(ctx, grad_image):
         sigma_t, albedo, samp_s, samp_a, adjoint = ctx.saved_tensors
         grad_s, grad_a = ctx.grads
-        ctx.grads = None
         need_s, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not torch.equal(grad_image.to(adjoint.dtype), adjoint):  # another gradient: replay the paths for it
             grad_s, grad_a = _replay(ctx.job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, ctx.stats)
