@@ -93,9 +93,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
         }
       }
       if (image != nullptr)
-        for (int ch = 0; ch < 3; ++ch)
-          image[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
-                                       : T(acc[ch] / double(S.spp));
+        for (int ch = 0; ch < 3; ++ch) image[t * 3 + ch] = element_radiance(S, acc[ch], ch);
     });
     events[c] = ev;
     truncated[c] = terms.truncated;

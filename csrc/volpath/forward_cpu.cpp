@@ -101,9 +101,7 @@ ForwardCounts forward_kernel(const Scene<T>& S0, T* out, const Share& share) {
           }
         }
       }
-      for (int ch = 0; ch < 3; ++ch)
-        out[t * 3 + ch] = constant ? T(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp))
-                                   : T(acc[ch] / double(S.spp));
+      for (int ch = 0; ch < 3; ++ch) out[t * 3 + ch] = element_radiance(S, acc[ch], ch);
     });
     counts[c] = {ev, cut, vsteps, osteps, cevents, {}};
     if (bins != nullptr) {

@@ -124,6 +124,18 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
   }
 }
 
+// The image of a batch of n elements from each path's value by item ((k·spp + sample)·3 + channel), summed in
+// sample order as the scalar kernel adds them (so the image does not depend on the order the lanes finish in).
+void write_batch_image(const Scene<float>& S, const int64_t* elems, int64_t n, const std::vector<float>& values,
+                       float* out) {
+  for (int64_t k = 0; k < n; ++k) {
+    double acc[3] = {0, 0, 0};
+    for (int64_t s = 0; s < S.spp; ++s)
+      for (int ch = 0; ch < 3; ++ch) acc[ch] += double(values[size_t((k * S.spp + s) * 3 + ch)]);
+    for (int ch = 0; ch < 3; ++ch) out[elems[k] * 3 + ch] = element_radiance(S, acc[ch], ch);
+  }
+}
+
 }  // namespace
 
 std::vector<float> pack_reference(const Scene<float>& S) {
@@ -166,13 +178,7 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, f
                  x->cut += o.truncated;
                },
                &ctx);
-    for (int64_t k = 0; k < n; ++k) {
-      double acc[3] = {0, 0, 0};
-      for (int64_t s = 0; s < S.spp; ++s)
-        for (int ch = 0; ch < 3; ++ch) acc[ch] += double(ctx.values[size_t((k * S.spp + s) * 3 + ch)]);
-      for (int ch = 0; ch < 3; ++ch)
-        out[elems[k] * 3 + ch] = float(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp));
-    }
+    write_batch_image(S, elems.data(), n, ctx.values, out);
     elems.clear();
   };
   for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
@@ -257,15 +263,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
           deposit_simd_tape(o, ch, adj[0], *x->A, S.medium.voxels());
         },
         &ctx);
-    if (image != nullptr) {
-      for (int64_t k = 0; k < n; ++k) {
-        double acc[3] = {0, 0, 0};
-        for (int64_t s = 0; s < S.spp; ++s)
-          for (int ch = 0; ch < 3; ++ch) acc[ch] += double(ctx.values[size_t((k * S.spp + s) * 3 + ch)]);
-        for (int ch = 0; ch < 3; ++ch)
-          image[elems[k] * 3 + ch] = float(acc[ch] * double(S.emitter.radiance[ch]) / double(S.spp));
-      }
-    }
+    if (image != nullptr) write_batch_image(S, elems.data(), n, ctx.values, image);
     elems.clear();
     live.clear();
   };

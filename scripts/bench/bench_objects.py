@@ -202,17 +202,10 @@ def run(args, height, chromatic):
 # --------------------------------------------------------------------------------------------------------------
 # old code against new code (--baseline)
 # --------------------------------------------------------------------------------------------------------------
-# Runs in a fresh interpreter: loads one build of the extension (two builds cannot share a process), rebuilds the
+# Runs in a fresh interpreter after bench_volpath's WORKER_LOAD (one build of the extension per process), rebuilds the
 # options from plain values (fields the build does not know are dropped and reported), times one forward and one
 # replay after a 1-spp warm-up of both, prints JSON.
 _WORKER = r"""
-import importlib.util, json, sys, time, torch
-so, data, threads = sys.argv[1], sys.argv[2], int(sys.argv[3])
-torch.set_num_threads(threads)
-spec = importlib.util.spec_from_file_location("ta_bench_ext._C", so)
-C = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(C)
-d = torch.load(data)
 dropped = set()
 def build(spec):
     o = getattr(C, spec["type"])()
@@ -256,8 +249,9 @@ def _plain(options):
 
 def compare_baseline(args, height, chromatic, old_so, sha):
     """new / old times of the tracer's forward and replay of one Spot iteration, in alternating worker processes."""
+    from bench_volpath import WORKER_LOAD  # this folder is on the path when the script runs
     from torch_appearance import _C
-    from torch_appearance.autograd.volpath import _floored, _floored_lanes, walk_options
+    from torch_appearance.autograd.volpath import _gradient_walks, walk_options
     from torch_appearance.render import TraceJob
     torch.manual_seed(args.seed)
     target, model, _, _ = build(args, height)
@@ -266,9 +260,7 @@ def compare_baseline(args, height, chromatic, old_so, sha):
     job = TraceJob(target.scene, spp=args.spp, seed=args.seed, chromatic=chromatic, grad_support=target.support)
     grid = tuple(sigma_t.shape[1:])
     forward = walk_options(job, sigma_t, job.seed, grid, sigma_t.dtype)
-    ref_s, floor_s = _floored(sigma_t, None, job.sigma_t_floor(sigma_t.shape))
-    ref_a, floor_a = _floored(albedo, None, job.albedo_floor)
-    backward = walk_options(job, ref_s, job.seed_grad, grid, sigma_t.dtype, lanes=_floored_lanes(ref_s, floor_s))
+    ref_s, floor_s, ref_a, floor_a, backward = _gradient_walks(job, sigma_t, albedo, None, None)
     image, _ = _C.scene_forward(sigma_t, albedo, sigma_t, albedo, False, forward)
     grad = torch.rand(image.shape, generator=torch.Generator().manual_seed(args.seed), dtype=torch.float64)
     grad = (grad - 0.5).to(image.dtype).contiguous()  # a fixed adjoint of both signs
@@ -283,8 +275,8 @@ def compare_baseline(args, height, chromatic, old_so, sha):
         runs = {"old": [], "new": []}
         for _ in range(args.reps):
             for which, so in (("old", old_so), ("new", new_so)):
-                out = subprocess.run([sys.executable, "-c", _WORKER, so, data, str(args.threads)], check=True,
-                                     capture_output=True, text=True).stdout
+                out = subprocess.run([sys.executable, "-c", WORKER_LOAD + _WORKER, so, data, str(args.threads)],
+                                     check=True, capture_output=True, text=True).stdout
                 runs[which].append(json.loads(out.strip().splitlines()[-1]))
     med = {w: {k: statistics.median(r[k] for r in runs[w]) for k in ("forward_s", "replay_s")} for w in runs}
     return {

@@ -384,7 +384,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 
 # Runs in a fresh interpreter: loads one build of the extension (two builds cannot share a process: pybind11
 # registers the option types globally), times one forward and one backward after a warm-up, prints JSON.
-_WORKER = r"""
+# WORKER_LOAD is the part every such worker shares (bench_objects.py too): argv is (extension, data, threads); it
+# leaves the module in C and the torch.save'd dict in d.
+WORKER_LOAD = r"""
 import importlib.util, json, sys, time, torch
 so, data, threads = sys.argv[1], sys.argv[2], int(sys.argv[3])
 torch.set_num_threads(threads)
@@ -392,6 +394,8 @@ spec = importlib.util.spec_from_file_location("ta_bench_ext._C", so)
 C = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(C)
 d = torch.load(data)
+"""
+_WORKER = WORKER_LOAD + r"""
 o, b, se, e = C.SceneOptions(), C.BoundaryOptions(), C.SensorOptions(), C.EmitterOptions()
 opt = dict(d["options"])
 b.ior, se.face, e.radiance = opt.pop("ior"), opt.pop("face"), opt.pop("environment")

@@ -135,14 +135,20 @@ def _warn_truncated(job, options, counts, image):
                       RuntimeWarning, stacklevel=4)
 
 
-def _replay(job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, stats):
-    """(grad_sigma_t, grad_albedo) of ``grad_image`` by path replay of ``job``'s gradient walks."""
+def _gradient_walks(job, sigma_t, albedo, samp_s, samp_a):
+    """(ref_sigma_t, sigma_t_floor, ref_albedo, albedo_floor, options) of ``job``'s gradient walks (seed_grad)."""
     # the sampling medium: explicit references as given, else the parameters floored on the fly in C++
     # (max(σ_t, floor), max(α, floor): the same numbers as clamp_min, without two copies of the grids)
     ref_s, floor_s = _floored(sigma_t, samp_s, job.sigma_t_floor(sigma_t.shape))
     ref_a, floor_a = _floored(albedo, samp_a, job.albedo_floor)
     options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
                            lanes=_floored_lanes(ref_s, floor_s))
+    return ref_s, floor_s, ref_a, floor_a, options
+
+
+def _replay(job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, stats):
+    """(grad_sigma_t, grad_albedo) of ``grad_image`` by path replay of ``job``'s gradient walks."""
+    ref_s, floor_s, ref_a, floor_a, options = _gradient_walks(job, sigma_t, albedo, samp_s, samp_a)
     start = time.perf_counter()
     grad_s, grad_a, events = call_tracer(_C.scene_backward, grad_image.to(sigma_t.dtype).contiguous(),
                                          sigma_t.detach(), albedo.detach(), ref_s, ref_a, need_s, need_a, options,
@@ -193,10 +199,8 @@ class VolumePathTraceWithAdjoint(torch.autograd.Function):
         sigma_t = sigma_t.contiguous()
         albedo = albedo.contiguous()
         adjoint = adjoint.detach().to(sigma_t.dtype).contiguous()
-        ref_s, floor_s = _floored(sigma_t, sampling_sigma_t, job.sigma_t_floor(sigma_t.shape))
-        ref_a, floor_a = _floored(albedo, sampling_albedo, job.albedo_floor)
-        options = walk_options(job, ref_s, job.seed_grad, tuple(sigma_t.shape[1:]), sigma_t.dtype,
-                               lanes=_floored_lanes(ref_s, floor_s))
+        ref_s, floor_s, ref_a, floor_a, options = _gradient_walks(job, sigma_t, albedo, sampling_sigma_t,
+                                                                  sampling_albedo)
         need_s, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         start = time.perf_counter()
         image, grad_s, grad_a, counts = call_tracer(_C.scene_forward_backward, adjoint, sigma_t.detach(),

@@ -173,7 +173,7 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
         (torch.Size([8, 8, 3]), True)
         >>> image.sum().backward()      # fills sigma_t.grad
     """
-    from ..autograd.volpath import VolumePathTrace
+    from ..autograd.volpath import VolumePathTrace, VolumePathTraceWithAdjoint
 
     job = TraceJob(scene, spp=spp, seed=seed, seed_grad=seed_grad, chromatic=chromatic, partition=partition,
                    grad_support=grad_support)
@@ -184,7 +184,6 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     if adjoint is not None:
         _check_adjoint(adjoint, scene.output_shape(tuple(sigma_t.shape[1:])))
         if torch.is_grad_enabled() and (sigma_t.requires_grad or albedo.requires_grad):
-            from ..autograd.volpath import VolumePathTraceWithAdjoint
             return VolumePathTraceWithAdjoint.apply(sigma_t, albedo, samp_s, samp_a, adjoint, job, stats)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
 
