@@ -101,7 +101,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("sigma_t_table"), py::arg("albedo_table"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
         "General-scene radiance of a palette medium (uint8 index volume, (3, P) tables) and ForwardCounts.");
   m.def("_set_simd", &ta::volpath::set_simd, py::arg("mode"),
-        "Test hook: the slab walk, -1 automatic (the CPU and TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns the one before.");
+        "Test hook: the SIMD walks (slab and object), -1 automatic (the CPU and TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; "
+        "returns the one before.");
+  m.def("_set_simd_exact_math", &ta::volpath::set_simd_exact_math, py::arg("on"),
+        "Test hook: the SIMD object walk with libm per lane (every path the scalar walk's); returns the one before.");
   m.def(
       "_skip_distances",
       [](const torch::Tensor& cells) {

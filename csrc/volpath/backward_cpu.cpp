@@ -1,6 +1,6 @@
 // The backward kernel (radiative backpropagation by path replay) and its entry points scene_backward_cpu and
 // scene_forward_backward_cpu (the image of the same walks too, for an adjoint known before the render): per sensor
-// element, each sample's path replayed (replay.h, or the SIMD slab walk where it serves), deposited into per-chunk
+// element, each sample's path replayed (replay.h, or the SIMD slab or object walk where it serves), deposited into per-chunk
 // gradient buffers that are added in chunk order.
 #include <ATen/Parallel.h>
 
@@ -49,6 +49,7 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
   std::vector<int64_t> events(nchunks, 0), truncated(nchunks, 0);
   const bool constant = S.emitter.kind == core::kConstant;
   const bool simd = simd_serves<T, LANES, B, HERO>(S);
+  const bool simd_object = simd_serves_object<T, LANES, B, HERO>(S);
   std::vector<float> ref_pair;
   if constexpr (std::is_same_v<T, float>)
     if (simd) ref_pair = pack_reference(S);
@@ -68,6 +69,12 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
       if (simd) {
         events[c] = simd_backward_chunk<DIEL>(S, ref_pair.data(), grad_out, A, store, c, nchunks, share, image,
                                               &truncated[c]);
+        return;
+      }
+    }
+    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kSDFBoundary && !HERO) {
+      if (simd_object) {
+        events[c] = simd_object_backward_chunk<DIEL>(S, grad_out, A, store, c, nchunks, share, image, &truncated[c]);
         return;
       }
     }

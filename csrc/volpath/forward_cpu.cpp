@@ -1,5 +1,5 @@
 // The forward kernel and its entry points (scene_forward_cpu, scene_forward_indexed_cpu): per sensor element, the
-// walks of every sample (core::trace_path, or the SIMD slab walk where it serves), summed in sample order.
+// walks of every sample (core::trace_path, or the SIMD slab or object walk where it serves), summed in sample order.
 #include <ATen/Parallel.h>
 
 #include <mutex>
@@ -49,6 +49,7 @@ ForwardCounts forward_kernel(const Scene<T>& S0, T* out, const Share& share) {
   std::vector<ForwardCounts> counts(nchunks);
   const Adjoint<T> none;
   const bool simd = simd_serves<T, LANES, B, HERO>(S0);
+  const bool simd_object = bins == nullptr && simd_serves_object<T, LANES, B, HERO>(S0);
   std::vector<float> ref_pair;
   if constexpr (std::is_same_v<T, float>)
     if (simd) ref_pair = pack_reference(S0);
@@ -56,6 +57,12 @@ ForwardCounts forward_kernel(const Scene<T>& S0, T* out, const Share& share) {
     if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kBoxBoundary && !HERO) {
       if (simd) {
         counts[c] = simd_forward_chunk<DIEL, RATIO>(S0, ref_pair.data(), out, c, nchunks, share);
+        return;
+      }
+    }
+    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kSDFBoundary && !HERO) {
+      if (simd_object) {
+        counts[c] = simd_object_forward_chunk<DIEL, RATIO>(S0, out, c, nchunks, share);
         return;
       }
     }

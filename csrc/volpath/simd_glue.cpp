@@ -45,8 +45,6 @@ int simd_level() {
   return v;
 }
 
-namespace {
-
 // TA_SIMD_ENDED_LANES: flights that end before the SIMD walk's collision phase runs (0: its default); for tuning
 int simd_ended_lanes() {
   static const int v = [] {
@@ -56,16 +54,14 @@ int simd_ended_lanes() {
   return v;
 }
 
+namespace {
+
 // The SIMD walk of the selected width.
 void slab_walks(const simd::SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
                 const simd::LaneTapes* tapes, simd::WalkDone done, void* ctx) {
   if (simd_level() == 2) simd::slab_walks_avx512(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
   else simd::slab_walks_avx2(S, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
 }
-
-constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of the SIMD walk
-constexpr int64_t kSimdSegments = int64_t(1) << 16;  // tape entries per lane (longer paths: scalar replay)
-static_assert(kSimdSegments <= simd::kMaxTapeCap, "the SIMD walk's tape offsets are int32");
 
 simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
   simd::SlabWalkScene W;
@@ -90,6 +86,8 @@ simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
   W.spp = S.spp;
   return W;
 }
+
+}  // namespace
 
 // core::deposit_tape<float, 1> for the SIMD walk's compact tape (slab_simd.h), through the same deposit policy
 // (Adjoint::sigma_t, Adjoint::albedo), with the σ_t deposits of one voxel in a row summed before they are added (a
@@ -126,17 +124,15 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
 
 // The image of a batch of n elements from each path's value by item ((k·spp + sample)·3 + channel), summed in
 // sample order as the scalar kernel adds them (so the image does not depend on the order the lanes finish in).
-void write_batch_image(const Scene<float>& S, const int64_t* elems, int64_t n, const std::vector<float>& values,
+void write_batch_image(const Scene<float>& S, const int64_t* elems, int64_t n, const std::vector<double>& values,
                        float* out) {
   for (int64_t k = 0; k < n; ++k) {
     double acc[3] = {0, 0, 0};
     for (int64_t s = 0; s < S.spp; ++s)
-      for (int ch = 0; ch < 3; ++ch) acc[ch] += double(values[size_t((k * S.spp + s) * 3 + ch)]);
+      for (int ch = 0; ch < 3; ++ch) acc[ch] += values[size_t((k * S.spp + s) * 3 + ch)];
     for (int ch = 0; ch < 3; ++ch) out[elems[k] * 3 + ch] = element_radiance(S, acc[ch], ch);
   }
 }
-
-}  // namespace
 
 std::vector<float> pack_reference(const Scene<float>& S) {
   const auto& M = S.medium;
@@ -160,7 +156,7 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, f
   simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
   struct Ctx {
-    std::vector<float> values;
+    std::vector<double> values;
     int64_t ev = 0, cut = 0;
   } ctx;
   std::vector<int64_t> elems;
@@ -169,7 +165,7 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, f
   auto flush = [&]() {
     if (elems.empty()) return;
     const int64_t n = int64_t(elems.size());
-    ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
+    ctx.values.assign(size_t(n * S.spp * 3), 0.0);
     slab_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
                [](void* p, const simd::WalkOut& o) {
                  auto* x = static_cast<Ctx*>(p);
@@ -223,7 +219,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
     TapeStore<float, 1>* store;
     const int64_t* elems;
     bool image;
-    std::vector<float> values;  // with an image: each path's value, by item
+    std::vector<double> values;  // with an image: each path's value, by item
     int64_t ev = 0, cut = 0;
   } ctx{&S, grad_out, &A, &store, nullptr, image != nullptr};
   std::vector<int64_t> elems;
@@ -235,7 +231,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
     if (elems.empty()) return;
     const int64_t n = int64_t(elems.size());
     ctx.elems = elems.data();
-    if (image != nullptr) ctx.values.assign(size_t(n * S.spp * 3), 0.0f);
+    if (image != nullptr) ctx.values.assign(size_t(n * S.spp * 3), 0.0);
     slab_walks(
         W, elems.data(), live.data(), n, true, &tapes,
         [](void* p, const simd::WalkOut& o) {
@@ -253,7 +249,7 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
             terms.acc = acc;
             x->ev += replay<float, 1, core::kBoxBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store,
                                                                        x->image ? &terms : nullptr);
-            if (x->image) x->values[size_t(o.item)] = float(acc[ch]);  // the value of the walk that deposited
+            if (x->image) x->values[size_t(o.item)] = acc[ch];  // the value of the walk that deposited
             return;
           }
           if (x->image) x->values[size_t(o.item)] = o.value;

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "core/integrator.h"
+#include "volpath/slab_simd.h"
 #include "volpath/replay.h"
 #include "volpath/threading.h"
 #include "volpath/volpath.h"
@@ -34,6 +35,45 @@ bool simd_serves(const core::Scene<T>& S) {
            M.ref_albedo.index == nullptr && M.sigma_t.plain && M.albedo.plain && 3 * M.voxels() < (int64_t(1) << 31);
   }
 }
+
+constexpr int64_t kSimdBatch = 256;                 // sensor elements per call of a SIMD walk
+constexpr int64_t kSimdSegments = int64_t(1) << 16;  // tape entries per lane (longer paths: scalar replay)
+static_assert(kSimdSegments <= simd::kMaxTapeCap, "the SIMD walks' tape offsets are int32");
+
+// TA_SIMD_ENDED_LANES: flights that end before a SIMD walk's collision phase runs (0: its default); for tuning.
+int simd_ended_lanes();
+
+// core::deposit_tape<float, 1> for a SIMD walk's compact tape: the deposits of the path `o` of channel ch.
+void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const core::Adjoint<float>& A, int64_t N);
+
+// The image of a batch of n elements from each path's term by item ((k·spp + sample)·3 + channel), summed in sample
+// order as the scalar kernel adds them.
+void write_batch_image(const core::Scene<float>& S, const int64_t* elems, int64_t n, const std::vector<double>& values,
+                       float* out);
+
+// Whether the SIMD object walk (object_simd.h) serves this scene: float32 dense grids, an SDF boundary, one walk per
+// channel (not hero), no tally.
+template <typename T, int LANES, int B, bool HERO>
+bool simd_serves_object(const core::Scene<T>& S) {
+  if constexpr (!std::is_same_v<T, float> || LANES != 1 || B != core::kSDFBoundary || HERO) {
+    return false;
+  } else {
+    const auto& M = S.medium;
+    return simd_enabled() && S.tally == nullptr && S.sdf.cell != nullptr && M.sigma_t.index == nullptr &&
+           M.albedo.index == nullptr && M.ref_sigma_t.index == nullptr && M.ref_albedo.index == nullptr &&
+           M.sigma_t.plain && M.albedo.plain && 3 * M.voxels() < (int64_t(1) << 31) && S.elements() < (int64_t(1) << 31);
+  }
+}
+
+// Forward and gradient replay of chunk c with the SIMD object walk, as simd_forward_chunk and simd_backward_chunk
+// (which they follow for an object: the sensor's elements in strided blocks, any emitter; ForwardCounts in full).
+template <bool DIEL, bool RATIO>
+ForwardCounts simd_object_forward_chunk(const core::Scene<float>& S, float* out, int64_t c, int64_t nchunks,
+                                        const Share& share);
+template <bool DIEL>
+int64_t simd_object_backward_chunk(const core::Scene<float>& S, const float* grad_out, const core::Adjoint<float>& A,
+                                   TapeStore<float, 1>& store, int64_t c, int64_t nchunks, const Share& share,
+                                   float* image, int64_t* cut);
 
 // The reference σ_t and albedo side by side, voxel by voxel (SlabWalkScene::ref_pair), for the SIMD walk.
 std::vector<float> pack_reference(const core::Scene<float>& S);

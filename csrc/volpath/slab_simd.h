@@ -76,6 +76,9 @@ struct WalkOut {
   const TapeCollisionF* cols;
   int64_t nseg, ncol;
   bool overflow;
+  // the object walk's (object_simd.h) escape direction and counts; the slab walk leaves them as they are
+  float direction[3] = {0, 0, 0};
+  int64_t voxel_steps = 0, outside_steps = 0, core_events = 0;
 };
 
 typedef void (*WalkDone)(void* ctx, const WalkOut& out);

@@ -2,6 +2,7 @@
 // check; this file includes no header with inline or template code other than the intrinsics and the walk itself
 // (slab_simd_walk.h, inside this file's anonymous namespace), so no AVX2 instruction can leak into code that runs on
 // other CPUs.
+#include "volpath/object_simd.h"
 #include "volpath/slab_simd.h"
 
 #if defined(__x86_64__) || defined(__i386__)
@@ -84,6 +85,16 @@ inline F gather_strided(const float* base, I idx, M mask) {
 inline F gather(const float* base, I idx, M mask) { return gather_strided<1>(base, idx, mask); }
 inline F gather_pair(const float* base, int k, I idx, M mask) { return gather_strided<2>(base + k, idx, mask); }
 
+inline I cvttfi(F a) { return _mm256_cvttps_epi32(a); }  // float → int, truncated
+
+// base[idx] of a byte grid (0 outside mask), with scalar loads
+inline I gather_u8(const uint8_t* base, I idx, M mask) {
+  alignas(32) int32_t ii[8], r[8];
+  _mm256_store_si256(reinterpret_cast<I*>(ii), _mm256_and_si256(idx, asi(mask)));
+  for (int l = 0; l < 8; ++l) r[l] = base[ii[l]];
+  return _mm256_and_si256(loadi(r), asi(mask));
+}
+
 inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   const I mv = _mm256_set1_epi64x(int64_t(m));
   const I even = _mm256_mul_epu32(a, mv);                        // lanes 0 2 4 6: 64-bit products
@@ -104,13 +115,20 @@ inline void store_pairs(void* base, I slot, I a, I b, M) {
   }
 }
 
+#include "volpath/simd_math.h"
 #include "volpath/slab_simd_walk.h"
+#include "volpath/object_simd_walk.h"
 
 }  // namespace
 
 void slab_walks_avx2(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
                      const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
   walks_dispatch(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
+}
+
+void object_walks_avx2(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                       const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
+  object_walks_dispatch(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
 }
 
 }  // namespace simd
@@ -126,6 +144,10 @@ namespace ta {
 namespace simd {
 void slab_walks_avx2(const SlabWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, const LaneTapes*, int,
                      WalkDone, void*) {
+  __builtin_trap();
+}
+void object_walks_avx2(const ObjectWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, const LaneTapes*, int,
+                       WalkDone, void*) {
   __builtin_trap();
 }
 }  // namespace simd

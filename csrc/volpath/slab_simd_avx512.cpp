@@ -2,6 +2,7 @@
 // in mask registers and hardware gathers. Compiled for AVX-512F by the pragma below and called only after a CPU check;
 // as in slab_simd_avx2.cpp, nothing but the intrinsics and the walk itself (inside this file's anonymous namespace)
 // is included, so no AVX-512 instruction can leak into code that runs on other CPUs.
+#include "volpath/object_simd.h"
 #include "volpath/slab_simd.h"
 
 #if defined(__x86_64__) || defined(__i386__)
@@ -82,6 +83,16 @@ inline F gather_pair(const float* base, int k, I idx, M mask) {
   return _mm512_mask_i32gather_ps(_mm512_setzero_ps(), mask, idx, base + k, 8);
 }
 
+inline I cvttfi(F a) { return _mm512_cvttps_epi32(a); }  // float → int, truncated
+
+// base[idx] of a byte grid (0 outside mask), with scalar loads (a 32-bit gather could read past the grid's end)
+inline I gather_u8(const uint8_t* base, I idx, M mask) {
+  alignas(64) int32_t ii[16], r[16];
+  _mm512_store_si512(ii, _mm512_maskz_mov_epi32(mask, idx));
+  for (int l = 0; l < 16; ++l) r[l] = base[ii[l]];
+  return _mm512_maskz_mov_epi32(mask, loadi(r));
+}
+
 inline void mulhilo(I a, uint32_t m, I* hi, I* lo) {
   const I mv = _mm512_set1_epi64(int64_t(m));
   const I even = _mm512_mul_epu32(a, mv);                        // even lanes: 64-bit products
@@ -100,13 +111,20 @@ inline void store_pairs(void* base, I slot, I a, I b, M m) {
   _mm512_mask_i32scatter_epi64(base, __mmask8(m >> 8), _mm512_extracti64x4_epi64(slot, 1), p1, 8);
 }
 
+#include "volpath/simd_math.h"
 #include "volpath/slab_simd_walk.h"
+#include "volpath/object_simd_walk.h"
 
 }  // namespace
 
 void slab_walks_avx512(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
                        const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
   walks_dispatch(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
+}
+
+void object_walks_avx512(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                         const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
+  object_walks_dispatch(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
 }
 
 }  // namespace simd
@@ -122,6 +140,10 @@ namespace ta {
 namespace simd {
 void slab_walks_avx512(const SlabWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, const LaneTapes*, int,
                        WalkDone, void*) {
+  __builtin_trap();
+}
+void object_walks_avx512(const ObjectWalkScene&, const int64_t*, const uint8_t*, int64_t, bool, const LaneTapes*,
+                         int, WalkDone, void*) {
   __builtin_trap();
 }
 }  // namespace simd

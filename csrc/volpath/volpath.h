@@ -146,9 +146,12 @@ bool set_core_walk(bool on);
 // next forward passes counts its scattering events and voxel moves (ForwardCounts::tally; the SIMD slab walk
 // counts nothing). The forward refuses a grid of another shape.
 void set_tally(const torch::Tensor& bins);
-// The SIMD slab walk (slab_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
+// The SIMD walks (slab_simd.h, object_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
 // the level before.
 int64_t set_simd(int64_t mode);
+// Whether the SIMD object walk calls libm per lane (the scalar walk's log, exp, sin and cos: every path the scalar
+// one, for tests) instead of its polynomials; returns the previous setting.
+bool set_simd_exact_math(bool on);
 
 }  // namespace volpath
 }  // namespace ta

@@ -42,6 +42,7 @@ Usage::
     python scripts/bench/bench_objects.py --heights-mm 10,20 --spp 8 --threads 2
     python scripts/bench/bench_objects.py --heights-mm 25 --spp 32 --chromatic per_channel,hero --ref-mult 4
     python scripts/bench/bench_objects.py --heights-mm 25 --spp 8 --walks two,one
+    python scripts/bench/bench_objects.py --heights-mm 25,40 --spp 8 --simd scalar,avx2
     python scripts/bench/bench_objects.py --heights-mm 25 --spp 8 --baseline c845e46 --reps 2
 """
 import argparse
@@ -183,7 +184,7 @@ def run(args, height, chromatic):
            "outside_steps_per_path": round(stats["outside_steps"] / paths, 2) if "outside_steps" in stats else None,
            "core_event_share": (round(stats["core_events"] / max(1, stats["scatter_events"]), 4)
                                 if "core_events" in stats else None),
-           "shortcuts": args.shortcuts_now, "walks": args.walks_now,
+           "shortcuts": args.shortcuts_now, "walks": args.walks_now, "simd": args.simd_now,
            "peak_rss_mb": None if peak is None or base is None else round((peak - base) / 1024, 1)}
     if args.depth_bin_mm > 0:
         row.update(events_by_depth(target, model, start, args, chromatic, paths))
@@ -313,6 +314,9 @@ def main(argv=None):
     p.add_argument("--walks", default="two", help="comma-separated: two (a forward, then the replay of the loss's "
                    "gradient), one (the ema estimator's adjoint known first: one walk for the render and its "
                    "gradient) (default: %(default)s)")
+    p.add_argument("--simd", default="auto", help="comma-separated walks: auto (the CPU's widest, TA_SIMD), scalar, "
+                   "avx2, avx512: the scalar walk and the SIMD object walk at each width in one run (default: "
+                   "%(default)s)")
     p.add_argument("--depth-bin-mm", type=float, default=0.0, help="> 0: also count the events and voxel moves by "
                    "depth below the surface in bins of this width, in one more forward (default: off)")
     p.add_argument("--baseline", metavar="REV", default=None,
@@ -336,6 +340,10 @@ def main(argv=None):
     walks = [w.strip() for w in args.walks.split(",")]
     if any(w not in ("one", "two") for w in walks):
         p.error(f"--walks: expected one and/or two, got {args.walks!r}")
+    simd_modes = {"auto": -1, "scalar": 0, "avx2": 1, "avx512": 2}
+    simds = [w.strip() for w in args.simd.split(",")]
+    if any(w not in simd_modes for w in simds):
+        p.error(f"--simd: expected auto, scalar, avx2 and/or avx512, got {args.simd!r}")
     if not args.depth_bin_mm >= 0:
         p.error(f"--depth-bin-mm: expected a width >= 0 (0: off), got {args.depth_bin_mm}")
     if args.spp < 1 or args.threads < 1 or args.ref_mult < 0 or args.reps < 1:
@@ -350,12 +358,18 @@ def main(argv=None):
         for c in chromatic:
             for mode in shortcuts:
                 for w in walks:
-                    args.shortcuts_now, args.walks_now = mode, w
-                    _C._set_empty_space_skipping(mode == "on")
-                    _C._set_core_walk(mode == "on")
-                    row = run(args, height, c)
-                    print(json.dumps(row), flush=True)
-                    rows.append(row)
+                    for simd in simds:
+                        args.shortcuts_now, args.walks_now, args.simd_now = mode, w, simd
+                        _C._set_empty_space_skipping(mode == "on")
+                        _C._set_core_walk(mode == "on")
+                        try:
+                            _C._set_simd(simd_modes[simd])
+                        except RuntimeError as e:
+                            p.error(f"--simd {simd}: {e}")
+                        row = run(args, height, c)
+                        print(json.dumps(row), flush=True)
+                        rows.append(row)
+                    _C._set_simd(-1)
             if args.baseline is not None:
                 _C._set_empty_space_skipping(True)
                 _C._set_core_walk(True)

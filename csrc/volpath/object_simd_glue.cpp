@@ -1,0 +1,304 @@
+// SIMD glue for objects (simd_glue.h): the scalar steps that the SIMD object walk (object_simd.h) hands its lanes
+// to, the walk's scene, and its forward and replay of one chunk of sensor elements. Compiled for the baseline
+// instruction set, so the scalar steps are the very functions of core::trace_path.
+#include <ATen/Parallel.h>
+
+#include <atomic>
+#include <memory>
+#include <vector>
+
+#include "core/integrator.h"
+#include "volpath/object_simd.h"
+#include "volpath/replay.h"
+#include "volpath/simd_glue.h"
+
+namespace ta {
+namespace volpath {
+namespace detail {
+
+std::atomic<bool> g_simd_exact_math{false};  // set_simd_exact_math (tests)
+
+namespace {
+
+using core::Adjoint;
+using core::PathResult;
+using core::PathState;
+using core::Scene;
+
+// A lane's state as the scalar walk's (one channel, not hero).
+void load_lane(const Scene<float>& S, const simd::ObjectLane& o, PathState<float, 1>& st, PathResult<float, 1>& res) {
+  for (int a = 0; a < 3; ++a) {
+    st.p[a] = o.p[a];
+    st.d[a] = o.d[a];
+    st.idx[a] = o.idx[a];
+    res.direction[a] = 0.0f;
+  }
+  st.inside = true;
+  st.ch0 = o.chan;
+  st.depth = o.depth;
+  st.rng = core::PathRng<float>{S.seed, uint32_t(o.elem), uint32_t(o.sample), uint32_t(o.chan)};
+  st.event = o.event;
+  st.u[0] = st.u[2] = st.u[3] = 0.0f;
+  st.u[1] = o.u1;
+  st.u_fresnel = o.u_fresnel;
+  st.fresh = o.fresh != 0;
+  st.w[0] = o.w;
+  st.wref[0] = o.wref;
+  res.value[0] = 0.0f;
+  res.prod_nonzero[0] = o.prod;
+  res.zeros[0] = o.zeros;
+}
+
+void store_lane(const PathState<float, 1>& st, const PathResult<float, 1>& res, bool alive, simd::ObjectLane& o) {
+  for (int a = 0; a < 3; ++a) {
+    o.p[a] = st.p[a];
+    o.d[a] = st.d[a];
+    o.idx[a] = int32_t(st.idx[a]);
+    o.dir[a] = res.direction[a];
+  }
+  o.depth = int32_t(st.depth);
+  o.event = st.event;
+  o.u_fresnel = st.u_fresnel;
+  o.fresh = st.fresh;
+  o.w = st.w[0];
+  o.wref = st.wref[0];
+  o.prod = res.prod_nonzero[0];
+  o.zeros = res.zeros[0];
+  o.outside_steps += res.outside_steps;
+  o.status = alive ? simd::kLaneInside : (res.escaped ? simd::kLaneEscaped : simd::kLaneTruncated);
+}
+
+// Outside the object until the walk is inside it again (true) or has ended.
+template <bool DIEL>
+bool into_object(const Scene<float>& S, PathState<float, 1>& st, PathResult<float, 1>& res) {
+  while (!st.inside)
+    if (!core::enter_from_outside<float, 1, core::kSDFBoundary, DIEL, false>(S, st, res)) return false;
+  return true;
+}
+
+template <bool DIEL>
+void lane_start(void* ctx, simd::ObjectLane& o) {
+  const Scene<float>& S = *static_cast<const Scene<float>*>(ctx);
+  PathState<float, 1> st;
+  PathResult<float, 1> res;
+  core::begin_path<float, 1, false>(S, o.elem, o.sample, o.chan, st, res);
+  const bool alive = core::start_at_sensor<float, 1, core::kSDFBoundary, DIEL, false>(S, o.elem, st, res) &&
+                     into_object<DIEL>(S, st, res);
+  store_lane(st, res, alive, o);
+}
+
+template <bool DIEL>
+void lane_surface(void* ctx, simd::ObjectLane& o, int32_t end, int32_t axis) {
+  const Scene<float>& S = *static_cast<const Scene<float>*>(ctx);
+  PathState<float, 1> st;
+  PathResult<float, 1> res;
+  load_lane(S, o, st, res);
+  core::Flight f;
+  f.end = end;
+  f.axis = axis;
+  const bool alive =
+      core::cross_from_inside<float, 1, core::kSDFBoundary, DIEL, false>(S, st, res, f) && into_object<DIEL>(S, st, res);
+  store_lane(st, res, alive, o);
+}
+
+bool lane_crossing(void* ctx, const int32_t idx[3], const float p[3], const float d[3], float t0, float t1,
+                   float* t_hit) {
+  const Scene<float>& S = *static_cast<const Scene<float>*>(ctx);
+  const int64_t cell[3] = {idx[0], idx[1], idx[2]};
+  return S.sdf.crossing(S.medium, cell, p, d, t0, t1, 1.0f, t_hit);
+}
+
+template <bool DIEL>
+simd::ObjectWalkScene object_scene(const Scene<float>& S) {
+  simd::ObjectWalkScene W;
+  const auto& M = S.medium;
+  W.sigma_t = M.sigma_t.data;
+  W.albedo = M.albedo.data;
+  W.ref_sigma_t = M.ref_sigma_t.data;
+  W.ref_albedo = M.ref_albedo.data;
+  W.ref_sigma_t_floor = M.ref_sigma_t.plain ? 0.0f : M.ref_sigma_t.floor;
+  W.ref_albedo_floor = M.ref_albedo.plain ? 0.0f : M.ref_albedo.floor;
+  W.cell = S.sdf.cell;
+  W.core = M.core;
+  for (int a = 0; a < 3; ++a) {
+    W.core_bricks[a] = int32_t(M.core_bricks[a]);
+    W.core_sigma_t[a] = M.core_sigma_t[a];
+    W.core_albedo[a] = M.core_albedo[a];
+    W.voxel[a] = M.voxel[a];
+  }
+  W.D = int32_t(M.D);
+  W.H = int32_t(M.H);
+  W.W = int32_t(M.W);
+  W.g = S.g;
+  W.seed = S.seed;
+  W.max_depth = S.max_depth;
+  W.rr_depth = S.rr_depth;
+  W.spp = S.spp;
+  W.exact_math = g_simd_exact_math.load();
+  W.steps = const_cast<Scene<float>*>(&S);
+  W.start = &lane_start<DIEL>;
+  W.crossing = &lane_crossing;
+  W.surface = &lane_surface<DIEL>;
+  return W;
+}
+
+void object_walks(const simd::ObjectWalkScene& W, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                  const simd::LaneTapes* tapes, simd::WalkDone done, void* ctx) {
+  if (simd_level() == 2) simd::object_walks_avx512(W, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
+  else simd::object_walks_avx2(W, elems, live, n, ratio, tapes, simd_ended_lanes(), done, ctx);
+}
+
+// The term of a path in its element's image (V, or V·L_e along the escape direction for other emitters).
+// (in double, as the scalar kernels add it)
+inline double image_term(const Scene<float>& S, const simd::WalkOut& o, int ch) {
+  if (S.emitter.kind == core::kConstant) return double(o.value);
+  if (!o.escaped) return 0.0;
+  float Le[3];
+  S.emitter.eval(o.direction, Le);
+  return double(o.value) * double(Le[ch]);
+}
+
+}  // namespace
+
+template <bool DIEL, bool RATIO>
+ForwardCounts simd_object_forward_chunk(const Scene<float>& S, float* out, int64_t c, int64_t nchunks,
+                                        const Share& share) {
+  const simd::ObjectWalkScene W = object_scene<DIEL>(S);
+  struct Ctx {
+    const Scene<float>* S;
+    std::vector<double> values;
+    ForwardCounts counts;
+  } ctx{&S, {}, {}};
+  std::vector<int64_t> elems;
+  elems.reserve(kSimdBatch);
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
+    ctx.values.assign(size_t(n * S.spp * 3), 0.0);
+    object_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
+                 [](void* p, const simd::WalkOut& o) {
+                   auto* x = static_cast<Ctx*>(p);
+                   x->values[size_t(o.item)] = image_term(*x->S, o, int(o.item % 3));
+                   x->counts.scatter_events += o.scatter_events;
+                   x->counts.truncated_paths += o.truncated;
+                   x->counts.voxel_steps += o.voxel_steps;
+                   x->counts.outside_steps += o.outside_steps;
+                   x->counts.core_events += o.core_events;
+                 },
+                 &ctx);
+    write_batch_image(S, elems.data(), n, ctx.values, out);
+    elems.clear();
+  };
+  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+    elems.push_back(t);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  return ctx.counts;
+}
+
+template ForwardCounts simd_object_forward_chunk<false, false>(const Scene<float>&, float*, int64_t, int64_t,
+                                                               const Share&);
+template ForwardCounts simd_object_forward_chunk<false, true>(const Scene<float>&, float*, int64_t, int64_t,
+                                                              const Share&);
+template ForwardCounts simd_object_forward_chunk<true, false>(const Scene<float>&, float*, int64_t, int64_t,
+                                                              const Share&);
+template ForwardCounts simd_object_forward_chunk<true, true>(const Scene<float>&, float*, int64_t, int64_t,
+                                                             const Share&);
+
+template <bool DIEL>
+int64_t simd_object_backward_chunk(const Scene<float>& S, const float* grad_out, const Adjoint<float>& A,
+                                   TapeStore<float, 1>& store, int64_t c, int64_t nchunks, const Share& share,
+                                   float* image, int64_t* cut) {
+  const simd::ObjectWalkScene W = object_scene<DIEL>(S);
+  const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
+  simd::LaneTapes tapes;
+  tapes.seg_cap = seg_cap;
+  tapes.col_cap = seg_cap / 2;
+  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
+  std::unique_ptr<simd::TapeCollisionF[]> col_buf(
+      new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
+  tapes.segs = seg_buf.get();
+  tapes.cols = col_buf.get();
+  struct Ctx {
+    const Scene<float>* S;
+    const float* grad_out;
+    const Adjoint<float>* A;
+    TapeStore<float, 1>* store;
+    const int64_t* elems;
+    bool image;
+    std::vector<double> values;
+    int64_t ev = 0, cut = 0;
+  } ctx{&S, grad_out, &A, &store, nullptr, image != nullptr, {}};
+  std::vector<int64_t> elems;
+  std::vector<uint8_t> live;
+  elems.reserve(kSimdBatch);
+  live.reserve(kSimdBatch);
+  const bool constant = S.emitter.kind == core::kConstant;
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
+    ctx.elems = elems.data();
+    if (image != nullptr) ctx.values.assign(size_t(n * S.spp * 3), 0.0);
+    object_walks(
+        W, elems.data(), live.data(), n, true, &tapes,
+        [](void* p, const simd::WalkOut& o) {
+          auto* x = static_cast<Ctx*>(p);
+          const Scene<float>& S = *x->S;
+          const int64_t spp = S.spp;
+          const int ch = int(o.item % 3);
+          const int64_t s = (o.item / 3) % spp, t = x->elems[o.item / (3 * spp)];
+          const float* g = x->grad_out + t * 3;
+          x->ev += o.scatter_events;
+          x->cut += o.truncated;
+          if (o.overflow) {  // too long for the lane's tape: the scalar replay walks it again and deposits
+            double acc[3] = {0, 0, 0};
+            ImageTerms terms;
+            terms.acc = acc;
+            x->ev += replay<float, 1, core::kSDFBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store,
+                                                                       x->image ? &terms : nullptr);
+            if (x->image) x->values[size_t(o.item)] = acc[ch];
+            return;
+          }
+          if (x->image) x->values[size_t(o.item)] = image_term(S, o, ch);
+          if (!o.escaped) return;
+          float Le[3] = {S.emitter.radiance[0], S.emitter.radiance[1], S.emitter.radiance[2]};
+          if (S.emitter.kind != core::kConstant) S.emitter.eval(o.direction, Le);
+          const float adj = g[ch] * Le[ch] / float(spp);
+          if (adj == 0.0f) return;
+          deposit_simd_tape(o, ch, adj, *x->A, S.medium.voxels());
+        },
+        &ctx);
+    if (image != nullptr) write_batch_image(S, elems.data(), n, ctx.values, image);
+    elems.clear();
+    live.clear();
+  };
+  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
+    const float* g = grad_out + t * 3;
+    uint8_t bitsv = 0;
+    for (int ch = 0; ch < 3; ++ch)
+      if ((image != nullptr || g[ch] != 0.0f) && !(constant && S.emitter.radiance[ch] == 0.0f))
+        bitsv |= uint8_t(1 << ch);
+    if (!bitsv && image == nullptr) return;
+    elems.push_back(t);
+    live.push_back(bitsv);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  if (cut != nullptr) *cut = ctx.cut;
+  return ctx.ev;
+}
+
+template int64_t simd_object_backward_chunk<false>(const Scene<float>&, const float*, const Adjoint<float>&,
+                                                   TapeStore<float, 1>&, int64_t, int64_t, const Share&, float*,
+                                                   int64_t*);
+template int64_t simd_object_backward_chunk<true>(const Scene<float>&, const float*, const Adjoint<float>&,
+                                                  TapeStore<float, 1>&, int64_t, int64_t, const Share&, float*,
+                                                  int64_t*);
+
+}  // namespace detail
+
+bool set_simd_exact_math(bool on) { return detail::g_simd_exact_math.exchange(on); }
+
+}  // namespace volpath
+}  // namespace ta

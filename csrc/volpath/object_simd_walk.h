@@ -1,0 +1,564 @@
+// The object walk of object_simd.h written once for any SIMD width. Not a normal header: an instruction-set
+// translation unit (slab_simd_avx2.cpp, slab_simd_avx512.cpp) includes it inside its anonymous namespace after
+// simd_math.h, with the vector operations listed in slab_simd_walk.h and
+//   cvttfi                    float → int32, truncated
+//   gather_u8(base, idx, M)   base[idx] of a byte grid (0 outside M)
+//
+// Each lane follows core::trace_path<float, 1, kSDFBoundary, DIELECTRIC, RATIO, false, RECORD> step by step
+// (integrator.h is the reference; its steps are named here):
+//   start    (begin_path, start_at_sensor, enter_from_outside) the scalar step `start`;
+//   flight   (fly) one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 for what ends
+//            the flight, u2 u3 the new direction; per iteration of the wavefront loop each lane in flight either
+//            steps through one voxel (VoxelDDA; in a mixed cell the scalar step `crossing` finds the surface) or, in
+//            a brick of the homogeneous core, crosses or collides in the box of core bricks around it in one move
+//            (VoxelDDA::brick_box, voxel_in, leave), with the core's values and no ratio weight or tape entry;
+//   collide  (collide) depth cut, continuation p_s = α̂ times roulette q on the reference weight, the factors
+//            σ/σ̂ and α/(p_s q) (the core's values in a core brick, and no tape entry there), the new direction;
+//   surface  (cross_from_inside, enter_from_outside) the scalar step `surface`, where a flight ends at the surface
+//            or the grid's box.
+// The DDA's set-up and steps, the core boxes, the collision and the direction are the scalar walk's expressions in
+// its order (no contraction), so with ObjectWalkScene::exact_math (libm per lane) every path is the scalar one.
+
+// libm per lane (exact_math) or the polynomials of simd_math.h
+template <bool EXACT>
+inline F olog(F x) {
+  if constexpr (!EXACT) {
+    return vlog(x);
+  } else {
+    alignas(64) float a[kLanes];
+    storef(a, x);
+    for (int l = 0; l < kLanes; ++l) a[l] = __builtin_logf(a[l]);
+    return loadf(a);
+  }
+}
+
+template <bool EXACT>
+inline F oexp(F x) {
+  if constexpr (!EXACT) {
+    return vexp(x);
+  } else {
+    alignas(64) float a[kLanes];
+    storef(a, x);
+    for (int l = 0; l < kLanes; ++l) a[l] = __builtin_expf(a[l]);
+    return loadf(a);
+  }
+}
+
+// the new direction (rotate_direction): sin and cos of the azimuth 2π·u as the scalar walk computes them
+template <bool EXACT>
+inline void orotate(F d[3], F cos_t, F u) {
+  F sp, cp;
+  if constexpr (!EXACT) {
+    vsincos_turns(u, &sp, &cp);
+  } else {
+    alignas(64) float a[kLanes], s[kLanes], c[kLanes];
+    storef(a, mul(fset(6.283185307179586f), u));
+    for (int l = 0; l < kLanes; ++l) {
+      s[l] = __builtin_sinf(a[l]);
+      c[l] = __builtin_cosf(a[l]);
+    }
+    sp = loadf(s);
+    cp = loadf(c);
+  }
+  rotate_sc(d, cos_t, sp, cp);
+}
+
+// Per-lane state between the phases of the wavefront loop.
+struct alignas(64) ObjLanes {
+  float p[3][kLanes], d[3][kLanes], tn[3][kLanes], td[3][kLanes], dir[3][kLanes];
+  int32_t idx[3][kLanes], step[3][kLanes];
+  float tau[kLanes], acc[kLanes], t[kLanes], u1[kLanes], u2[kLanes], u3[kLanes], excess[kLanes];
+  float w[kLanes], wref[kLanes], prod[kLanes], u_fresnel[kLanes];
+  int32_t zeros[kLanes], event[kLanes], depth[kLanes], chan[kLanes], elem[kLanes], sample[kLanes], state[kLanes];
+  int32_t fresh[kLanes], nseg[kLanes], ncol[kLanes], vsteps[kLanes], exit_axis[kLanes];
+  int64_t item[kLanes], scatter[kLanes], osteps[kLanes], cevents[kLanes];
+};
+enum : int32_t { kObjIdle = 0, kObjNeedFlight = 1, kObjFlying = 2 };
+enum : int32_t { kObjCellInside = 1, kObjReachedSurface = 1, kObjLeftGrid = 2 };  // core::kCellInside, FlightEnd
+
+template <bool RATIO, bool RECORD, bool EXACT>
+void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n,
+                  const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
+  static_assert(!RECORD || RATIO, "the recording walk carries ratio weights");
+  const int32_t N = S.D * S.H * S.W;
+  const float vs[3] = {S.voxel[0], S.voxel[1], S.voxel[2]};
+  const int32_t dims[3] = {S.W, S.H, S.D};
+  const bool plain_s = !(S.ref_sigma_t_floor > 0), plain_a = !(S.ref_albedo_floor > 0);
+  const bool same_sig = S.sigma_t == S.ref_sigma_t, same_alb = S.albedo == S.ref_albedo;
+
+  ObjLanes L;
+  memset(&L, 0, sizeof(L));
+  static_assert(kLanes <= kMaxLanes, "LaneTapes holds kMaxLanes tapes");
+  TapeSegmentF* segs = RECORD ? tapes->segs : nullptr;
+  TapeCollisionF* cols = RECORD ? tapes->cols : nullptr;
+  const int64_t seg_cap = RECORD ? tapes->seg_cap : 0, col_cap = RECORD ? tapes->col_cap : 0;
+  const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;  // (see slab_simd_walk.h)
+  alignas(64) int32_t lane_ids[kLanes];
+  for (int l = 0; l < kLanes; ++l) lane_ids[l] = l;
+  const I seg_base = imul(loadi(lane_ids), iset(int32_t(seg_room)));
+  const I seg_capv = iset(int32_t(seg_cap)), seg_roomv = iset(int32_t(seg_room));
+  const I col_base = imul(loadi(lane_ids), iset(int32_t(col_room)));
+  const I col_capv = iset(int32_t(col_cap)), col_roomv = iset(int32_t(col_room));
+
+  // the next path of the batch: channel by channel, then element and sample (as the slab walk)
+  int64_t k = 0, s = -1;
+  int c = 0;
+  auto next_item = [&]() -> bool {
+    if (n <= 0) return false;
+    for (;;) {
+      if (++s == S.spp) {
+        s = 0;
+        if (++k == n) {
+          k = 0;
+          ++c;
+        }
+      }
+      if (c >= 3) return false;
+      if (!live || (live[k] >> c) & 1) return true;
+    }
+  };
+  auto finish = [&](int l, float value, bool escaped, bool truncated) {
+    WalkOut o;
+    o.item = L.item[l];
+    o.value = value;
+    o.prod_nonzero = L.prod[l];
+    o.zeros = L.zeros[l];
+    o.escaped = escaped;
+    o.truncated = truncated;
+    o.scatter_events = L.scatter[l];
+    o.segs = RECORD ? segs + l * seg_room : nullptr;
+    o.cols = RECORD ? cols + l * col_room : nullptr;
+    o.nseg = L.nseg[l];
+    o.ncol = L.ncol[l];
+    o.overflow = RECORD && (L.nseg[l] > seg_cap || L.ncol[l] > col_cap);
+    for (int a = 0; a < 3; ++a) o.direction[a] = L.dir[a][l];
+    o.voxel_steps = L.vsteps[l];
+    o.outside_steps = L.osteps[l];
+    o.core_events = L.cevents[l];
+    done(ctx, o);
+    L.state[l] = kObjIdle;
+  };
+  // a lane's state to and from the scalar steps
+  auto to_lane = [&](int l, ObjectLane& o) {
+    for (int a = 0; a < 3; ++a) {
+      o.p[a] = L.p[a][l];
+      o.d[a] = L.d[a][l];
+      o.idx[a] = L.idx[a][l];
+    }
+    o.elem = L.elem[l];
+    o.sample = L.sample[l];
+    o.chan = L.chan[l];
+    o.depth = L.depth[l];
+    o.event = uint32_t(L.event[l]);
+    o.u1 = L.u1[l];
+    o.u_fresnel = L.u_fresnel[l];
+    o.fresh = L.fresh[l];
+    o.w = L.w[l];
+    o.wref = L.wref[l];
+    o.prod = L.prod[l];
+    o.zeros = L.zeros[l];
+    o.status = kLaneInside;
+    o.outside_steps = 0;
+  };
+  // after a scalar step: on to the next flight, or the path's end
+  auto settle = [&](int l, const ObjectLane& o) {
+    for (int a = 0; a < 3; ++a) {
+      L.p[a][l] = o.p[a];
+      L.d[a][l] = o.d[a];
+      L.idx[a][l] = o.idx[a];
+      L.dir[a][l] = o.dir[a];
+    }
+    L.depth[l] = o.depth;
+    L.event[l] = int32_t(o.event);
+    L.u_fresnel[l] = o.u_fresnel;
+    L.fresh[l] = o.fresh;
+    L.w[l] = o.w;
+    L.wref[l] = o.wref;
+    L.prod[l] = o.prod;
+    L.zeros[l] = o.zeros;
+    L.osteps[l] += o.outside_steps;
+    if (o.status == kLaneInside) L.state[l] = kObjNeedFlight;
+    else finish(l, o.status == kLaneEscaped ? o.w : 0.0f, o.status == kLaneEscaped, o.status == kLaneTruncated);
+  };
+  // Starts paths in idle lanes until they are all busy or the batch is empty (a path may end at its start).
+  bool more = true;
+  auto refill = [&](int l) {
+    while (L.state[l] == kObjIdle && more) {
+      more = next_item();
+      if (!more) return;
+      L.item[l] = (k * S.spp + s) * 3 + c;
+      L.elem[l] = int32_t(uint32_t(elems[k]));
+      L.sample[l] = int32_t(s);
+      L.chan[l] = c;
+      L.scatter[l] = L.osteps[l] = L.cevents[l] = 0;
+      L.vsteps[l] = L.nseg[l] = L.ncol[l] = 0;
+      ObjectLane o;
+      memset(&o, 0, sizeof(o));
+      o.elem = L.elem[l];
+      o.sample = L.sample[l];
+      o.chan = c;
+      S.start(S.steps, o);
+      settle(l, o);
+    }
+  };
+  for (int l = 0; l < kLanes; ++l) refill(l);
+
+  const I Wv = iset(S.W), Hv = iset(S.H), Nv = iset(N);
+  const I cb0 = iset(S.core_bricks[0]), cb1 = iset(S.core_bricks[1]);
+  const int32_t max_depth = int32_t(S.max_depth < 0x7fffffff ? S.max_depth : 0x7fffffff);
+  const int32_t rr_depth = int32_t(S.rr_depth < 0x7fffffff ? S.rr_depth : 0x7fffffff);
+  const F inf = fset(__builtin_inff());
+  auto by_chan = [&](const float x[3], I chan) {
+    return sel(ieq(chan, iset(0)), fset(x[0]), sel(ieq(chan, iset(1)), fset(x[1]), fset(x[2])));
+  };
+  // the voxel of p + t·d in the box [lo, hi), clamped to it (VoxelDDA::voxel_in)
+  auto voxel_in = [&](const I lo[3], const I hi[3], const F p[3], const F d[3], F t, I cell[3]) {
+    for (int a = 0; a < 3; ++a) {
+      const F q = div(add(p[a], mul(d[a], t)), fset(vs[a]));
+      const I top = isub(hi[a], iset(1));
+      cell[a] = seli(ge(q, cvtif(top)), top, seli(gt(q, cvtif(lo[a])), cvttfi(q), lo[a]));
+    }
+  };
+  auto flat = [&](const I i[3]) { return iadd(imul(iadd(imul(i[2], Hv), i[1]), Wv), i[0]); };
+
+  for (;;) {
+    const I state = loadi(L.state);
+    const M active = igt(state, iset(0));
+    if (!bits(active)) break;
+    F p[3], d[3], tn[3], td[3];
+    I idx[3], step[3];
+    for (int a = 0; a < 3; ++a) {
+      p[a] = loadf(L.p[a]);
+      d[a] = loadf(L.d[a]);
+      tn[a] = loadf(L.tn[a]);
+      td[a] = loadf(L.td[a]);
+      idx[a] = loadi(L.idx[a]);
+      step[a] = loadi(L.step[a]);
+    }
+    F tau = loadf(L.tau), acc = loadf(L.acc), t = loadf(L.t);
+    F u1 = loadf(L.u1), u2 = loadf(L.u2), u3 = loadf(L.u3);
+    F excess = loadf(L.excess);
+    const I chan = loadi(L.chan);
+    const I chN = imul(chan, Nv);
+
+    // ---- lanes starting a free flight: one event, the optical depth and the DDA's set-up (VoxelDDA's expressions)
+    const M nf = ieq(state, iset(kObjNeedFlight));
+    if (bits(nf)) {
+      const I ev = loadi(L.event);
+      F u[4];
+      draw(loadi(L.elem), loadi(L.sample), chan, ev, S.seed, u);
+      storei(L.event, seli(nf, iadd(ev, iset(1)), ev));
+      tau = sel(nf, neg(olog<EXACT>(u[0])), tau);
+      u1 = sel(nf, u[1], u1);
+      u2 = sel(nf, u[2], u2);
+      u3 = sel(nf, u[3], u3);
+      acc = sel(nf, fzero(), acc);
+      t = sel(nf, fzero(), t);
+      excess = sel(nf, fzero(), excess);
+      for (int a = 0; a < 3; ++a) {
+        const M pos = gt(d[a], fzero()), negd = lt(d[a], fzero());
+        const F v = fset(vs[a]);
+        const F i0 = cvtif(idx[a]);
+        const F tdp = div(v, d[a]), tdn = div(neg(v), d[a]);
+        const F tnp = tmax(fzero(), div(sub(mul(cvtif(iadd(idx[a], iset(1))), v), p[a]), d[a]));
+        const F tnn = tmax(fzero(), div(sub(mul(i0, v), p[a]), d[a]));
+        td[a] = sel(nf, sel(pos, tdp, sel(negd, tdn, inf)), td[a]);
+        tn[a] = sel(nf, sel(pos, tnp, sel(negd, tnn, inf)), tn[a]);
+        step[a] = seli(nf, seli(pos, iset(1), seli(negd, iset(-1), iset(0))), step[a]);
+      }
+    }
+
+    // ---- the flights: one voxel, or one box of core bricks, per iteration for every lane in flight, until enough
+    // flights have ended
+    M collided = mnone(), surf = mnone(), out = mnone(), flying = active, col_core = mnone();
+    F col_sref = fset(1.0f), col_sig = fzero();
+    I col_v = iset(0), exit_axis = iset(-1);
+    I hit_idx[3] = {idx[0], idx[1], idx[2]};
+    I nseg = RECORD ? loadi(L.nseg) : iset(0);
+    I vsteps = loadi(L.vsteps);
+    do {
+      vsteps = iadd1(vsteps, flying);
+      I kc = iset(0);  // the core distance of the lane's brick (Medium::core_distance)
+      if (S.core != nullptr) {
+        const I b = iadd(imul(iadd(imul(srai<2>(idx[2]), cb1), srai<2>(idx[1])), cb0), srai<2>(idx[0]));
+        kc = gather_u8(S.core, b, flying);
+      }
+      const M incore = mand(flying, igt(kc, iset(0)));
+      const M vox = mandnot(incore, flying);
+      const M m01 = lt(tn[0], tn[1]), m02 = lt(tn[0], tn[2]), m12 = lt(tn[1], tn[2]);
+      const M is0 = mand(m01, m02), is1 = mandnot(m01, m12);
+      const M is2 = mnot(mor(is0, is1));
+      const F t1 = sel(is0, tn[0], sel(is1, tn[1], tn[2]));  // where the ray leaves the voxel
+      F tend = t1;
+      const I v = flat(idx);
+      M hit_here = mnone();
+      if (bits(vox)) {
+        const I ck = gather_u8(S.cell, v, vox);
+        const M mixed = mand(vox, mnot(ieq(ck, iset(kObjCellInside))));
+        if (int mb = bits(mixed)) {  // the surface in a mixed cell: the scalar step, lane by lane
+          alignas(64) float pa[3][kLanes], da[3][kLanes], ta[kLanes], th[kLanes];
+          alignas(64) int32_t ia[3][kLanes], hf[kLanes];
+          for (int a = 0; a < 3; ++a) {
+            storef(pa[a], p[a]);
+            storef(da[a], d[a]);
+            storei(ia[a], idx[a]);
+          }
+          storef(ta, t);
+          storef(th, tend);
+          storei(hf, iset(0));
+          while (mb) {
+            const int l = __builtin_ctz(unsigned(mb));
+            mb &= mb - 1;
+            const int32_t cell[3] = {ia[0][l], ia[1][l], ia[2][l]};
+            const float pl[3] = {pa[0][l], pa[1][l], pa[2][l]}, dl[3] = {da[0][l], da[1][l], da[2][l]};
+            float x;
+            if (S.crossing(S.steps, cell, pl, dl, ta[l], th[l], &x)) {
+              th[l] = x;
+              hf[l] = -1;
+            }
+          }
+          tend = loadf(th);
+          hit_here = ieq(loadi(hf), iset(-1));
+        }
+      }
+      const F seg = tmax(fzero(), sub(tend, t));
+      const F raw = gather(S.ref_sigma_t, iadd(chN, v), vox);
+      const F sref = plain_s ? raw : tmax(raw, fset(S.ref_sigma_t_floor));
+      // the box of core bricks within k − 1 bricks (VoxelDDA::brick_box)
+      F tb = fzero(), sref_c = fset(1.0f);
+      I blo[3] = {iset(0), iset(0), iset(0)}, bhi[3] = {iset(1), iset(1), iset(1)}, baxis = iset(-1);
+      if (bits(incore)) {
+        F tbox = inf;
+        const I km1 = isub(kc, iset(1));
+        for (int a = 0; a < 3; ++a) {
+          const I brick = srai<2>(idx[a]);
+          const I lo = slli<2>(isub(brick, km1)), hi = slli<2>(iadd(brick, kc));
+          blo[a] = seli(igt(iset(0), lo), iset(0), lo);
+          bhi[a] = seli(igt(hi, iset(dims[a])), iset(dims[a]), hi);
+          const I plane = seli(igt(step[a], iset(0)), bhi[a], blo[a]);
+          const F ta = div(sub(mul(cvtif(plane), fset(vs[a])), p[a]), d[a]);
+          const M better = mandnot(ieq(step[a], iset(0)), lt(ta, tbox));
+          tbox = sel(better, ta, tbox);
+          baxis = seli(better, iset(a), baxis);
+        }
+        tb = tmax(tbox, t);
+        sref_c = by_chan(S.core_sigma_t, chan);
+      }
+      const F od = sel(incore, mul(sref_c, sub(tb, t)), mul(sref, seg));
+      const F sx = sel(incore, sref_c, sref);
+      const M hit = mand(flying, ge(add(acc, od), tau));
+      const F len = sel(hit, div(sub(tau, acc), sel(hit, sx, fset(1.0f))), sel(incore, sub(tb, t), seg));
+      F sig = fzero();
+      if (RATIO) {  // (a core box adds (σ − σ̂)·ℓ = 0)
+        sig = same_sig ? raw : gather(S.sigma_t, iadd(chN, v), vox);
+        excess = sel(vox, add(excess, mul(sub(sig, sref), len)), excess);
+      }
+      if (RECORD) {  // a full tape's lane writes its spare slot and counts up to the room (then overflow)
+        const M rec = mand(vox, gt(len, fzero()));
+        store_pairs(segs, iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)), v, asi(len), rec);
+        nseg = iadd1(nseg, mand(rec, igt(seg_roomv, nseg)));
+      }
+      // the collisions: in this voxel, or in the core box at t + len
+      const M hit_c = mand(hit, incore);
+      I ih[3] = {idx[0], idx[1], idx[2]};
+      I vh = v;
+      if (bits(hit_c)) {
+        I cell[3];
+        voxel_in(blo, bhi, p, d, add(t, len), cell);
+        for (int a = 0; a < 3; ++a) ih[a] = seli(hit_c, cell[a], ih[a]);
+        vh = seli(hit_c, flat(cell), vh);
+      }
+      col_v = seli(hit, vh, col_v);
+      for (int a = 0; a < 3; ++a) hit_idx[a] = seli(hit, ih[a], hit_idx[a]);
+      col_sref = sel(hit, sx, col_sref);
+      col_sig = sel(mandnot(incore, hit), sig, col_sig);
+      col_core = mor(col_core, hit_c);
+      // the others move on: to the surface, the next voxel, past the core box, or out of the grid
+      const M moving = mandnot(hit, flying);
+      acc = sel(moving, add(acc, od), acc);
+      const M at_surf = mand(moving, hit_here);
+      const M vstep = mandnot(hit_here, mand(moving, vox));
+      const M cmove = mand(moving, incore);
+      t = sel(hit, add(t, len), sel(at_surf, tend, sel(vstep, t1, sel(cmove, tb, t))));
+      M left = mnone();
+      for (int a = 0; a < 3; ++a) {  // VoxelDDA::next
+        const M axis = mand(vstep, a == 0 ? is0 : (a == 1 ? is1 : is2));
+        const I moved = iadd(idx[a], step[a]);
+        const M oob = mor(igt(iset(0), moved), igt(moved, iset(dims[a] - 1)));
+        const M go = mandnot(oob, axis);
+        const M lv = mand(axis, oob);
+        left = mor(left, lv);
+        exit_axis = seli(lv, iset(a), exit_axis);
+        idx[a] = seli(go, moved, idx[a]);
+        tn[a] = sel(go, add(tn[a], td[a]), tn[a]);
+      }
+      if (bits(cmove)) {  // VoxelDDA::leave
+        I cell[3];
+        voxel_in(blo, bhi, p, d, tb, cell);
+        const M noaxis = mand(cmove, ieq(baxis, iset(-1)));  // (only a zero direction)
+        M lv = mnone();
+        I outv[3];
+        for (int a = 0; a < 3; ++a) {
+          outv[a] = seli(igt(step[a], iset(0)), bhi[a], isub(blo[a], iset(1)));
+          const M oob = mor(igt(iset(0), outv[a]), igt(outv[a], iset(dims[a] - 1)));
+          lv = mor(lv, mand(cmove, mand(ieq(baxis, iset(a)), oob)));
+        }
+        exit_axis = seli(lv, baxis, exit_axis);
+        exit_axis = seli(noaxis, seli(is0, iset(0), seli(is1, iset(1), iset(2))), exit_axis);
+        const M stay = mandnot(mor(lv, noaxis), cmove);
+        for (int a = 0; a < 3; ++a) {
+          idx[a] = seli(lv, cell[a], seli(stay, seli(ieq(baxis, iset(a)), outv[a], cell[a]), idx[a]));
+          const I plane = seli(igt(step[a], iset(0)), iadd(idx[a], iset(1)), idx[a]);
+          const F tna = tmax(tb, div(sub(mul(cvtif(plane), fset(vs[a])), p[a]), d[a]));
+          tn[a] = sel(mandnot(ieq(step[a], iset(0)), stay), tna, tn[a]);
+        }
+        left = mor(left, mor(lv, noaxis));
+      }
+      collided = mor(collided, hit);
+      surf = mor(surf, at_surf);
+      out = mor(out, left);
+      flying = mandnot(mor(mor(hit, at_surf), left), flying);
+    } while (bits(flying) && __builtin_popcount(unsigned(bits(mor(mor(collided, surf), out)))) < ended_lanes);
+    if (RECORD) storei(L.nseg, nseg);
+    storei(L.vsteps, vsteps);
+    for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx[a], idx[a]);
+    // lanes whose flight ended: move along it, apply the flight's transmittance ratio
+    const M ended = mor(mor(collided, surf), out);
+    F w = loadf(L.w), prod = loadf(L.prod);
+    if (bits(ended)) {
+      for (int a = 0; a < 3; ++a) p[a] = sel(ended, add(p[a], mul(d[a], t)), p[a]);
+      if (RATIO) {
+        const F f = oexp<EXACT>(neg(excess));
+        w = sel(ended, mul(w, f), w);
+        prod = sel(ended, mul(prod, f), prod);
+      }
+    }
+    I depth = loadi(L.depth);
+    const I newstate = seli(ended, iset(kObjNeedFlight), seli(active, iset(kObjFlying), iset(kObjIdle)));
+    int kill_trunc = 0, kill_absorb = 0;
+
+    // ---- collisions (collide)
+    if (bits(collided)) {
+      for (int a = 0; a < 3; ++a) {
+        const F lo = mul(cvtif(idx[a]), fset(vs[a])), hi = mul(cvtif(iadd(idx[a], iset(1))), fset(vs[a]));
+        p[a] = sel(collided, tmin(hi, tmax(lo, p[a])), p[a]);
+      }
+      depth = seli(collided, iadd(depth, iset(1)), depth);
+      const M trunc = mand(collided, igt(depth, iset(max_depth)));
+      const M col = mandnot(trunc, collided);
+      kill_trunc = bits(trunc);
+      {
+        int m = bits(col);
+        const int mc = bits(col_core);
+        while (m) {
+          const int l = __builtin_ctz(unsigned(m));
+          m &= m - 1;
+          ++L.scatter[l];
+          L.cevents[l] += (mc >> l) & 1;
+        }
+      }
+      const I cv = iadd(chN, col_v);
+      const M colv = mandnot(col_core, col);
+      const F araw = gather(S.ref_albedo, cv, colv);
+      const F aref = sel(col_core, by_chan(S.core_albedo, chan), plain_a ? araw : tmax(araw, fset(S.ref_albedo_floor)));
+      const F ps = aref;
+      F wref = loadf(L.wref);
+      F q = fset(1.0f);
+      const M rr = igt(depth, iset(rr_depth));
+      if (bits(mand(rr, col))) q = sel(rr, tmin(fset(1.0f), tmax(fzero(), div(mul(wref, aref), ps))), q);
+      const F psq = mul(ps, q);
+      const M survive = mand(col, lt(u1, psq));
+      kill_absorb = bits(mandnot(survive, col));
+      const F inv_psq = div(fset(1.0f), psq);
+      wref = sel(survive, mul(wref, mul(aref, inv_psq)), wref);
+      storef(L.wref, wref);
+      if (RATIO) {
+        const F alb0 = same_alb ? araw : gather(S.albedo, cv, mandnot(col_core, survive));
+        const F alb = sel(col_core, by_chan(S.core_albedo, chan), alb0);
+        const F fa = mul(alb, inv_psq);
+        const F fs = div(sel(col_core, by_chan(S.core_sigma_t, chan), col_sig), col_sref);
+        w = sel(survive, mul(w, mul(fs, fa)), w);
+        const M zs = eq(fs, fzero()), za = eq(fa, fzero());
+        prod = sel(survive, mul(mul(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)), prod);
+        I zeros = loadi(L.zeros);
+        zeros = iadd1(zeros, mand(survive, zs));
+        zeros = iadd1(zeros, mand(survive, za));
+        storei(L.zeros, zeros);
+        if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa}; none in the core
+          const M rec = mandnot(col_core, survive);
+          const I ncol = loadi(L.ncol);
+          const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
+          const I s3 = iadd(iadd(slot, slot), slot);
+          store_pairs(cols, s3, col_v, nseg, rec);
+          store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), rec);
+          store_pairs(cols, iadd(s3, iset(2)), asi(fs), asi(fa), rec);
+          storei(L.ncol, iadd1(ncol, mand(rec, igt(col_roomv, ncol))));
+        }
+      }
+      if (bits(survive)) {
+        F dn[3] = {d[0], d[1], d[2]};
+        orotate<EXACT>(dn, hg_cos_div(S.g, u2), u3);
+        for (int a = 0; a < 3; ++a) d[a] = sel(survive, dn[a], d[a]);
+      }
+    }
+
+    // ---- back to memory
+    for (int a = 0; a < 3; ++a) {
+      storef(L.p[a], p[a]);
+      storef(L.d[a], d[a]);
+      storef(L.tn[a], tn[a]);
+      storef(L.td[a], td[a]);
+      storei(L.idx[a], idx[a]);
+      storei(L.step[a], step[a]);
+    }
+    storef(L.tau, tau);
+    storef(L.acc, acc);
+    storef(L.t, t);
+    storef(L.u1, u1);
+    storef(L.u2, u2);
+    storef(L.u3, u3);
+    storef(L.excess, excess);
+    storef(L.w, w);
+    storef(L.prod, prod);
+    storei(L.depth, depth);
+    storei(L.state, newstate);
+    storei(L.exit_axis, exit_axis);
+
+    // ---- paths that ended at a collision, then the lanes at the surface or the grid's box (the scalar step)
+    const int killed = kill_trunc | kill_absorb;
+    for (int m = killed; m;) {
+      const int l = __builtin_ctz(unsigned(m));
+      m &= m - 1;
+      finish(l, 0.0f, false, (kill_trunc >> l) & 1);
+    }
+    const int boundary = bits(mor(surf, out)), at_surface = bits(surf);
+    for (int m = boundary; m;) {
+      const int l = __builtin_ctz(unsigned(m));
+      m &= m - 1;
+      ObjectLane o;
+      to_lane(l, o);
+      S.surface(S.steps, o, (at_surface >> l) & 1 ? kObjReachedSurface : kObjLeftGrid, L.exit_axis[l]);
+      settle(l, o);
+    }
+    if (killed | boundary)
+      for (int l = 0; l < kLanes; ++l) refill(l);
+  }
+}
+
+// The entry point's body: the template instance for the scene's flags.
+inline void object_walks_dispatch(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n,
+                                  bool ratio, const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
+  if (ended_lanes < 1 || ended_lanes > kLanes) ended_lanes = kLanes * 3 / 4;
+  if (tapes && !(tapes->seg_cap >= 0 && tapes->seg_cap <= kMaxTapeCap && tapes->col_cap >= 0 &&
+                 tapes->col_cap <= kMaxTapeCap))
+    __builtin_trap();  // (the caller checks first)
+  if (S.exact_math) {
+    if (tapes) object_walks<true, true, true>(S, elems, live, n, tapes, ended_lanes, done, ctx);
+    else if (ratio) object_walks<true, false, true>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+    else object_walks<false, false, true>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+  } else {
+    if (tapes) object_walks<true, true, false>(S, elems, live, n, tapes, ended_lanes, done, ctx);
+    else if (ratio) object_walks<true, false, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+    else object_walks<false, false, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+  }
+}

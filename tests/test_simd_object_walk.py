@@ -1,0 +1,245 @@
+"""The SIMD object walk (csrc/volpath/object_simd_walk.h: AVX2, eight lanes; AVX-512, sixteen) against the scalar
+walk (core/integrator.h), each test once per width this CPU runs.
+
+The lanes walk the flights through the voxels, the homogeneous core's boxes and the collisions; the start at the
+sensor, the exact crossing of the surface in mixed cells, and what happens at the surface (Fresnel, refraction,
+total internal reflection, the flight outside to the next surface point of a non-convex object) are the scalar
+walk's own steps, called per lane. The same random numbers, in the same event order, the same expressions.
+
+With ``_C._set_simd_exact_math(True)`` the lanes call libm for log, exp, sin and cos as the scalar walk does, so every
+path is the scalar walk's to the bit: the images are bitwise equal and so are the event and voxel counts; the
+gradients are the same deposits added in another order (lanes finish in another order), so they agree to float
+rounding. With the walk's own polynomials (the default) a path may part from its scalar twin after many events,
+never in distribution: nearly every texel is still the scalar one.
+"""
+import numpy as np
+import pytest
+import torch
+
+import torch_appearance as ta
+from torch_appearance._ext import _C
+from torch_appearance.geometry import sphere_sdf, torus_sdf
+from torch_appearance.render import (EnvironmentMap, OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary,
+                                     SurfaceTexels)
+from torch_appearance.testing import simd_walk_level
+
+pytestmark = pytest.mark.skipif(simd_walk_level() < 1, reason="needs a CPU with AVX2 (or TA_SIMD is 0)")
+WIDTHS = [pytest.param(1, id="avx2"),
+          pytest.param(2, id="avx512", marks=pytest.mark.skipif(simd_walk_level() < 2, reason="needs AVX-512F"))]
+
+N = 40
+H = 0.05
+ORIGIN = (-1.0, -1.0, -1.0)
+COUNTS = ("scatter_events", "truncated_paths", "voxel_steps", "outside_steps", "core_events")
+
+
+def _sdf(kind):
+    if kind == "sphere":
+        return sphere_sdf((N,) * 3, H, ORIGIN, (0.02, -0.01, 0.0), 0.8)
+    return torus_sdf((N,) * 3, H, ORIGIN, (0, 0, 0), 0.6, 0.33)  # paths leave it and enter it again
+
+
+def _surface_points(sdf, count, seed):
+    """Points near the zero set of a corner SDF and their outward normals (finite differences)."""
+    g = sdf.double()
+    grad = torch.stack(torch.gradient(g, spacing=H), dim=0)  # (z, y, x)
+    rng = np.random.default_rng(seed)
+    band = (g.abs() < 0.6 * H).nonzero()
+    pick = band[torch.from_numpy(rng.choice(len(band), size=count, replace=False))]
+    pts, nrm = [], []
+    for k, j, i in pick.tolist():
+        n = torch.stack([grad[2, k, j, i], grad[1, k, j, i], grad[0, k, j, i]])
+        n = n / n.norm()
+        p = torch.tensor([i * H + ORIGIN[0], j * H + ORIGIN[1], k * H + ORIGIN[2]], dtype=torch.float64)
+        pts.append(p - g[k, j, i] * n)
+        nrm.append(n)
+    return torch.stack(pts), torch.stack(nrm)
+
+
+def _scene(kind, sensor, ior, g=0.3, environment=False, **settings):
+    sdf = _sdf(kind)
+    if sensor == "texels":
+        pts, nrm = _surface_points(sdf, 48, seed=2)
+        sens = SurfaceTexels(pts, nrm, footprint_mm=0.05)
+    elif sensor == "ortho":
+        sens = OrthographicCamera(origin=(0.1, 0.05, 3.0), target=(0, 0, 0), up=(0, 1, 0), extent_mm=(2.0, 2.0),
+                                  resolution=(8, 8))
+    else:
+        sens = PerspectiveCamera(origin=(1.5, 0.7, 2.5), target=(0, 0, 0), up=(0, 1, 0), fov_y_deg=40,
+                                 resolution=(8, 8))
+    kw = {}
+    if environment:
+        envmap = torch.rand((8, 16, 3), generator=torch.Generator().manual_seed(9)) + 0.2
+        kw["emitter"] = EnvironmentMap(envmap)
+    return Scene(voxel_size=H, origin=ORIGIN, boundary=SDFBoundary(sdf, ior=ior), sensor=sens, g=g, **kw, **settings)
+
+
+def _medium(kind="sphere", seed=1, core=True, dense=1.0):
+    """A float32 medium: random in a shell near the surface, one white ink deeper than 0.06 mm (the homogeneous
+    core)."""
+    gen = torch.Generator().manual_seed(seed)
+    sigma_t = (torch.rand((3, N, N, N), generator=gen) * 20 + 2) * dense
+    albedo = torch.rand((3, N, N, N), generator=gen) * 0.2 + 0.79
+    if core:
+        f = _sdf(kind)
+        centre = sum(f[k:k + N, j:j + N, i:i + N] for k in (0, 1) for j in (0, 1) for i in (0, 1)) / 8
+        deep = centre < -0.06
+        sigma_t = torch.where(deep, torch.tensor([6.0, 9.0, 24.0]).view(3, 1, 1, 1), sigma_t)
+        albedo = torch.where(deep, torch.tensor([0.9991, 0.9997, 0.999]).view(3, 1, 1, 1), albedo)
+    return sigma_t.contiguous(), albedo.contiguous()
+
+
+def _run(mode, scene, sigma_t, albedo, exact=True, threads=2, **kw):
+    """(image, grad σ_t, grad albedo, stats) with the walk `mode` (0 scalar, 1 AVX2, 2 AVX-512)."""
+    _C._set_simd(mode)
+    old = _C._set_simd_exact_math(exact)
+    torch.set_num_threads(threads)
+    try:
+        s = sigma_t.clone().requires_grad_()
+        a = albedo.clone().requires_grad_()
+        stats = {}
+        image = ta.render_scene(scene, s, a, stats=stats, **kw)
+        weights = torch.linspace(-1.0, 2.0, image.numel()).reshape(image.shape)
+        (image * weights).sum().backward()
+    finally:
+        _C._set_simd_exact_math(old)
+        _C._set_simd(-1)
+    return image.detach(), s.grad, a.grad, stats
+
+
+def _assert_grads_close(simd, scalar, rtol=2e-5):
+    for k in (1, 2):
+        g_v, g_s = simd[k], scalar[k]
+        assert bool(torch.isfinite(g_v).all())
+        scale = float(g_s.abs().max())
+        assert scale > 0
+        err = float((g_v - g_s).abs().max())
+        assert err <= rtol * scale, f"gradient {k}: max difference {err:.3g} against max |g| {scale:.3g}"
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("kind,sensor,ior", [
+    ("sphere", "texels", 1.5),      # dielectric, seen by its surface texels
+    ("sphere", "ortho", None),      # index matched, a camera
+    ("torus", "texels", 1.33),      # re-entry of a non-convex object
+    ("torus", "persp", 2.4),        # total internal reflection beyond 24.6°
+])
+def test_exact_math_lanes_are_the_scalar_walk_to_the_bit(width, kind, sensor, ior):
+    sc = _scene(kind, sensor, ior)
+    sigma_t, albedo = _medium(kind)
+    kw = dict(spp=3, seed=11)
+    scalar = _run(0, sc, sigma_t, albedo, **kw)
+    simd = _run(width, sc, sigma_t, albedo, **kw)
+    assert torch.equal(simd[0], scalar[0]), float((simd[0] - scalar[0]).abs().max())
+    for key in COUNTS:
+        assert simd[3][key] == scalar[3][key], (key, simd[3][key], scalar[3][key])
+    assert scalar[3]["core_events"] > 0 and scalar[3]["outside_steps"] > 0  # both shortcuts exercised
+    assert simd[3]["backward_scatter_events"] == scalar[3]["backward_scatter_events"]
+    _assert_grads_close(simd, scalar)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_exact_math_with_an_environment_map_and_the_one_walk(width):
+    """The escape direction is the scalar walk's (an environment map sees it), and the walk that renders and deposits
+    at once (``adjoint``) is the scalar one too."""
+    sc = _scene("torus", "ortho", 1.5, environment=True)
+    sigma_t, albedo = _medium("torus", seed=4)
+    adjoint = torch.linspace(-1.0, 1.0, 8 * 8 * 3).reshape(8, 8, 3)
+    out = {}
+    for mode in (0, width):
+        _C._set_simd(mode)
+        old = _C._set_simd_exact_math(True)
+        try:
+            stats = {}
+            image = ta.render_scene(sc, sigma_t, albedo, spp=2, seed=5, stats=stats)
+            s = sigma_t.clone().requires_grad_()
+            one = ta.render_scene(sc, s, albedo, spp=2, seed=5, adjoint=adjoint)
+            (one * adjoint).sum().backward()
+            out[mode] = image, one.detach(), s.grad
+        finally:
+            _C._set_simd_exact_math(old)
+            _C._set_simd(-1)
+    assert torch.equal(out[width][0], out[0][0])
+    assert torch.equal(out[width][1], out[0][1])
+    scale = float(out[0][2].abs().max())
+    assert float((out[width][2] - out[0][2]).abs().max()) <= 2e-5 * scale
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_polynomial_lanes_are_the_scalar_walk_in_distribution(width):
+    """The default walk (its own log, exp, sin, cos): nearly every texel is its scalar twin's, and the rest agree in
+    distribution (a z-test of the mean difference over many texels)."""
+    sc = _scene("sphere", "texels", 1.5)
+    sigma_t, albedo = _medium("sphere", seed=2)
+    kw = dict(spp=4, seed=3)
+    scalar = _run(0, sc, sigma_t, albedo, exact=False, **kw)
+    simd = _run(width, sc, sigma_t, albedo, exact=False, **kw)
+    close = (simd[0] - scalar[0]).abs() <= 1e-4 * scalar[0].abs().clamp_min(1e-3)
+    assert float(close.float().mean()) >= 0.9, float(close.float().mean())
+    for key in ("scatter_events", "voxel_steps"):
+        assert abs(simd[3][key] - scalar[3][key]) <= 0.02 * scalar[3][key], key
+    # in distribution: independent seeds, many texels; the mean difference within 4 standard errors
+    a = _run(width, sc, sigma_t, albedo, exact=False, spp=16, seed=101)[0]
+    b = _run(0, sc, sigma_t, albedo, exact=False, spp=16, seed=202)[0]
+    d = (a - b).flatten().double()
+    z = float(d.mean() / (d.std() / d.numel() ** 0.5))
+    assert abs(z) < 4.0, z
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("capacity", [0, 4])
+def test_paths_longer_than_the_lane_tape_are_replayed_exactly(width, capacity):
+    sc = _scene("sphere", "texels", 1.5)
+    sigma_t, albedo = _medium("sphere", seed=6)
+    old = _C._set_tape_capacity(capacity)
+    try:
+        scalar = _run(0, sc, sigma_t, albedo, spp=2, seed=8)
+        simd = _run(width, sc, sigma_t, albedo, spp=2, seed=8)
+    finally:
+        _C._set_tape_capacity(old)
+    assert torch.equal(simd[0], scalar[0])
+    _assert_grads_close(simd, scalar)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_floored_sampling_medium_and_zeros(width):
+    """The replay samples max(σ_t, floor), max(α, floor); exact zeros in σ_t and α give zero-safe weights."""
+    sc = _scene("sphere", "texels", None, sigma_t_floor=4.0, albedo_floor=0.5)
+    sigma_t, albedo = _medium("sphere", seed=7, core=False)
+    sigma_t[:, 18:22, 18:22, 5:12] = 0.0
+    albedo[:, 20:23, 4:10, 18:22] = 0.0
+    kw = dict(spp=3, seed=2)
+    scalar = _run(0, sc, sigma_t, albedo, **kw)
+    simd = _run(width, sc, sigma_t, albedo, **kw)
+    assert torch.equal(simd[0], scalar[0])
+    _assert_grads_close(simd, scalar)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.filterwarnings("ignore:render_scene.*max_depth")
+def test_cut_by_depth(width):
+    sc = _scene("sphere", "texels", 1.5, max_depth=12)
+    sigma_t, albedo = _medium("sphere", seed=3, dense=8.0)
+    kw = dict(spp=2, seed=4)
+    scalar = _run(0, sc, sigma_t, albedo, **kw)
+    simd = _run(width, sc, sigma_t, albedo, **kw)
+    assert scalar[3]["truncated_paths"] > 0
+    assert torch.equal(simd[0], scalar[0])
+    assert simd[3]["truncated_paths"] == scalar[3]["truncated_paths"]
+
+
+def test_double_hero_and_tally_keep_the_scalar_walk():
+    """What the lanes do not serve (float64, the hero walk) runs the scalar walk: the same image with and without
+    the SIMD walks."""
+    sc = _scene("sphere", "texels", 1.5)
+    sigma_t, albedo = _medium("sphere", seed=5)
+    for kw in (dict(sigma_t=sigma_t.double(), albedo=albedo.double()), dict(sigma_t=sigma_t, albedo=albedo,
+                                                                               chromatic="hero")):
+        images = []
+        for mode in (0, -1):
+            _C._set_simd(mode)
+            try:
+                images.append(ta.render_scene(sc, spp=2, seed=1, **kw))
+            finally:
+                _C._set_simd(-1)
+        assert torch.equal(images[0], images[1])
