@@ -203,7 +203,7 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
   };
   for (int l = 0; l < kLanes; ++l) refill(l);
 
-  const I Wv = iset(S.W), Hv = iset(S.H), Nv = iset(N);
+  const I Wv = iset(S.W), Hv = iset(S.H), HWv = iset(S.H * S.W), Nv = iset(N);
   const I cb0 = iset(S.core_bricks[0]), cb1 = iset(S.core_bricks[1]);
   const int32_t max_depth = int32_t(S.max_depth < 0x7fffffff ? S.max_depth : 0x7fffffff);
   const int32_t rr_depth = int32_t(S.rr_depth < 0x7fffffff ? S.rr_depth : 0x7fffffff);
@@ -291,6 +291,20 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       const F t1 = sel(is0, tn[0], sel(is1, tn[1], tn[2]));  // where the ray leaves the voxel
       F tend = t1;
       const I v = flat(idx);
+      if (int mp = bits(vox)) {  // ask for the next voxel's values while this one's are loaded (cache misses)
+        const I stride = seli(is0, iset(1), seli(is1, Wv, HWv));
+        const I vn = iadd(v, imul(seli(is0, step[0], seli(is1, step[1], step[2])), stride));
+        alignas(64) int32_t na[kLanes], ca[kLanes];
+        storei(na, vn);
+        storei(ca, iadd(chN, vn));
+        while (mp) {
+          const int l = __builtin_ctz(unsigned(mp));
+          mp &= mp - 1;
+          __builtin_prefetch(S.ref_sigma_t + ca[l]);
+          __builtin_prefetch(S.cell + na[l]);
+          if (RATIO && !same_sig) __builtin_prefetch(S.sigma_t + ca[l]);
+        }
+      }
       M hit_here = mnone();
       if (bits(vox)) {
         const I ck = gather_u8(S.cell, v, vox);
