@@ -20,7 +20,7 @@ import torch_appearance as ta
 from torch_appearance._ext import _C
 from torch_appearance.geometry import sphere_sdf, torus_sdf
 from torch_appearance.render import (EnvironmentMap, OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary,
-                                     SurfaceTexels)
+                                     SurfaceTexels, render_scene_indexed)
 from torch_appearance.testing import simd_walk_level
 
 pytestmark = pytest.mark.skipif(simd_walk_level() < 1, reason="needs a CPU with AVX2 (or TA_SIMD is 0)")
@@ -243,3 +243,74 @@ def test_double_hero_and_tally_keep_the_scalar_walk():
             finally:
                 _C._set_simd(-1)
         assert torch.equal(images[0], images[1])
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_palette_medium_of_a_quantised_print(width):
+    """A palette medium (render_scene_indexed: a uint8 index volume and (P, 3) tables, as a quantised print's
+    evaluation renders it) in lanes: the scalar walk's image to the bit, and the dense render's."""
+    sc = _scene("torus", "texels", 1.5)
+    gen = torch.Generator().manual_seed(12)
+    index = torch.randint(0, 5, (N, N, N), generator=gen, dtype=torch.uint8)
+    f = _sdf("torus")
+    centre = sum(f[k:k + N, j:j + N, i:i + N] for k in (0, 1) for j in (0, 1) for i in (0, 1)) / 8
+    index[centre < -0.06] = 4  # one entry deep inside: the homogeneous core
+    sigma_table = torch.rand((5, 3), generator=gen) * 20 + 2
+    albedo_table = torch.rand((5, 3), generator=gen) * 0.2 + 0.79
+    images = {}
+    for mode in (0, width):
+        _C._set_simd(mode)
+        old = _C._set_simd_exact_math(True)
+        try:
+            images[mode] = render_scene_indexed(sc, index, sigma_table, albedo_table, spp=3, seed=2)
+        finally:
+            _C._set_simd_exact_math(old)
+            _C._set_simd(-1)
+    assert torch.equal(images[width], images[0])
+    dense_s = sigma_table[index.long()].permute(3, 0, 1, 2).contiguous()
+    dense_a = albedo_table[index.long()].permute(3, 0, 1, 2).contiguous()
+    _C._set_simd(width)
+    old = _C._set_simd_exact_math(True)
+    try:
+        dense = ta.render_scene(sc, dense_s, dense_a, spp=3, seed=2)
+    finally:
+        _C._set_simd_exact_math(old)
+        _C._set_simd(-1)
+    assert torch.equal(images[width], dense)
+
+
+@pytest.fixture(scope="module")
+def small_spot():
+    """Spot (public domain, tests/data) at 6 mm and 150 DPI with a 0.4 mm shell, as ta-optimize-print prepares it,
+    and its 97 % white start (the print loop's mixture: random in no voxel, white in the core)."""
+    import os
+    from torch_appearance.nn.mixture import MaterialMixture
+    from torch_appearance.pipelines.print import PrintConfig
+    from torch_appearance.pipelines.print.config import load_inks
+    from torch_appearance.pipelines.print.object_target import ObjectTarget
+    spot = os.path.join(os.path.dirname(__file__), "data", "meshes", "spot")
+    cfg = PrintConfig(mesh=os.path.join(spot, "spot_triangulated.obj"), texture=os.path.join(spot, "spot_texture.png"),
+                      height_mm=6.0, dpi=150.0, shell_mm=0.4, out="unused")
+    inks = load_inks(cfg.inks)
+    target = ObjectTarget.from_config(cfg, inks, log=lambda *a: None)
+    model = MaterialMixture(inks, tuple(target.shape), support=target.support, core_ink="white")
+    with torch.no_grad():  # a heterogeneous shell: random logits
+        for prm in model.parameters():
+            prm.copy_(torch.randn(prm.shape, generator=torch.Generator().manual_seed(3)))
+        sigma_t, albedo = model()
+    return target, sigma_t.float().contiguous(), albedo.float().contiguous()
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_small_spot_as_the_print_loop_renders_it(width, small_spot):
+    """Spot's surface texels, dielectric, the shell's gradients only (``grad_support``), as the print loop asks."""
+    target, sigma_t, albedo = small_spot
+    kw = dict(spp=2, seed=7, grad_support=target.support)
+    scalar = _run(0, target.scene, sigma_t, albedo, **kw)
+    simd = _run(width, target.scene, sigma_t, albedo, **kw)
+    assert scalar[0].shape[0] > 500
+    assert torch.equal(simd[0], scalar[0])
+    for key in COUNTS:
+        assert simd[3][key] == scalar[3][key], (key, simd[3][key], scalar[3][key])
+    assert scalar[3]["core_events"] > 0
+    _assert_grads_close(simd, scalar)

@@ -1,7 +1,7 @@
 // The backward kernel (radiative backpropagation by path replay) and its entry points scene_backward_cpu and
 // scene_forward_backward_cpu (the image of the same walks too, for an adjoint known before the render): per sensor
-// element, each sample's path replayed (replay.h, or the SIMD slab or object walk where it serves), deposited into per-chunk
-// gradient buffers that are added in chunk order.
+// element, each sample's path replayed (replay.h, or the SIMD slab or object walk where it serves), deposited into
+// per-chunk gradient buffers that are added in chunk order.
 #include <ATen/Parallel.h>
 
 #include <atomic>

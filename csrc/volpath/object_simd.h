@@ -60,7 +60,14 @@ struct ObjectWalkScene {
   const float* ref_sigma_t = nullptr;
   const float* ref_albedo = nullptr;
   float ref_sigma_t_floor = 0, ref_albedo_floor = 0;
+  // or a palette medium (forward only; the grids above are null): voxel v holds entry index[v] of the channel-planar
+  // (3, entries) tables, in the parameters and the reference alike (core::Channels)
+  const uint8_t* index = nullptr;
+  const float* sigma_t_table = nullptr;
+  const float* albedo_table = nullptr;
+  int32_t entries = 0;
   const uint8_t* cell = nullptr;  // (D, H, W) core::CellKind of the SDF
+  const float* sdf = nullptr;     // (D+1, H+1, W+1) corner values (core::SDFGrid::sdf), < 2^31 of them
   // the homogeneous core (core::Medium::core), or none
   const uint8_t* core = nullptr;
   int32_t core_bricks[3] = {0, 0, 0};

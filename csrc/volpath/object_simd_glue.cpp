@@ -96,8 +96,8 @@ void lane_surface(void* ctx, simd::ObjectLane& o, int32_t end, int32_t axis) {
   core::Flight f;
   f.end = end;
   f.axis = axis;
-  const bool alive =
-      core::cross_from_inside<float, 1, core::kSDFBoundary, DIEL, false>(S, st, res, f) && into_object<DIEL>(S, st, res);
+  const bool alive = core::cross_from_inside<float, 1, core::kSDFBoundary, DIEL, false>(S, st, res, f) &&
+                     into_object<DIEL>(S, st, res);
   store_lane(st, res, alive, o);
 }
 
@@ -118,7 +118,14 @@ simd::ObjectWalkScene object_scene(const Scene<float>& S) {
   W.ref_albedo = M.ref_albedo.data;
   W.ref_sigma_t_floor = M.ref_sigma_t.plain ? 0.0f : M.ref_sigma_t.floor;
   W.ref_albedo_floor = M.ref_albedo.plain ? 0.0f : M.ref_albedo.floor;
+  if (M.sigma_t.index != nullptr) {  // a palette medium (simd_serves_object: the same palette throughout)
+    W.index = M.sigma_t.index;
+    W.sigma_t_table = M.sigma_t.palette;
+    W.albedo_table = M.albedo.palette;
+    W.entries = int32_t(M.sigma_t.entries);
+  }
   W.cell = S.sdf.cell;
+  W.sdf = S.sdf.sdf;
   W.core = M.core;
   for (int a = 0; a < 3; ++a) {
     W.core_bricks[a] = int32_t(M.core_bricks[a]);

@@ -63,6 +63,69 @@ inline void orotate(F d[3], F cos_t, F u) {
   rotate_sc(d, cos_t, sp, cp);
 }
 
+// The lanes of `m` (mixed cells idx, the ray p + t·d over [t0, t1]) where SDFGrid::crossing(..., side = +1) finds a
+// crossing, as lane bits: its expressions in its order up to its decision (the cubic's coefficients, the roots of its
+// derivative, and whether a monotone piece rises to h >= 0), so a lane it leaves out is one where the scalar step
+// would find none; for the others the scalar step finds the crossing itself (the bisection).
+inline int may_cross(const ObjectWalkScene& S, M m, const I idx[3], const F p[3], const F d[3], F t0, F t1) {
+  const int32_t W1 = S.W + 1, HW1 = (S.H + 1) * W1;
+  const int32_t off[8] = {0, 1, W1, W1 + 1, HW1, HW1 + 1, HW1 + W1, HW1 + W1 + 1};
+  alignas(64) int32_t base[kLanes];
+  alignas(64) float cs[8][kLanes];
+  storei(base, iadd(iadd(imul(idx[2], iset(HW1)), imul(idx[1], iset(W1))), idx[0]));
+  for (int j = 0; j < 8; ++j)
+    for (int l = 0; l < kLanes; ++l) cs[j][l] = 0.0f;
+  for (int mb = bits(m); mb;) {
+    const int l = __builtin_ctz(unsigned(mb));
+    mb &= mb - 1;
+    const float* b = S.sdf + base[l];
+    for (int j = 0; j < 8; ++j) cs[j][l] = b[off[j]];
+  }
+  F a[3], b[3];
+  for (int k = 0; k < 3; ++k) {
+    a[k] = sub(div(add(p[k], mul(d[k], t0)), fset(S.voxel[k])), cvtif(idx[k]));
+    b[k] = div(d[k], fset(S.voxel[k]));
+  }
+  const F one = fset(1.0f);
+  F k0 = fzero(), k1 = fzero(), k2 = fzero(), k3 = fzero();
+  for (int corner = 0; corner < 8; ++corner) {
+    const int ix = corner & 1, iy = (corner >> 1) & 1, iz = (corner >> 2) & 1;
+    const F p0 = ix ? a[0] : sub(one, a[0]), p1 = ix ? b[0] : neg(b[0]);
+    const F q0 = iy ? a[1] : sub(one, a[1]), q1 = iy ? b[1] : neg(b[1]);
+    const F r0 = iz ? a[2] : sub(one, a[2]), r1 = iz ? b[2] : neg(b[2]);
+    const F w = loadf(cs[corner]);  // side · c with side = +1
+    k0 = add(k0, mul(mul(mul(w, p0), q0), r0));
+    k1 = add(k1, mul(w, add(add(mul(mul(p1, q0), r0), mul(mul(p0, q1), r0)), mul(mul(p0, q0), r1))));
+    k2 = add(k2, mul(w, add(add(mul(mul(p1, q1), r0), mul(mul(p1, q0), r1)), mul(mul(p0, q1), r1))));
+    k3 = add(k3, mul(mul(mul(w, p1), q1), r1));
+  }
+  const F L = sub(t1, t0);
+  const M ok = mand(m, gt(L, fzero()));
+  // roots of h' = 3k3 τ² + 2k2 τ + k1 (the numerically stable form), sorted
+  const F A = mul(fset(3.0f), k3), B = mul(fset(2.0f), k2), C = k1;
+  const M quad = mnot(eq(A, fzero()));
+  const F disc = sub(mul(B, B), mul(mul(fset(4.0f), A), C));
+  const M two_roots = mand(quad, gt(disc, fzero()));
+  const F sq = sqrt_(sel(two_roots, disc, fzero()));
+  const F q = mul(fset(-0.5f), add(B, asf(ior_(asi(fabs_(sq)), iand(asi(B), asi(fset(-0.0f)))))));
+  F ra = div(q, sel(two_roots, A, one));
+  F rb = div(C, sel(eq(q, fzero()), one, q));
+  M va = two_roots, vb = mandnot(eq(q, fzero()), two_roots);
+  const M lin = mandnot(quad, mnot(eq(B, fzero())));  // A == 0, B != 0: one root −C/B
+  ra = sel(lin, div(neg(C), sel(lin, B, one)), ra);
+  va = mor(va, lin);
+  const M swap = mand(vb, lt(rb, ra));
+  const F lo = sel(swap, rb, ra), hi = sel(swap, ra, rb);
+  const M v0 = mand(va, mand(gt(lo, fzero()), lt(lo, L)));
+  const M v1 = mand(vb, mand(gt(hi, fzero()), lt(hi, L)));
+  // the pieces [0, P1], [P1, P2], [P2, L] (degenerate [L, L] where there are fewer split points)
+  const F P1 = sel(v0, lo, sel(v1, hi, L)), P2 = sel(mand(v0, v1), hi, L);
+  auto h = [&](F x) { return add(mul(add(mul(add(mul(k3, x), k2), x), k1), x), k0); };
+  const F h0 = h(fzero()), h1 = h(P1), h2 = h(P2), h3 = h(L);
+  auto rises = [&](F ha, F hb) { return mandnot(lt(hb, fzero()), gt(hb, ha)); };
+  return bits(mand(ok, mor(mor(rises(h0, h1), rises(h1, h2)), rises(h2, h3))));
+}
+
 // Per-lane state between the phases of the wavefront loop.
 struct alignas(64) ObjLanes {
   float p[3][kLanes], d[3][kLanes], tn[3][kLanes], td[3][kLanes], dir[3][kLanes];
@@ -85,6 +148,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
   const int32_t dims[3] = {S.W, S.H, S.D};
   const bool plain_s = !(S.ref_sigma_t_floor > 0), plain_a = !(S.ref_albedo_floor > 0);
   const bool same_sig = S.sigma_t == S.ref_sigma_t, same_alb = S.albedo == S.ref_albedo;
+  const bool pal = S.index != nullptr;  // a palette medium (forward only: the reference is the medium)
+  const I entries = iset(S.entries);
 
   ObjLanes L;
   memset(&L, 0, sizeof(L));
@@ -300,7 +365,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
         while (mp) {
           const int l = __builtin_ctz(unsigned(mp));
           mp &= mp - 1;
-          __builtin_prefetch(S.ref_sigma_t + ca[l]);
+          if (pal) __builtin_prefetch(S.index + na[l]);
+          else __builtin_prefetch(S.ref_sigma_t + ca[l]);
           __builtin_prefetch(S.cell + na[l]);
           if (RATIO && !same_sig) __builtin_prefetch(S.sigma_t + ca[l]);
         }
@@ -309,7 +375,9 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       if (bits(vox)) {
         const I ck = gather_u8(S.cell, v, vox);
         const M mixed = mand(vox, mnot(ieq(ck, iset(kObjCellInside))));
-        if (int mb = bits(mixed)) {  // the surface in a mixed cell: the scalar step, lane by lane
+        int mb = bits(mixed);
+        if (mb && S.sdf != nullptr) mb = may_cross(S, mixed, idx, p, d, t, tend);  // (most flights pass no surface)
+        if (mb) {  // the surface in a mixed cell: the scalar step, lane by lane
           alignas(64) float pa[3][kLanes], da[3][kLanes], ta[kLanes], th[kLanes];
           alignas(64) int32_t ia[3][kLanes], hf[kLanes];
           for (int a = 0; a < 3; ++a) {
@@ -336,7 +404,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
         }
       }
       const F seg = tmax(fzero(), sub(tend, t));
-      const F raw = gather(S.ref_sigma_t, iadd(chN, v), vox);
+      const F raw = pal ? gather(S.sigma_t_table, iadd(imul(chan, entries), gather_u8(S.index, v, vox)), vox)
+                        : gather(S.ref_sigma_t, iadd(chN, v), vox);
       const F sref = plain_s ? raw : tmax(raw, fset(S.ref_sigma_t_floor));
       // the box of core bricks within k − 1 bricks (VoxelDDA::brick_box)
       F tb = fzero(), sref_c = fset(1.0f);
@@ -473,7 +542,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       }
       const I cv = iadd(chN, col_v);
       const M colv = mandnot(col_core, col);
-      const F araw = gather(S.ref_albedo, cv, colv);
+      const F araw = pal ? gather(S.albedo_table, iadd(imul(chan, entries), gather_u8(S.index, col_v, colv)), colv)
+                         : gather(S.ref_albedo, cv, colv);
       const F aref = sel(col_core, by_chan(S.core_albedo, chan), plain_a ? araw : tmax(araw, fset(S.ref_albedo_floor)));
       const F ps = aref;
       F wref = loadf(L.wref);

@@ -1,6 +1,8 @@
-// SIMD glue: the SIMD slab walk (slab_simd.h: eight or sixteen paths per thread at once) where the scene allows it.
-// Which walk runs (the CPU, TA_SIMD, set_simd), whether it serves a scene, and its forward and replay of one chunk
-// of face texels, with the same per-element sums and the same deposits as the scalar kernels.
+// SIMD glue: the SIMD walks (eight or sixteen paths per thread at once) where the scene allows them: the slab walk
+// (slab_simd.h: box boundary, face texels) and the object walk (object_simd.h: SDF boundary, any sensor and emitter;
+// object_simd_glue.cpp). Which walk runs (the CPU, TA_SIMD, set_simd), whether it serves a scene, and its forward and
+// replay of one chunk of sensor elements, with the same per-element sums and the same deposits as the scalar
+// kernels.
 #pragma once
 
 #include <cstdint>
@@ -51,17 +53,23 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const core::Ad
 void write_batch_image(const core::Scene<float>& S, const int64_t* elems, int64_t n, const std::vector<double>& values,
                        float* out);
 
-// Whether the SIMD object walk (object_simd.h) serves this scene: float32 dense grids, an SDF boundary, one walk per
-// channel (not hero), no tally.
+// Whether the SIMD object walk (object_simd.h) serves this scene: float32 dense grids (the reference may be floored)
+// or one palette medium (a quantised print's forward), an SDF boundary, one walk per channel (not hero), no tally.
 template <typename T, int LANES, int B, bool HERO>
 bool simd_serves_object(const core::Scene<T>& S) {
   if constexpr (!std::is_same_v<T, float> || LANES != 1 || B != core::kSDFBoundary || HERO) {
     return false;
   } else {
     const auto& M = S.medium;
-    return simd_enabled() && S.tally == nullptr && S.sdf.cell != nullptr && M.sigma_t.index == nullptr &&
-           M.albedo.index == nullptr && M.ref_sigma_t.index == nullptr && M.ref_albedo.index == nullptr &&
-           M.sigma_t.plain && M.albedo.plain && 3 * M.voxels() < (int64_t(1) << 31) && S.elements() < (int64_t(1) << 31);
+    const bool dense = M.sigma_t.index == nullptr && M.albedo.index == nullptr && M.ref_sigma_t.index == nullptr &&
+                       M.ref_albedo.index == nullptr && M.sigma_t.plain && M.albedo.plain;
+    const bool palette = M.sigma_t.index != nullptr && M.albedo.index == M.sigma_t.index &&
+                         M.ref_sigma_t.index == M.sigma_t.index && M.ref_albedo.index == M.sigma_t.index &&
+                         M.ref_sigma_t.palette == M.sigma_t.palette && M.ref_albedo.palette == M.albedo.palette &&
+                         M.sigma_t.entries == M.albedo.entries && M.sigma_t.entries <= 256;
+    return simd_enabled() && S.tally == nullptr && S.sdf.cell != nullptr && (dense || palette) &&
+           3 * M.voxels() < (int64_t(1) << 31) && S.elements() < (int64_t(1) << 31) &&
+           (M.D + 1) * (M.H + 1) * (M.W + 1) < (int64_t(1) << 31);
   }
 }
 

@@ -92,8 +92,8 @@ struct SceneOptions {
 struct ForwardCounts {
   int64_t scatter_events = 0;
   int64_t truncated_paths = 0;  // walks cut by max_depth (each channel's walk counts once)
-  // the scalar walk's voxel visits (the SIMD slab walk leaves them 0): by the free flights inside the object, and
-  // outside it in the search for the surface
+  // the voxel visits of the scalar and the SIMD object walks (the SIMD slab walk leaves them 0): by the free flights
+  // inside the object, and outside it in the search for the surface
   int64_t voxel_steps = 0;
   int64_t outside_steps = 0;
   int64_t core_events = 0;  // scattering events in the homogeneous core (core::Medium::core)
@@ -146,8 +146,8 @@ bool set_core_walk(bool on);
 // next forward passes counts its scattering events and voxel moves (ForwardCounts::tally; the SIMD slab walk
 // counts nothing). The forward refuses a grid of another shape.
 void set_tally(const torch::Tensor& bins);
-// The SIMD walks (slab_simd.h, object_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; returns
-// the level before.
+// The SIMD walks (slab_simd.h, object_simd.h): -1 automatic (the CPU's widest, TA_SIMD), 0 scalar, 1 AVX2,
+// 2 AVX-512; returns the level before.
 int64_t set_simd(int64_t mode);
 // Whether the SIMD object walk calls libm per lane (the scalar walk's log, exp, sin and cos: every path the scalar
 // one, for tests) instead of its polynomials; returns the previous setting.

@@ -20,7 +20,8 @@ is timed in its parts, after an untimed warm-up iteration at 1 spp:
   bricks; ``--shortcuts off,on`` times each height without and with the two brick shortcuts), ``peak_rss_mb`` (VmHWM
   growth over the iteration); ``--walks two,one`` times the iteration with a forward and a replay, and as the
   ``ema`` estimator runs it from its second iteration on (the loss's gradient at the running mean first, here the
-  warm-up's render, then one walk for the render and its gradient: ``replay_s`` is then 0),
+  warm-up's render, then one walk for the render and its gradient: ``replay_s`` is then 0), ``--simd scalar,avx2``
+  times it with the scalar walk and with the SIMD object walk (csrc/volpath/object_simd.h) at each width,
   with ``--depth-bin-mm`` > 0, ``by_depth``: one more, untimed forward at ``--spp`` whose walk counts its scattering
   events and voxel moves by the depth of their voxel below the surface, in bins of that width (``[depth_from_mm,
   share of the events, share of the moves]`` per bin; the last bin holds everything deeper), and ``events_per_mm3``
