@@ -8,7 +8,8 @@
 // paths do, and rarely, each lane hands to the scalar steps of core::trace_path (compiled for the baseline
 // instruction set by the glue, object_simd_glue.cpp), through the callbacks below:
 //   start     begin_path and start_at_sensor, then outside the object up to its surface and into it (or escape);
-//   crossing  the exact crossing of the surface in a mixed cell (SDFGrid::crossing: the cubic along the ray);
+//   crossing  the exact crossing of the surface in a mixed cell (SDFGrid::crossing: the cubic along the ray), for
+//             the lanes whose ray crosses it there (the lanes take that decision themselves, in its arithmetic);
 //   surface   the surface (or the grid's box) reached from inside: Fresnel, reflection or refraction, and outside
 //             the object up to its next surface point and into it, or escape (cross_from_inside, enter_from_outside).
 // So each lane follows core::trace_path<float, 1, kSDFBoundary, DIELECTRIC, RATIO, false, RECORD> step by step, on

@@ -9,9 +9,11 @@
 //   start    (begin_path, start_at_sensor, enter_from_outside) the scalar step `start`;
 //   flight   (fly) one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 for what ends
 //            the flight, u2 u3 the new direction; per iteration of the wavefront loop each lane in flight either
-//            steps through one voxel (VoxelDDA; in a mixed cell the scalar step `crossing` finds the surface) or, in
-//            a brick of the homogeneous core, crosses or collides in the box of core bricks around it in one move
+//            steps through one voxel (VoxelDDA; in a mixed cell the lanes decide whether the ray crosses the
+//            surface there, may_cross, and the scalar step `crossing` finds where) or, in a brick of the
+//            homogeneous core, crosses or collides in the box of core bricks around it in one move
 //            (VoxelDDA::brick_box, voxel_in, leave), with the core's values and no ratio weight or tape entry;
+//            a palette medium (a quantised print) reads each voxel's entry and the tables;
 //   collide  (collide) depth cut, continuation p_s = α̂ times roulette q on the reference weight, the factors
 //            σ/σ̂ and α/(p_s q) (the core's values in a core brick, and no tape entry there), the new direction;
 //   surface  (cross_from_inside, enter_from_outside) the scalar step `surface`, where a flight ends at the surface
@@ -153,35 +155,10 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
 
   ObjLanes L;
   memset(&L, 0, sizeof(L));
-  static_assert(kLanes <= kMaxLanes, "LaneTapes holds kMaxLanes tapes");
-  TapeSegmentF* segs = RECORD ? tapes->segs : nullptr;
-  TapeCollisionF* cols = RECORD ? tapes->cols : nullptr;
-  const int64_t seg_cap = RECORD ? tapes->seg_cap : 0, col_cap = RECORD ? tapes->col_cap : 0;
-  const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;  // (see slab_simd_walk.h)
-  alignas(64) int32_t lane_ids[kLanes];
-  for (int l = 0; l < kLanes; ++l) lane_ids[l] = l;
-  const I seg_base = imul(loadi(lane_ids), iset(int32_t(seg_room)));
-  const I seg_capv = iset(int32_t(seg_cap)), seg_roomv = iset(int32_t(seg_room));
-  const I col_base = imul(loadi(lane_ids), iset(int32_t(col_room)));
-  const I col_capv = iset(int32_t(col_cap)), col_roomv = iset(int32_t(col_room));
-
-  // the next path of the batch: channel by channel, then element and sample (as the slab walk)
-  int64_t k = 0, s = -1;
-  int c = 0;
-  auto next_item = [&]() -> bool {
-    if (n <= 0) return false;
-    for (;;) {
-      if (++s == S.spp) {
-        s = 0;
-        if (++k == n) {
-          k = 0;
-          ++c;
-        }
-      }
-      if (c >= 3) return false;
-      if (!live || (live[k] >> c) & 1) return true;
-    }
-  };
+  const TapeSlots ts(RECORD ? tapes : nullptr);
+  TapeSegmentF* const segs = ts.segs;
+  TapeCollisionF* const cols = ts.cols;
+  BatchOrder order(n, S.spp, live);  // the next path of the batch (the slab walk's order): order.next()
   auto finish = [&](int l, float value, bool escaped, bool truncated) {
     WalkOut o;
     o.item = L.item[l];
@@ -191,11 +168,7 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     o.escaped = escaped;
     o.truncated = truncated;
     o.scatter_events = L.scatter[l];
-    o.segs = RECORD ? segs + l * seg_room : nullptr;
-    o.cols = RECORD ? cols + l * col_room : nullptr;
-    o.nseg = L.nseg[l];
-    o.ncol = L.ncol[l];
-    o.overflow = RECORD && (L.nseg[l] > seg_cap || L.ncol[l] > col_cap);
+    ts.report(l, L.nseg[l], L.ncol[l], o);
     for (int a = 0; a < 3; ++a) o.direction[a] = L.dir[a][l];
     o.voxel_steps = L.vsteps[l];
     o.outside_steps = L.osteps[l];
@@ -249,19 +222,19 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
   bool more = true;
   auto refill = [&](int l) {
     while (L.state[l] == kObjIdle && more) {
-      more = next_item();
+      more = order.next();
       if (!more) return;
-      L.item[l] = (k * S.spp + s) * 3 + c;
-      L.elem[l] = int32_t(uint32_t(elems[k]));
-      L.sample[l] = int32_t(s);
-      L.chan[l] = c;
+      L.item[l] = order.item();
+      L.elem[l] = int32_t(uint32_t(elems[order.k]));
+      L.sample[l] = int32_t(order.s);
+      L.chan[l] = order.c;
       L.scatter[l] = L.osteps[l] = L.cevents[l] = 0;
       L.vsteps[l] = L.nseg[l] = L.ncol[l] = 0;
       ObjectLane o;
       memset(&o, 0, sizeof(o));
       o.elem = L.elem[l];
       o.sample = L.sample[l];
-      o.chan = c;
+      o.chan = order.c;
       S.start(S.steps, o);
       settle(l, o);
     }
@@ -438,8 +411,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       }
       if (RECORD) {  // a full tape's lane writes its spare slot and counts up to the room (then overflow)
         const M rec = mand(vox, gt(len, fzero()));
-        store_pairs(segs, iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)), v, asi(len), rec);
-        nseg = iadd1(nseg, mand(rec, igt(seg_roomv, nseg)));
+        store_pairs(segs, ts.seg_slot(nseg), v, asi(len), rec);
+        nseg = ts.seg_count(nseg, rec);
       }
       // the collisions: in this voxel, or in the core box at t + len
       const M hit_c = mand(hit, incore);
@@ -571,12 +544,11 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
         if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa}; none in the core
           const M rec = mandnot(col_core, survive);
           const I ncol = loadi(L.ncol);
-          const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
-          const I s3 = iadd(iadd(slot, slot), slot);
+          const I s3 = ts.col_slot3(ncol);
           store_pairs(cols, s3, col_v, nseg, rec);
           store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), rec);
           store_pairs(cols, iadd(s3, iset(2)), asi(fs), asi(fa), rec);
-          storei(L.ncol, iadd1(ncol, mand(rec, igt(col_roomv, ncol))));
+          storei(L.ncol, ts.col_count(ncol, rec));
         }
       }
       if (bits(survive)) {

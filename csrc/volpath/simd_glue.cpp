@@ -202,81 +202,11 @@ int64_t simd_backward_chunk(const Scene<float>& S, const float* ref_pair, const 
                             const Share& share, float* image, int64_t* cut) {
   simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
-  const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
-  // the lanes' tapes, for all the batches of this chunk (not zeroed: only the pages the paths reach are touched)
-  simd::LaneTapes tapes;
-  tapes.seg_cap = seg_cap;
-  tapes.col_cap = seg_cap / 2;
-  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
-  std::unique_ptr<simd::TapeCollisionF[]> col_buf(
-      new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
-  tapes.segs = seg_buf.get();
-  tapes.cols = col_buf.get();
-  struct Ctx {
-    const Scene<float>* S;
-    const float* grad_out;
-    const Adjoint<float>* A;
-    TapeStore<float, 1>* store;
-    const int64_t* elems;
-    bool image;
-    std::vector<double> values;  // with an image: each path's value, by item
-    int64_t ev = 0, cut = 0;
-  } ctx{&S, grad_out, &A, &store, nullptr, image != nullptr};
-  std::vector<int64_t> elems;
-  std::vector<uint8_t> live;
-  elems.reserve(kSimdBatch);
-  live.reserve(kSimdBatch);
-  const bool constant = S.emitter.kind == core::kConstant;
-  auto flush = [&]() {
-    if (elems.empty()) return;
-    const int64_t n = int64_t(elems.size());
-    ctx.elems = elems.data();
-    if (image != nullptr) ctx.values.assign(size_t(n * S.spp * 3), 0.0);
-    slab_walks(
-        W, elems.data(), live.data(), n, true, &tapes,
-        [](void* p, const simd::WalkOut& o) {
-          auto* x = static_cast<Ctx*>(p);
-          const Scene<float>& S = *x->S;
-          const int64_t spp = S.spp;
-          const int ch = int(o.item % 3);
-          const int64_t s = (o.item / 3) % spp, t = x->elems[o.item / (3 * spp)];
-          const float* g = x->grad_out + t * 3;
-          x->ev += o.scatter_events;
-          x->cut += o.truncated;
-          if (o.overflow) {  // too long for the lane's tape: the scalar replay walks it again and deposits
-            double acc[3] = {0, 0, 0};
-            ImageTerms terms;
-            terms.acc = acc;
-            x->ev += replay<float, 1, core::kBoxBoundary, DIEL, false>(S, t, s, ch, g, *x->A, *x->store,
-                                                                       x->image ? &terms : nullptr);
-            if (x->image) x->values[size_t(o.item)] = acc[ch];  // the value of the walk that deposited
-            return;
-          }
-          if (x->image) x->values[size_t(o.item)] = o.value;
-          if (!o.escaped) return;
-          const float adj[1] = {g[ch] * S.emitter.radiance[ch] / float(spp)};
-          if (adj[0] == 0.0f) return;
-          deposit_simd_tape(o, ch, adj[0], *x->A, S.medium.voxels());
-        },
-        &ctx);
-    if (image != nullptr) write_batch_image(S, elems.data(), n, ctx.values, image);
-    elems.clear();
-    live.clear();
-  };
-  for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
-    const float* g = grad_out + t * 3;
-    uint8_t bitsv = 0;
-    for (int ch = 0; ch < 3; ++ch)
-      if ((image != nullptr || g[ch] != 0.0f) && !(constant && S.emitter.radiance[ch] == 0.0f))
-        bitsv |= uint8_t(1 << ch);
-    if (!bitsv && image == nullptr) return;
-    elems.push_back(t);
-    live.push_back(bitsv);
-    if (int64_t(elems.size()) == kSimdBatch) flush();
-  });
-  flush();
-  if (cut != nullptr) *cut = ctx.cut;
-  return ctx.ev;
+  return simd_replay_chunk<core::kBoxBoundary, DIEL>(
+      S, grad_out, A, store, image, cut,
+      [&](const auto& body) { for_tiled_face_elements(S, c, nchunks, share, body); },
+      [&](const int64_t* elems, const uint8_t* live, int64_t n, const simd::LaneTapes* tapes, simd::WalkDone done,
+          void* ctx) { slab_walks(W, elems, live, n, true, tapes, done, ctx); });
 }
 
 template int64_t simd_backward_chunk<false>(const Scene<float>&, const float*, const float*, const Adjoint<float>&,

@@ -5,7 +5,9 @@
 // kernels.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
+#include <memory>
 #include <type_traits>
 #include <vector>
 
@@ -52,6 +54,102 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const core::Ad
 // order as the scalar kernel adds them.
 void write_batch_image(const core::Scene<float>& S, const int64_t* elems, int64_t n, const std::vector<double>& values,
                        float* out);
+
+// The term of a finished path in its element's image, in double as the scalar kernels add it: V for a constant
+// emitter (whose radiance element_radiance applies), V·L_e along the escape direction for the others.
+inline double image_term(const core::Scene<float>& S, const simd::WalkOut& o, int ch) {
+  if (S.emitter.kind == core::kConstant) return double(o.value);
+  if (!o.escaped) return 0.0;
+  float Le[3];
+  S.emitter.eval(o.direction, Le);
+  return double(o.value) * double(Le[ch]);
+}
+
+// The gradient replay of one chunk by a SIMD walk (simd_backward_chunk, simd_object_backward_chunk): the elements
+// that for_elements(body) hands out, in batches of kSimdBatch, each walked by walk(elems, live, n, tapes, done, ctx)
+// with every lane recording its tape; each path is deposited when it ends (deposit_simd_tape), and a path longer than
+// its lane's tape is replayed by the scalar code from the start (walk and deposit), so every deposit belongs to the
+// walk that produced its weight. With `image` every channel is walked and the batch's image written
+// (write_batch_image); `cut` takes the truncated walks. Returns the scatter events.
+template <int B, bool DIEL, typename ForElements, typename Walk>
+int64_t simd_replay_chunk(const core::Scene<float>& S, const float* grad_out, const core::Adjoint<float>& A,
+                          TapeStore<float, 1>& store, float* image, int64_t* cut, const ForElements& for_elements,
+                          const Walk& walk) {
+  const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
+  // the lanes' tapes, for all the batches of this chunk (not zeroed: only the pages the paths reach are touched)
+  simd::LaneTapes tapes;
+  tapes.seg_cap = seg_cap;
+  tapes.col_cap = seg_cap / 2;
+  std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
+  std::unique_ptr<simd::TapeCollisionF[]> col_buf(
+      new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
+  tapes.segs = seg_buf.get();
+  tapes.cols = col_buf.get();
+  struct Ctx {
+    const core::Scene<float>* S;
+    const float* grad_out;
+    const core::Adjoint<float>* A;
+    TapeStore<float, 1>* store;
+    const int64_t* elems;
+    bool image;
+    std::vector<double> values;  // with an image: each path's term, by item
+    int64_t ev = 0, cut = 0;
+  } ctx{&S, grad_out, &A, &store, nullptr, image != nullptr, {}};
+  const simd::WalkDone done = [](void* p, const simd::WalkOut& o) {
+    auto* x = static_cast<Ctx*>(p);
+    const core::Scene<float>& S = *x->S;
+    const int64_t spp = S.spp;
+    const int ch = int(o.item % 3);
+    const int64_t s = (o.item / 3) % spp, t = x->elems[o.item / (3 * spp)];
+    const float* g = x->grad_out + t * 3;
+    x->ev += o.scatter_events;
+    x->cut += o.truncated;
+    if (o.overflow) {  // too long for the lane's tape: the scalar replay walks it again and deposits
+      double acc[3] = {0, 0, 0};
+      ImageTerms terms;
+      terms.acc = acc;
+      x->ev += replay<float, 1, B, DIEL, false>(S, t, s, ch, g, *x->A, *x->store, x->image ? &terms : nullptr);
+      if (x->image) x->values[size_t(o.item)] = acc[ch];  // the term of the walk that deposited
+      return;
+    }
+    if (x->image) x->values[size_t(o.item)] = image_term(S, o, ch);
+    if (!o.escaped) return;
+    float Le[3] = {S.emitter.radiance[0], S.emitter.radiance[1], S.emitter.radiance[2]};
+    if (S.emitter.kind != core::kConstant) S.emitter.eval(o.direction, Le);
+    const float adj = g[ch] * Le[ch] / float(spp);
+    if (adj == 0.0f) return;
+    deposit_simd_tape(o, ch, adj, *x->A, S.medium.voxels());
+  };
+  std::vector<int64_t> elems;
+  std::vector<uint8_t> live;
+  elems.reserve(kSimdBatch);
+  live.reserve(kSimdBatch);
+  const bool constant = S.emitter.kind == core::kConstant;
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
+    ctx.elems = elems.data();
+    if (image != nullptr) ctx.values.assign(size_t(n * S.spp * 3), 0.0);
+    walk(elems.data(), live.data(), n, &tapes, done, &ctx);
+    if (image != nullptr) write_batch_image(S, elems.data(), n, ctx.values, image);
+    elems.clear();
+    live.clear();
+  };
+  for_elements([&](int64_t t) {
+    const float* g = grad_out + t * 3;
+    uint8_t bitsv = 0;
+    for (int ch = 0; ch < 3; ++ch)
+      if ((image != nullptr || g[ch] != 0.0f) && !(constant && S.emitter.radiance[ch] == 0.0f))
+        bitsv |= uint8_t(1 << ch);
+    if (!bitsv && image == nullptr) return;
+    elems.push_back(t);
+    live.push_back(bitsv);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  if (cut != nullptr) *cut = ctx.cut;
+  return ctx.ev;
+}
 
 // Whether the SIMD object walk (object_simd.h) serves this scene: float32 dense grids (the reference may be floored)
 // or one palette medium (a quantised print's forward), an SDF boundary, one walk per channel (not hero), no tally.

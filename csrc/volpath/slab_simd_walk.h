@@ -59,42 +59,13 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
 
   Lanes L;
   memset(&L, 0, sizeof(L));
-  static_assert(kLanes <= kMaxLanes, "LaneTapes holds kMaxLanes tapes");
-  TapeSegmentF* segs = RECORD ? tapes->segs : nullptr;
-  TapeCollisionF* cols = RECORD ? tapes->cols : nullptr;
-  const int64_t seg_cap = RECORD ? tapes->seg_cap : 0, col_cap = RECORD ? tapes->col_cap : 0;
-  // per lane: `cap` entries and one spare slot that takes the writes of a full tape (the path is then replayed by
-  // the caller: overflow when more than `cap` entries were counted)
-  const int64_t seg_room = seg_cap + 1, col_room = col_cap + 1;
-  // the lanes' first tape entries (int32: the caps are at most kMaxTapeCap, checked by the entry point); a
-  // collision is three 8-byte slots
-  static_assert(sizeof(TapeSegmentF) == 8 && sizeof(TapeCollisionF) == 24, "tape entries of 8 and 3 × 8 bytes");
-  alignas(64) int32_t lane_ids[kLanes];
-  for (int l = 0; l < kLanes; ++l) lane_ids[l] = l;
-  const I seg_base = imul(loadi(lane_ids), iset(int32_t(seg_room)));
-  const I seg_capv = iset(int32_t(seg_cap)), seg_roomv = iset(int32_t(seg_room));
-  const I col_base = imul(loadi(lane_ids), iset(int32_t(col_room)));
-  const I col_capv = iset(int32_t(col_cap)), col_roomv = iset(int32_t(col_room));
-
-  // the next path of the batch: channel by channel (c), then element (k) and sample (s): the lanes' paths read one
-  // channel plane of the grids at a time, so the caches hold a third of what three interleaved channels need (760²
-  // slab at 32 spp: 20.8 + 38.2 → 18.6 + 34.5 s)
-  int64_t k = 0, s = -1;
-  int c = 0;
-  auto next_item = [&]() -> bool {
-    if (n <= 0) return false;
-    for (;;) {
-      if (++s == S.spp) {
-        s = 0;
-        if (++k == n) {
-          k = 0;
-          ++c;
-        }
-      }
-      if (c >= 3) return false;
-      if (!live || (live[k] >> c) & 1) return true;
-    }
-  };
+  const TapeSlots ts(RECORD ? tapes : nullptr);
+  TapeSegmentF* const segs = ts.segs;
+  TapeCollisionF* const cols = ts.cols;
+  BatchOrder order(n, S.spp, live);  // the next path of the batch: order.next()
+  const int64_t& k = order.k;
+  const int64_t& s = order.s;
+  const int& c = order.c;
   auto finish = [&](int l, float value, bool escaped, bool truncated) {
     WalkOut o;
     o.item = L.item[l];
@@ -104,11 +75,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
     o.escaped = escaped;
     o.truncated = truncated;
     o.scatter_events = L.scatter[l];
-    o.segs = RECORD ? segs + l * seg_room : nullptr;
-    o.cols = RECORD ? cols + l * col_room : nullptr;
-    o.nseg = L.nseg[l];
-    o.ncol = L.ncol[l];
-    o.overflow = RECORD && (L.nseg[l] > seg_cap || L.ncol[l] > col_cap);
+    ts.report(l, L.nseg[l], L.ncol[l], o);
     done(ctx, o);
     L.state[l] = kIdle;
   };
@@ -116,7 +83,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   bool more = true;
   auto refill = [&](int l) {
     while (L.state[l] == kIdle && more) {
-      more = next_item();
+      more = order.next();
       if (!more) return;
       const int64_t elem = elems[k];
       const int face = S.face == 2 ? int(elem / HW) : S.face;
@@ -257,8 +224,8 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
       }
       if (RECORD) {  // a full tape's lane writes its spare slot and counts up to the room (then overflow)
         const M rec = mand(flying, gt(len, fzero()));
-        store_pairs(segs, iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)), v, asi(len), rec);
-        nseg = iadd1(nseg, mand(rec, igt(seg_roomv, nseg)));
+        store_pairs(segs, ts.seg_slot(nseg), v, asi(len), rec);
+        nseg = ts.seg_count(nseg, rec);
       }
       col_sref = sel(hit, sref, col_sref);
       col_sig = sel(hit, sig, col_sig);
@@ -328,12 +295,11 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         storei(L.zeros, zeros);
         if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa}
           const I ncol = loadi(L.ncol);
-          const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
-          const I s3 = iadd(iadd(slot, slot), slot);
+          const I s3 = ts.col_slot3(ncol);
           store_pairs(cols, s3, col_v, loadi(L.nseg), survive);
           store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), survive);
           store_pairs(cols, iadd(s3, iset(2)), asi(fs), asi(fa), survive);
-          storei(L.ncol, iadd1(ncol, mand(survive, igt(col_roomv, ncol))));
+          storei(L.ncol, ts.col_count(ncol, survive));
         }
       }
       {
