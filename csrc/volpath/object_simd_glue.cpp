@@ -161,37 +161,11 @@ template <bool DIEL, bool RATIO>
 ForwardCounts simd_object_forward_chunk(const Scene<float>& S, float* out, int64_t c, int64_t nchunks,
                                         const Share& share) {
   const simd::ObjectWalkScene W = object_scene<DIEL>(S);
-  struct Ctx {
-    const Scene<float>* S;
-    std::vector<double> values;
-    ForwardCounts counts;
-  } ctx{&S, {}, {}};
-  std::vector<int64_t> elems;
-  elems.reserve(kSimdBatch);
-  auto flush = [&]() {
-    if (elems.empty()) return;
-    const int64_t n = int64_t(elems.size());
-    ctx.values.assign(size_t(n * S.spp * 3), 0.0);
-    object_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
-                 [](void* p, const simd::WalkOut& o) {
-                   auto* x = static_cast<Ctx*>(p);
-                   x->values[size_t(o.item)] = image_term(*x->S, o, int(o.item % 3));
-                   x->counts.scatter_events += o.scatter_events;
-                   x->counts.truncated_paths += o.truncated;
-                   x->counts.voxel_steps += o.voxel_steps;
-                   x->counts.outside_steps += o.outside_steps;
-                   x->counts.core_events += o.core_events;
-                 },
-                 &ctx);
-    write_batch_image(S, elems.data(), n, ctx.values, out);
-    elems.clear();
-  };
-  for_elements_of_chunk(c, nchunks, share, [&](int64_t t) {
-    elems.push_back(t);
-    if (int64_t(elems.size()) == kSimdBatch) flush();
-  });
-  flush();
-  return ctx.counts;
+  return simd_forward_batches(
+      S, out, [&](const auto& body) { for_elements_of_chunk(c, nchunks, share, body); },
+      [&](const int64_t* elems, int64_t n, simd::WalkDone done, void* ctx) {
+        object_walks(W, elems, nullptr, n, RATIO, nullptr, done, ctx);
+      });
 }
 
 template ForwardCounts simd_object_forward_chunk<false, false>(const Scene<float>&, float*, int64_t, int64_t,

@@ -155,36 +155,11 @@ ForwardCounts simd_forward_chunk(const Scene<float>& S, const float* ref_pair, f
                                  const Share& share) {
   simd::SlabWalkScene W = simd_scene(S, ref_pair);
   W.dielectric = DIEL;
-  struct Ctx {
-    std::vector<double> values;
-    int64_t ev = 0, cut = 0;
-  } ctx;
-  std::vector<int64_t> elems;
-  elems.reserve(kSimdBatch);
-  ForwardCounts counts;
-  auto flush = [&]() {
-    if (elems.empty()) return;
-    const int64_t n = int64_t(elems.size());
-    ctx.values.assign(size_t(n * S.spp * 3), 0.0);
-    slab_walks(W, elems.data(), nullptr, n, RATIO, nullptr,
-               [](void* p, const simd::WalkOut& o) {
-                 auto* x = static_cast<Ctx*>(p);
-                 x->values[size_t(o.item)] = o.value;
-                 x->ev += o.scatter_events;
-                 x->cut += o.truncated;
-               },
-               &ctx);
-    write_batch_image(S, elems.data(), n, ctx.values, out);
-    elems.clear();
-  };
-  for_tiled_face_elements(S, c, nchunks, share, [&](int64_t t) {
-    elems.push_back(t);
-    if (int64_t(elems.size()) == kSimdBatch) flush();
-  });
-  flush();
-  counts.scatter_events = ctx.ev;
-  counts.truncated_paths = ctx.cut;
-  return counts;
+  return simd_forward_batches(
+      S, out, [&](const auto& body) { for_tiled_face_elements(S, c, nchunks, share, body); },
+      [&](const int64_t* elems, int64_t n, simd::WalkDone done, void* ctx) {
+        slab_walks(W, elems, nullptr, n, RATIO, nullptr, done, ctx);
+      });
 }
 
 template ForwardCounts simd_forward_chunk<false, false>(const Scene<float>&, const float*, float*, int64_t, int64_t,

@@ -65,6 +65,44 @@ inline double image_term(const core::Scene<float>& S, const simd::WalkOut& o, in
   return double(o.value) * double(Le[ch]);
 }
 
+// The forward of one chunk by a SIMD walk (simd_forward_chunk, simd_object_forward_chunk): the elements that
+// for_elements(body) hands out, in batches of kSimdBatch, each walked by walk(elems, n, done, ctx); every path's term
+// by item, then the batch's image in sample order (write_batch_image), and the walks' counts.
+template <typename ForElements, typename Walk>
+ForwardCounts simd_forward_batches(const core::Scene<float>& S, float* out, const ForElements& for_elements,
+                                   const Walk& walk) {
+  struct Ctx {
+    const core::Scene<float>* S;
+    std::vector<double> values;
+    ForwardCounts counts;
+  } ctx{&S, {}, {}};
+  const simd::WalkDone done = [](void* p, const simd::WalkOut& o) {
+    auto* x = static_cast<Ctx*>(p);
+    x->values[size_t(o.item)] = image_term(*x->S, o, int(o.item % 3));
+    x->counts.scatter_events += o.scatter_events;
+    x->counts.truncated_paths += o.truncated;
+    x->counts.voxel_steps += o.voxel_steps;
+    x->counts.outside_steps += o.outside_steps;
+    x->counts.core_events += o.core_events;
+  };
+  std::vector<int64_t> elems;
+  elems.reserve(kSimdBatch);
+  auto flush = [&]() {
+    if (elems.empty()) return;
+    const int64_t n = int64_t(elems.size());
+    ctx.values.assign(size_t(n * S.spp * 3), 0.0);
+    walk(elems.data(), n, done, &ctx);
+    write_batch_image(S, elems.data(), n, ctx.values, out);
+    elems.clear();
+  };
+  for_elements([&](int64_t t) {
+    elems.push_back(t);
+    if (int64_t(elems.size()) == kSimdBatch) flush();
+  });
+  flush();
+  return ctx.counts;
+}
+
 // The gradient replay of one chunk by a SIMD walk (simd_backward_chunk, simd_object_backward_chunk): the elements
 // that for_elements(body) hands out, in batches of kSimdBatch, each walked by walk(elems, live, n, tapes, done, ctx)
 // with every lane recording its tape; each path is deposited when it ends (deposit_simd_tape), and a path longer than
