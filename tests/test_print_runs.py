@@ -203,6 +203,46 @@ def test_checkpoints_by_wall_time(tmp_path, monkeypatch):
     assert saved == [1, 2, 3, 4]
 
 
+def test_schedule_defaults_follow_the_kind_of_target(tmp_path):
+    """spp, iterations, eval_spp and eval_every left at None take the schedule of the target's kind (objects need
+    far fewer, cheaper iterations than a slab); given values are kept, and the run records the values it used."""
+    from torch_appearance.pipelines.print.config import SCHEDULES
+    assert SCHEDULES["object"]["spp"] < SCHEDULES["slab"]["spp"]
+    slab, obj = PrintConfig().resolved(), PrintConfig(mesh="m.obj", height_mm=25.0).resolved()
+    for name in ("spp", "iterations", "eval_spp", "eval_every"):
+        assert getattr(slab, name) == SCHEDULES["slab"][name] and getattr(obj, name) == SCHEDULES["object"][name]
+    assert PrintConfig(mesh="m.obj", height_mm=25.0, spp=3).resolved().spp == 3
+    with pytest.raises(ValueError, match="spp: expected > 0, got 0"):
+        PrintConfig(spp=0).validate()
+    cfg = small_cfg(tmp_path, eval_every=None, iterations=2)  # slab: every 25 iterations, and at the last
+    optimize_print(cfg, **QUIET)
+    config = json.load(open(os.path.join(cfg.out, "config.json")))
+    assert (config["eval_every"], config["spp"]) == (SCHEDULES["slab"]["eval_every"], 2)
+    assert [r for r in ta_io_log_column(cfg.out, "dE00_mean") if r] != [] and \
+        len([r for r in ta_io_log_column(cfg.out, "dE00_mean") if r]) == 2  # iterations 0 and 2
+
+
+def test_results_reuse_the_last_evaluation(tmp_path, monkeypatch):
+    """The continuous result is the last iteration's evaluation render (same state, same seed), not a second render;
+    a finished run resumed renders it again and gets the same texels, bit for bit."""
+    import dataclasses
+    cfg = small_cfg(tmp_path, iterations=2, eval_every=2)
+    calls = {"n": 0}
+    render = print_loop.SlabTarget.render
+
+    def counting(self, *args, **kwargs):
+        calls["n"] += 1
+        return render(self, *args, **kwargs)
+
+    monkeypatch.setattr(print_loop.SlabTarget, "render", counting)
+    optimize_print(cfg, **QUIET)
+    assert calls["n"] == 4  # the initial evaluation, iterations 1 and 2, the evaluation at 2
+    first = ta_io.read_exr(os.path.join(cfg.out, "optimized.exr"))
+    optimize_print(dataclasses.replace(cfg, resume=True), **QUIET)
+    assert calls["n"] == 5  # the resumed run has no evaluation in memory
+    assert np.array_equal(first, ta_io.read_exr(os.path.join(cfg.out, "optimized.exr")))
+
+
 _SLOW_RENDER = textwrap.dedent("""
     import os, signal, threading, time, torch
     import torch_appearance as ta

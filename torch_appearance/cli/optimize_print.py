@@ -27,7 +27,7 @@ import sys
 
 from .. import io as ta_io
 from ..fabrication.inks import DEFAULT_INKS, INKS
-from ..pipelines.print.config import RESUME_MAY_CHANGE, PrintConfig, config_conflicts
+from ..pipelines.print.config import RESUME_MAY_CHANGE, SCHEDULES, PrintConfig, config_conflicts
 from ..pipelines.print.loop import optimize_print
 from ..pipelines.runs import RunInterrupted
 from .command import CommandParser, check_output_folder, fail
@@ -85,11 +85,20 @@ def add_optimization_arguments(p, d=None):
     d = PrintConfig() if d is None else d
     p.add_argument("--gamma", type=float_tuple(3, "--gamma"), default=d.gamma,
                    help="weights γ1,γ2,γ3 of ΔE76², SSIM, Sobel (default: 1,3,1)")
-    p.add_argument("--spp", type=int, default=d.spp, help="samples per texel per iteration (default: %(default)s)")
+    def default(name):  # a field left at None takes the schedule of the target's kind
+        value = getattr(d, name)
+        if value is None and SCHEDULES["slab"][name] == SCHEDULES["object"][name]:
+            value = SCHEDULES["slab"][name]
+        if value is not None:
+            return f"(default: {value})"
+        return f"(default: {SCHEDULES['slab'][name]} for a slab, {SCHEDULES['object'][name]} for an object)"
+
+    p.add_argument("--spp", type=int, default=d.spp, help=f"samples per texel per iteration {default('spp')}")
     p.add_argument("--eval-spp", type=int, default=d.eval_spp,
-                   help="samples per texel of evaluation renders (default: %(default)s)")
-    p.add_argument("--eval-every", type=int, default=d.eval_every, help="evaluate every k iterations (default: %(default)s)")
-    p.add_argument("--iterations", type=int, default=d.iterations, help="(default: %(default)s)")
+                   help=f"samples per texel of evaluation renders {default('eval_spp')}")
+    p.add_argument("--eval-every", type=int, default=d.eval_every,
+                   help=f"evaluate every k iterations {default('eval_every')}")
+    p.add_argument("--iterations", type=int, default=d.iterations, help=default("iterations"))
     p.add_argument("--table-steps", type=int, default=d.table_steps,
                    help="naive-extrusion baseline: mixtures in steps of 1/N (default: %(default)s)")
     p.add_argument("--init", choices=("white", "naive"), default=d.init,

@@ -9,10 +9,20 @@ from ...fabrication.inks import DEFAULT_INKS, Ink, InkSet, ink_from_dict
 from ...fabrication.quantize import PRINTER_DPI
 from .fixed_fractions import parse_fixed
 
-__all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts"]
+__all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts", "SCHEDULES"]
 
 #: the settings a resumed run may change: where it is, that it resumes, how long it runs and how often it saves
 RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
+
+#: the schedule of a run by the kind of its target, for the :class:`PrintConfig` fields left at None. Slabs: the
+#: paper's 32 spp, with 300 iterations and evaluations at 256 spp (a 20 mm ColorChecker slab takes seconds per
+#: iteration). Objects: a textured object's paths diffuse through its whole body and an iteration of Spot at 25 mm
+#: costs about 3 s per spp on 2 cores, so the schedule is the one that reached the lowest quantised CIEDE2000 within
+#: 30 minutes in the error-against-time runs of ``scripts/bench/README.md`` ("Object schedule").
+SCHEDULES = {
+    "slab": {"spp": 32, "iterations": 300, "eval_spp": 256, "eval_every": 25},
+    "object": {"spp": 8, "iterations": 50, "eval_spp": 32, "eval_every": 25},
+}
 
 
 @dataclass
@@ -35,10 +45,10 @@ class PrintConfig:
     height_mm: Optional[float] = None
     inks: Sequence[str] = DEFAULT_INKS
     gamma: Tuple[float, float, float] = (1.0, 3.0, 1.0)
-    spp: int = 32
-    eval_spp: int = 256
-    eval_every: int = 25
-    iterations: int = 300
+    spp: Optional[int] = None  # None: the schedule of the target's kind (SCHEDULES), also for the next three
+    eval_spp: Optional[int] = None
+    eval_every: Optional[int] = None
+    iterations: Optional[int] = None
     optimizer: str = "adagrad"
     lr: float = 1.0
     parameterization: str = "sigmoid"
@@ -77,7 +87,8 @@ class PrintConfig:
         for name in ("thickness_mm", "dpi", "lr", "shell_mm", "checkpoint_s"):
             positive(name, getattr(self, name))
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size"):
-            positive(name, getattr(self, name), integer=True)
+            if getattr(self, name) is not None or name not in SCHEDULES["slab"]:
+                positive(name, getattr(self, name), integer=True)
         if isinstance(self.views, bool) or not isinstance(self.views, int) or self.views < 0:
             raise ValueError(f"views: expected an int >= 0, got {self.views!r}")
         for name in ("width_mm", "height_mm"):
@@ -133,6 +144,22 @@ class PrintConfig:
             values["inks"] = tuple(ink_from_dict(ink, f"config.json: inks[{k}]") if isinstance(ink, dict) else ink
                                    for k, ink in enumerate(values["inks"]))
         return cls(**values)
+
+    @property
+    def kind(self):
+        """``"object"`` with a mesh, else ``"slab"``: the key of its defaults in :data:`SCHEDULES`."""
+        return "slab" if self.mesh is None else "object"
+
+    def resolved(self):
+        """This config with the schedule fields left at None (``spp``, ``iterations``, ``eval_spp``,
+        ``eval_every``) set to the defaults of its kind (:data:`SCHEDULES`); the run records these.
+
+        Example:
+            >>> PrintConfig().resolved().spp, PrintConfig(mesh="spot.obj", height_mm=25).resolved().spp
+            (32, 8)
+        """
+        fill = {name: value for name, value in SCHEDULES[self.kind].items() if getattr(self, name) is None}
+        return dataclasses.replace(self, **fill) if fill else self
 
     @property
     def voxel_size(self):

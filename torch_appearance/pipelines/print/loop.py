@@ -40,6 +40,7 @@ def build_target(cfg: PrintConfig, log=print):
     """The print target of ``cfg`` (a :class:`SlabTarget`, or with ``cfg.mesh`` an :class:`ObjectTarget`), to share
     between runs that differ only in inks or optimiser settings (``optimize_print(cfg, target=...)``)."""
     cfg.validate()
+    cfg = cfg.resolved()
     inks = load_inks(cfg.inks)
     _check_core_ink(cfg, inks)
     return (SlabTarget if cfg.mesh is None else ObjectTarget).from_config(cfg, inks, log)
@@ -79,7 +80,9 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
             too large for this machine's memory; all before the run folder is written.
         RunInterrupted: (a ``KeyboardInterrupt``) Ctrl-C during the optimisation, after the checkpoint was written.
     """
+    t_call = time.perf_counter()
     cfg.validate()
+    cfg = cfg.resolved()  # the schedule of its kind for what it leaves at None; config.json records these
     rank, world = distributed.rank_and_world()
     folder = cfg.out
     ckpt_path = os.path.join(folder, CHECKPOINT)
@@ -100,7 +103,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
         folder = tempfile.mkdtemp(prefix=f"optimize_print_rank{rank}_")
         progress, log = False, (lambda *args, **kwargs: None)
         try:
-            return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world).run(progress)
+            return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world, t_call).run(progress)
         finally:
             import shutil
             shutil.rmtree(folder, ignore_errors=True)
@@ -108,7 +111,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     # writes to it: a second run on the same folder is refused instead of mixing its files with this one's
     with lock_run_folder(folder):
         _check_not_a_run(cfg, ckpt_path)  # again under the lock: another run may have finished in the meantime
-        return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world).run(progress)
+        return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world, t_call).run(progress)
 
 
 def _check_not_a_run(cfg, ckpt_path):
@@ -145,7 +148,8 @@ class _Run:
     """One run of :func:`optimize_print` once its inputs are checked: the model, the optimiser and the log rows,
     with the steps (start or resume, baselines, iterations, results) as methods; writes to ``folder``."""
 
-    def __init__(self, cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world):
+    def __init__(self, cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world, t_call):
+        self.t_call = t_call  # perf_counter() when optimize_print was called: the summary's job_s
         self.cfg, self.target, self.inks, self.fixed = cfg, target, inks, fixed
         self.folder, self.ckpt_path, self.log, self.world = folder, ckpt_path, log, world
         self.shape = tuple(target.shape)
@@ -157,6 +161,7 @@ class _Run:
         self.rows, self.start, self.wall_offset = [], 0, 0.0
         self.ema = {"sum": None, "count": 0}  # estimator "ema": running mean of the renders (checkpointed)
         self.baseline, self.remap = None, None
+        self.evaluated = (None, None)  # (iteration, texels) of the latest evaluation render
         self.eval_seed = iteration_seed(cfg.seed, -1)
         self.quant_seed = iteration_seed(cfg.seed, -2)
 
@@ -351,7 +356,9 @@ class _Run:
                 self.step(seed, record)
                 row = self.rows[-1]
                 if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
-                    row.update(self.score(self.evaluate()))
+                    image = self.evaluate()
+                    row.update(self.score(image))
+                    self.evaluated = (done, image)
                     row["wall_s"] = time.perf_counter() - t_start
                     last_eval = row
                 if "dE00_mean" in row or time.perf_counter() - last_checkpoint > cfg.checkpoint_s:
@@ -374,7 +381,11 @@ class _Run:
     def finish(self):
         """Results: continuous, quantised, exports, figures, views; the summary."""
         cfg, target, inks, folder, rows = self.cfg, self.target, self.inks, self.folder, self.rows
-        optimized = self.evaluate()  # before the (N, D, H, W) weights exist: the two are not held together
+        # the last iteration's evaluation is this render (same state, same seed); a run resumed after its last
+        # iteration renders it again, before the (N, D, H, W) weights exist: the two are not held together
+        done, image = self.evaluated
+        optimized = image if done == cfg.iterations else self.evaluate()
+        self.evaluated = (None, None)
         target.save_texels(folder, "optimized", optimized)
         weights = self.model.weights().detach()
         indices, final_img = self.quantized(weights, self.fixed)
@@ -405,12 +416,16 @@ class _Run:
             "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
             "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
             "parameters": int(self.model.logits.numel()), "views_s": view_seconds,
+            # the whole call: preparation, baselines, iterations, evaluations, quantisation and outputs (a resumed
+            # run: its own call only)
+            "job_s": time.perf_counter() - self.t_call,
         }
         ta_io.write_json(os.path.join(folder, "summary.json"), summary)
         naive_text = "" if baseline is None else \
             f", naive extrusion {baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f}"
         remap_text = "" if remap is None else f", 2.5D remapped {remap['dE00_mean']:.2f}/{remap['dE00_p95']:.2f}"
-        self.log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s; CIEDE2000 mean/p95: "
+        self.log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s (the whole job "
+                 f"{summary['job_s'] / 60:.1f} min); CIEDE2000 mean/p95: "
                  f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}{naive_text}{remap_text} "
                  f"-> {folder}")
         return summary
