@@ -4,6 +4,7 @@ see the README there, with human ring-boundary masks)."""
 import os
 import subprocess
 import sys
+import warnings
 
 import cv2
 import numpy as np
@@ -11,8 +12,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from torch_appearance.rings.dendro import (boundary_f_measure, detect_core_boundaries, detect_section_boundaries,
-                                           detect_transect_boundaries, mask_centerline, match_boundaries,
-                                           resample_polyline, ring_widths_mm)
+                                           detect_transect_boundaries, growth_direction, mask_centerline,
+                                           match_boundaries, resample_polyline, ring_widths_mm)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -140,6 +141,39 @@ def test_ring_widths_mm():
 # ---------------------------------------------------------------------------------------------------------------
 # CLI
 # ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed,tilt", [(0, 0.0), (2, 0.15)])
+def test_growth_direction_from_the_rings_shape(seed, tilt):
+    """Without a bark side the detector finds it: the same core mirrored (or turned upright) gives the same
+    boundaries mirrored, and the estimate names the side the sharp latewood -> earlywood steps face."""
+    rgb, b = synthetic_core(ring_series(seed), seed=seed, tilt=tilt)
+    W = rgb.shape[1]
+    right = detect_core_boundaries(rgb, pixel_size_mm=0.01)
+    assert right.info["bark"] == "right" and right.info["growth"]["confident"], right.info["growth"]
+    left = detect_core_boundaries(np.ascontiguousarray(rgb[:, ::-1]), pixel_size_mm=0.01)
+    assert left.info["bark"] == "left" and left.info["growth"]["z"] == pytest.approx(-right.info["growth"]["z"],
+                                                                                        rel=0.3)
+    assert np.allclose(left.points[:, 0], (W - 1) - right.points[:, 0], atol=1e-6)
+    assert np.allclose(left.widths_px[1:], right.widths_px[1:], atol=1e-6)
+    up = detect_core_boundaries(np.ascontiguousarray(rgb.transpose(1, 0, 2)[::-1]), pixel_size_mm=0.01)
+    assert up.info["bark"] == "top" and len(up.points) == len(right.points)
+    m = match_boundaries(right.points, np.stack([b, np.full_like(b, (rgb.shape[0] - 1) / 2)], 1), tolerance_px=3)
+    assert m["f1"] >= 0.95, m
+
+
+def test_a_contradicted_bark_side_is_warned_of():
+    rgb, _ = synthetic_core(ring_series(1), seed=1)
+    with pytest.warns(UserWarning, match="bark='left', but the rings' shape says the bark is on the right"):
+        detect_core_boundaries(rgb, bark="left")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        detect_core_boundaries(rgb, bark="right")
+    flat = np.full((40, 30, 3), 0.5, np.float32)  # too short to tell: a side must be given
+    with pytest.raises(ValueError, match="bark: the core is too short .* give the side"):
+        detect_core_boundaries(flat)
+    with pytest.raises(ValueError, match="blocks"):
+        growth_direction(rgb, blocks=2)
+
+
 def run(script, *args):
     """Run a CLI script in a fresh interpreter (as a user would): CompletedProcess."""
     return subprocess.run([sys.executable, "-m", f"torch_appearance.cli.{script}", *map(str, args)],

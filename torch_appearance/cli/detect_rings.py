@@ -1,8 +1,9 @@
 """Detect tree-ring boundaries on an increment core scan (core mode), along a transect of a board photo, or along
 several pith -> bark transects of a whole-disc photo (disc mode).
 
-Core mode (default): rings cross the core's long axis; the bark (youngest rings) is at the side given by --bark
-(default: right for wide images, bottom for tall ones). Transect mode: --transect X0,Y0,X1,Y1 in pixels, drawn from
+Core mode (default): rings cross the core's long axis; the bark (youngest rings) is at the side found from the rings'
+shape (each ring's sharp latewood -> earlywood step faces the bark), or given by --bark (a warning when the rings
+clearly say otherwise). Transect mode: --transect X0,Y0,X1,Y1 in pixels, drawn from
 the pith towards the bark (filters the whole image; for discs use disc mode). The boundary is the sharp latewood ->
 earlywood transition (torch_appearance.rings.dendro). Writes a CSV with columns index,x_px,y_px,width_px,width_mm
 ordered pith -> bark (width to the previous boundary; empty for the first, width_mm empty without --dpi /
@@ -23,6 +24,8 @@ Examples:
     ta-detect-rings disc.jpg --pith 1520,1610 --transect 2900,1650 --transect 1480,40 --out disc.csv
     ta-detect-rings section.png --mode section --out boundary.csv --overlay boundary.png
 """
+import os
+import re
 import sys
 
 import cv2
@@ -31,7 +34,9 @@ import numpy as np
 from torch_appearance.io import atomic_write_bytes, read_image, write_csv
 from torch_appearance.rings.dendro import (detect_core_boundaries, detect_section_boundaries,
                                            detect_transect_boundaries)
+from torch_appearance.rings.coorecorder import write_pos
 from torch_appearance.rings.disc import detect_disc_boundaries
+from torch_appearance.rings.tucson import RingSeries, write_rwl
 
 from .command import CommandParser, check_output_file, fail
 
@@ -45,7 +50,8 @@ def parse_args(argv=None):
     p.add_argument("--out", required=True, help="output CSV")
     p.add_argument("--overlay", default=None, help="optional overlay PNG with the detected boundaries")
     p.add_argument("--bark", choices=("left", "right", "top", "bottom"), default=None,
-                   help="core mode: side with the bark (default: right for wide, bottom for tall images)")
+                   help="core mode: side with the bark (default: found from the rings' shape, the sharp latewood -> "
+                        "earlywood steps facing the bark; a given side that the rings clearly contradict is warned of)")
     p.add_argument("--transect", action="append", default=None,
                    help="transect mode: X0,Y0,X1,Y1 in pixels, pith -> bark; disc mode (with --pith): X,Y, the "
                         "transect's bark-side end (repeat for several transects)")
@@ -65,10 +71,80 @@ def parse_args(argv=None):
                    help="core (also transect with --transect) or section (microscopy); default: %(default)s")
     p.add_argument("--cell-px", type=float, default=8.0,
                    help="section mode: cell diameter in px (default: %(default)s)")
+    files = p.add_argument_group("files for dendrochronology programs (need --dpi or --pixel-size-mm)")
+    files.add_argument("--pos", default=None,
+                       help="CooRecorder coordinate file (.pos, mm; the pith first in disc mode); disc mode writes one "
+                            "per transect, NAME_t0.pos, NAME_t1.pos, ...")
+    files.add_argument("--rwl", default=None,
+                       help="Tucson ring-width file (.rwl, 0.001 mm) with one series per transect (or the core), for "
+                            "dplR, CDendro, COFECHA; needs --last-year")
+    files.add_argument("--last-year", type=int, default=None,
+                       help="calendar year of the outermost measured ring (dates the .rwl series and the .pos file)")
+    files.add_argument("--series-id", default=None,
+                       help="Tucson series id, at most 6 characters in disc mode (the transect number is appended) and "
+                            "8 otherwise (default: from the image file name)")
     args = p.parse_args(argv)
     check_output_file(p, "--out", args.out)
     check_output_file(p, "--overlay", args.overlay)
+    check_output_file(p, "--pos", args.pos)
+    check_output_file(p, "--rwl", args.rwl)
     return args
+
+
+def _series_id(args, width):
+    """The Tucson id stem: ``--series-id``, else the image's file name (letters and digits), at most ``width``."""
+    if args.series_id is not None:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]{1,%d}" % width, args.series_id):
+            raise ValueError(f"--series-id: expected 1 to {width} letters, digits, '_', '.' or '-'; got "
+                             f"{args.series_id!r}")
+        return args.series_id
+    stem = re.sub(r"[^A-Za-z0-9]", "", os.path.splitext(os.path.basename(args.image))[0])
+    return (stem or "series")[:width]
+
+
+def check_ring_file_args(args):
+    """ValueError for --pos / --rwl without a pixel size, --rwl without --last-year, or in section mode."""
+    if args.pos is None and args.rwl is None:
+        return
+    if args.mode == "section":
+        raise ValueError("--pos / --rwl: a microscopy section has no ring series (drop them or --mode section)")
+    if args.dpi is None and args.pixel_size_mm is None:
+        raise ValueError("--pos / --rwl are in millimetres: give the image's --dpi or --pixel-size-mm")
+    if args.rwl is not None and args.last_year is None:
+        raise ValueError("--rwl: give --last-year, the calendar year of the outermost measured ring")
+    _series_id(args, 6 if args.pith is not None else 8)
+
+
+def write_ring_files(args, transects, pith=None):
+    """Write ``--pos`` and ``--rwl`` for the ring boundaries of one or more transects (:class:`RingBoundaries`, pith →
+    bark). With the pith (disc mode) each series starts with the ring around the pith; without it (a core or a
+    board transect) with the ring after the first boundary. Returns the files written."""
+    dpi = args.dpi if args.dpi is not None else 25.4 / args.pixel_size_mm
+    mm = 25.4 / dpi
+    disc = pith is not None
+    written, series = [], []
+    stem = _series_id(args, 6 if disc else 8)
+    for k, tr in enumerate(transects):
+        pts = np.asarray(tr.points, np.float64).reshape(-1, 2)
+        if args.pos is not None and len(pts):
+            base, ext = os.path.splitext(args.pos)
+            path = f"{base}_t{k}{ext or '.pos'}" if disc else args.pos
+            write_pos(path, pts, dpi, pith_px=pith, image_file=args.image, last_year=args.last_year,
+                      program=PROG)
+            written.append(path)
+        if args.rwl is not None:
+            if disc:
+                widths = np.diff(np.r_[0.0, np.asarray(tr.info["radius_px"], np.float64)]) * mm
+            else:
+                widths = np.asarray(tr.widths_px, np.float64)[1:] * mm  # the CSV's widths
+            if len(widths):
+                series.append(RingSeries.ending(f"{stem}{k:02d}" if disc else stem, args.last_year, widths))
+    if args.rwl is not None:
+        if not series:
+            raise ValueError("--rwl: no ring was found, so there is no ring-width series to write")
+        write_rwl(args.rwl, series)
+        written.append(args.rwl)
+    return written
 
 
 def overlay_png(rgb, points, transect=None, polyline=False):
@@ -173,10 +249,14 @@ def run_disc(args, rgb):
                                "width_mm"])
     if png is not None:
         atomic_write_bytes(args.overlay, png)
+    try:
+        extra = write_ring_files(args, res.transects, pith=res.pith)
+    except ValueError as e:
+        return fail(PROG, str(e))
     counts = ", ".join(str(len(tr.points)) for tr in res.transects)
     print(f"{len(rows)} boundaries on {len(res.transects)} transects ({counts}); filtered "
           f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
-          f"image) -> {args.out}")
+          f"image) -> {', '.join([args.out] + extra)}")
     return 0
 
 
@@ -193,6 +273,10 @@ def main(argv=None):
         return fail(PROG, "--pith (disc mode) does not combine with --mode section or --bark")
     if not disc and args.transect is not None and len(args.transect) > 1:
         return fail(PROG, "several --transect need disc mode: give the pith with --pith X,Y and each transect's end X,Y")
+    try:
+        check_ring_file_args(args)
+    except ValueError as e:
+        return fail(PROG, str(e))
     try:
         rgb = read_image(args.image, space="srgb", name="image")  # decoded fully: truncated files are refused
     except (OSError, ValueError) as e:
@@ -226,10 +310,13 @@ def main(argv=None):
         if transect is not None:
             res = detect_transect_boundaries(rgb, transect, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm)
         else:
-            h, w = rgb.shape[:2]
-            bark = args.bark or ("right" if w >= h else "bottom")
-            res = detect_core_boundaries(rgb, bark=bark, width_px=args.width_px, dpi=args.dpi,
-                                         pixel_size_mm=args.pixel_size_mm)
+            res = detect_core_boundaries(rgb, bark=args.bark, width_px=args.width_px, dpi=args.dpi,
+                                         pixel_size_mm=args.pixel_size_mm)  # warns if --bark contradicts the rings
+            growth = res.info["growth"]
+            if args.bark is None:
+                print(f"bark on the {res.info['bark']} (from the rings' shape, z = {growth['z']:.1f}"
+                      f"{'' if growth['confident'] else '; not confident: check it and give --bark'})",
+                      file=sys.stderr)
         rows = [dict(index=i, x_px=f"{x:.2f}", y_px=f"{y:.2f}",
                      width_px="" if not np.isfinite(wp) else f"{wp:.2f}",
                      width_mm="" if not np.isfinite(wm) else f"{wm:.4f}")
@@ -240,7 +327,11 @@ def main(argv=None):
     write_csv(args.out, rows, ["index", "x_px", "y_px", "width_px", "width_mm"])
     if png is not None:
         atomic_write_bytes(args.overlay, png)
-    print(f"{len(rows)} boundaries -> {args.out}")
+    try:
+        extra = write_ring_files(args, [res])
+    except ValueError as e:
+        return fail(PROG, str(e))
+    print(f"{len(rows)} boundaries -> {', '.join([args.out] + extra)}")
     return 0
 
 

@@ -17,6 +17,8 @@ from .dendro import (RingBoundaries, detect_core_boundaries, detect_transect_bou
 __all__ += ["RingBoundaries", "detect_core_boundaries", "detect_transect_boundaries", "match_boundaries",
             "ring_widths_mm"]
 from .disc import DiscBoundaries, detect_disc_boundaries
-from .coorecorder import PosFile, read_pos
+from .coorecorder import PosFile, read_pos, write_pos
+from .tucson import RingSeries, read_rwl, write_rwl
 
-__all__ += ["DiscBoundaries", "detect_disc_boundaries", "PosFile", "read_pos"]
+__all__ += ["DiscBoundaries", "detect_disc_boundaries", "PosFile", "read_pos", "write_pos", "RingSeries", "read_rwl",
+            "write_rwl"]

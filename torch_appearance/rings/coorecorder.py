@@ -31,12 +31,15 @@ suffix (missing rings of zero width) is ignored (the position is counted once). 
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["PosFile", "read_pos"]
+from ..io import atomic_write_bytes
+
+__all__ = ["PosFile", "read_pos", "write_pos"]
 
 _POINT = re.compile(r"^\s*(-?\d+(?:\.\d*)?|-?\.\d+)\s*,\s*(-?\d+(?:\.\d*)?|-?\.\d+)\s*$")
 
@@ -158,3 +161,36 @@ def read_pos(path) -> PosFile:
                              f"{header['PithCoordinates']!r}") from None
     return PosFile(dpi=dpi, points_mm=pmm, points_px=pmm * scale, pith_px=pith,
                    jumps_px=np.array(jumps, dtype=np.float64).reshape(-1, 2) * scale, header=header)
+
+
+def write_pos(path, boundaries_px, dpi, pith_px=None, image_file=None, last_year=None, program="torch_appearance"):
+    """Write ring boundaries as a CooRecorder ``.pos`` file (atomically), in the order CooRecorder itself writes a
+    radial transect: the pith first (when known, also as ``#C PithCoordinates``), then the boundaries outwards; mm
+    from the image's top-left corner with three decimals; CRLF line ends. :func:`read_pos` reads it back.
+
+    Args:
+        path: the file. boundaries_px: ``(K, 2)`` boundaries ``(x, y)`` in pixels, pith → bark. dpi: the image's
+            resolution (pixels per inch, > 0). pith_px: optional ``(2,)`` pith in pixels. image_file: the image's
+            name for ``#Imagefile``. last_year: the calendar year of the outermost ring (``#C DATED``), or None.
+    """
+    pts = np.asarray(boundaries_px, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) == 0 or not np.all(np.isfinite(pts)):
+        raise ValueError(f"boundaries_px: expected finite (K, 2) pixel coordinates with K >= 1, got shape "
+                         f"{pts.shape}")
+    if isinstance(dpi, bool) or not isinstance(dpi, (int, float)) or not (math.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi: expected a number > 0, got {dpi!r}")
+    mm = 25.4 / float(dpi)
+    lines = [f"#DENDRO (Cybis Dendro program compatible format) Coordinate file written as {os.path.basename(path)} "
+             f"by {program}"]
+    if image_file:
+        lines.append(f"#Imagefile {os.path.basename(image_file)}")
+    lines += [f"#DPI {float(dpi):.1f}", "#All coordinates in millimeters (mm)", "SCALE 1",
+              "#C DATED" + ("" if last_year is None else f" {int(last_year)}")]
+    if pith_px is not None:
+        pith = np.asarray(pith_px, np.float64).ravel()
+        if pith.shape != (2,) or not np.all(np.isfinite(pith)):
+            raise ValueError(f"pith_px: expected finite (x, y) in pixels, got {pith_px!r}")
+        lines.append(f"#C PithCoordinates={pith[0] * mm:.3f},{pith[1] * mm:.3f}; DistanceToPith=0.0; YearsToPith=0;")
+        pts = np.concatenate([pith[None], pts])
+    lines += [f"{x * mm:.3f},{y * mm:.3f}" for x, y in pts]
+    atomic_write_bytes(path, ("\r\n".join(lines) + "\r\n").encode("ascii"))

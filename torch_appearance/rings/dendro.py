@@ -66,6 +66,7 @@ on the sampling and on small length differences, so the distance-based BF measur
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import cv2
@@ -77,7 +78,7 @@ from .gabor import _dominant_period, curved_gabor
 from .orientation import _as_image
 from .tracing import trace_rings
 
-__all__ = ["RingBoundaries", "SectionBoundary", "boundary_f_measure", "detect_core_boundaries",
+__all__ = ["RingBoundaries", "SectionBoundary", "boundary_f_measure", "detect_core_boundaries", "growth_direction",
            "detect_section_boundaries", "detect_transect_boundaries", "hsv_value", "mask_centerline",
            "match_boundaries", "resample_polyline", "ring_widths_mm"]
 
@@ -235,7 +236,60 @@ def _gabor_params(img, p, q, f_max):
 # ----------------------------------------------------------------------------------------------------------------
 # core mode
 # ----------------------------------------------------------------------------------------------------------------
-def detect_core_boundaries(image, *, bark: str = "right", width_px: int | None = 32, dpi=None, pixel_size_mm=None,
+def growth_direction(image, axis: str | None = None, blocks: int | None = None) -> dict:
+    """Which end of a core holds the bark, from the shape of its rings alone.
+
+    Along the direction pith → bark a ring lightens at its start (the sharp latewood → earlywood step) and darkens
+    gradually through the year, so the derivative of the intensity profile has a few large positive values and many
+    small negative ones: its skewness is positive pith → bark and negative the other way. The profile is the HSV
+    value averaged over the middle 40 % of the core's width, detrended over a tenth of its length and smoothed by
+    1 px; its derivative's skewness is taken over ``blocks`` equal pieces, whose mean and standard error give ``z``.
+
+    Args:
+        image: ``(H, W, 3)`` RGB or ``(H, W)`` gray core image. axis: ``"x"`` (bark left or right) or ``"y"``
+            (top or bottom); default: the image's long side. blocks: pieces for the standard error (>= 3, at least
+            16 px each; default: as many as fit, at most 8).
+
+    Returns:
+        dict: ``bark`` (``left|right|top|bottom``), ``skewness`` (of the whole profile's derivative along +axis),
+        ``z`` (block mean over its standard error; the sign says the direction), ``confident`` (``|z| >= 3``),
+        ``block_skewness``.
+    """
+    v = np.asarray(hsv_value(image), np.float64)
+    if axis is None:
+        axis = "x" if v.shape[1] >= v.shape[0] else "y"
+    if axis not in ("x", "y"):
+        raise ValueError(f"axis must be 'x', 'y' or None; got {axis!r}")
+    if axis == "y":
+        v = v.T
+    H, L = v.shape
+    if blocks is None:
+        blocks = min(8, L // 16)
+    elif isinstance(blocks, bool) or not isinstance(blocks, (int, np.integer)) or blocks < 3:
+        raise ValueError(f"blocks must be an integer >= 3; got {blocks!r}")
+    if L < 16 * max(3, blocks):
+        raise ValueError(f"the core is too short along its axis ({L} px) to tell its growth direction (at least "
+                         f"{16 * max(3, blocks)} px)")
+    band = v[int(0.3 * H):max(int(0.3 * H) + 1, int(0.7 * H))].mean(0)
+    window = max(31, (L // 10) | 1)
+    prof = ndimage.gaussian_filter1d(band - ndimage.uniform_filter1d(band, window, mode="nearest"), 1.0)
+    d = np.diff(prof)
+
+    def skew(x):
+        x = x - x.mean()
+        m2 = (x * x).mean()
+        return float((x ** 3).mean() / m2 ** 1.5) if m2 > 0 else 0.0
+
+    per_block = np.array([skew(b) for b in np.array_split(d, int(blocks))])
+    se = per_block.std(ddof=1) / math.sqrt(len(per_block))
+    z = float(per_block.mean() / se) if se > 0 else (math.copysign(math.inf, per_block.mean()) if
+                                                     per_block.mean() else 0.0)
+    forward = z >= 0
+    bark = ("right" if forward else "left") if axis == "x" else ("bottom" if forward else "top")
+    return dict(bark=bark, skewness=skew(d), z=z, confident=bool(abs(z) >= 3.0), block_skewness=per_block)
+
+
+def detect_core_boundaries(image, *, bark: str | None = None, width_px: int | None = 32, dpi=None, pixel_size_mm=None,
                            p: int | None = None, q: int | None = None, f_max: float = 0.4,
                            band: float = 0.5, min_rel_magnitude: float = 0.15, min_rel_rise: float = 0.1,
                            edge_level: float = 0.8, device="cpu", num_workers: int | None = None) -> RingBoundaries:
@@ -244,7 +298,10 @@ def detect_core_boundaries(image, *, bark: str = "right", width_px: int | None =
     Args:
         image: ``(H, W, 3)`` RGB in ``[0, 1]`` (sRGB values, not linearised) or ``(H, W)`` gray; numpy array.
         bark: side of the image holding the bark (youngest rings): ``left|right|top|bottom``. The core axis is
-            horizontal for left/right and vertical for top/bottom.
+            horizontal for left/right and vertical for top/bottom. None (default): found from the rings' shape
+            (:func:`growth_direction` along the image's long side). A given side that a confident estimate
+            contradicts is used, with a warning (a wrong side puts every boundary on the wrong edge of its
+            latewood). ``info["growth"]`` holds the estimate.
         width_px: the core's short side is resampled to this many pixels (uniform width, the long axis keeps its
             resolution); None keeps it.
         dpi, pixel_size_mm: scan resolution for the ring widths in mm (at most one).
@@ -269,8 +326,20 @@ def detect_core_boundaries(image, *, bark: str = "right", width_px: int | None =
         >>> from torch_appearance.rings.dendro import detect_core_boundaries
         >>> # res = detect_core_boundaries(rgb, bark="left", dpi=1200); res.points, res.widths_mm
     """
-    if bark not in _BARK:
-        raise ValueError(f"bark must be one of {_BARK}; got {bark!r}")
+    if bark is not None and bark not in _BARK:
+        raise ValueError(f"bark must be one of {_BARK} or None; got {bark!r}")
+    try:
+        growth = growth_direction(image, axis=None if bark is None else ("x" if bark in ("left", "right") else "y"))
+    except ValueError as e:
+        if bark is None:
+            raise ValueError(f"bark: {e}; give the side with the bark") from None
+        growth = None
+    if bark is None:
+        bark = growth["bark"]
+    elif growth is not None and growth["confident"] and growth["bark"] != bark:
+        warnings.warn(f"bark={bark!r}, but the rings' shape says the bark is on the {growth['bark']} (z = "
+                      f"{growth['z']:.1f}: sharp latewood -> earlywood steps face that way); check the side, a wrong "
+                      f"one puts every boundary on the wrong edge of its latewood", stacklevel=2)
     if width_px is not None and (isinstance(width_px, bool) or not isinstance(width_px, (int, np.integer))
                                  or width_px < 8):
         raise ValueError(f"width_px must be an integer >= 8 or None; got {width_px!r}")
@@ -320,7 +389,7 @@ def detect_core_boundaries(image, *, bark: str = "right", width_px: int | None =
         np.stack([np.full_like(xc, ycen), xc], 1)
     wpx, wmm = ring_widths_mm(pts, ps)
     info = dict(period_px=period, p=p, q=q, width_px=Hs, shear=shear, profile_v=v_prof, profile_z=z_prof,
-                shape=(H0, W0))
+                shape=(H0, W0), bark=bark, growth=growth)
     return RingBoundaries(points=pts, widths_px=wpx, widths_mm=wmm, pixel_size_mm=ps, info=info)
 
 
