@@ -1,10 +1,11 @@
 """Disc mode (torch_appearance.rings.disc, detect_rings.py --pith): boundaries along several transects of synthetic
 discs with known rings, filtering only polar strips (once per transect), the CSV / overlay, bad input; the
 CooRecorder .pos reader (hand-written fixture in tests/data/coorecorder, CC0) and eval_rings.py with .pos labels
-and transect columns."""
+and transect columns; the automatic pith (``--pith auto``) on synthetic discs."""
 import csv
 import math
 import os
+import re
 
 import cv2
 import numpy as np
@@ -14,6 +15,7 @@ import torch_appearance.rings.disc as disc_mod
 from torch_appearance.rings.coorecorder import read_pos
 from torch_appearance.rings.dendro import match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries, polar_strip, synthetic_disc
+from torch_appearance.rings.pith import detect_pith
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 POS = os.path.join(ROOT, "tests", "data", "coorecorder", "handwritten.pos")
@@ -219,7 +221,8 @@ def test_cli_disc_bad_inputs(disc_png, tmp_path):
              (("--pith", "150"), "--pith"),
              (("--pith", "150,160", "--angles", "0,x"), "--angles"),
              (("--transect", "1,1,50,1", "--transect", "1,1,1,50"), "--pith"),
-             (("--angles", "0,90"), "--pith"),
+             (("--angles", "0,90", "--mode", "core"), "do not combine with --mode core"),
+             (("--pith", "auto", "--mode", "section"), "do not combine with --mode section"),
              (("--pith", "150,160", "--bark", "left"), "--pith")]
     for args, msg in cases:
         rc, _, err = _run("detect_rings", path, *args, "--out", out, "--overlay", ovl)
@@ -307,3 +310,45 @@ def test_read_pos_bark_first_with_pith_header(tmp_path):
     path.write_text(text + "not a point\n")
     with pytest.raises(ValueError, match="line 17"):
         read_pos(path)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# automatic pith
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("size,pith,widths,ecc", [((320, 300), (150.0, 160.0), None, 0.06),
+                                                   ((600, 700), (430.0, 250.0), np.linspace(20, 6, 20), 0.0),
+                                                   ((480, 480), (200.0, 290.0), np.linspace(9, 18, 14), 0.1)])
+def test_pith_auto_on_synthetic_discs(size, pith, widths, ecc):
+    """The pith from the ring orientation field alone, within 2 % of the disc's radius (the issue's bar), and
+    within a few of its own standard errors."""
+    rgb, radius = synthetic_disc(size=size, pith=pith, widths=widths, ecc=ecc, seed=4)
+    est = detect_pith(rgb)
+    err = math.hypot(*(est.xy - np.array(pith)))
+    r = float(np.mean([radius(phi)[-1] for phi in np.linspace(0, 2 * math.pi, 8, endpoint=False)]))
+    assert err <= 0.02 * r, (est.xy, pith, r)
+    assert np.isfinite(est.sigma_px) and est.sigma_px < 0.05 * r
+
+
+def test_pith_auto_in_disc_mode(disc, tmp_path):
+    rgb, radius = disc
+    res = detect_disc_boundaries(rgb, "auto", angles_deg=[0.0, 120.0, 240.0])
+    assert res.info["pith"]["auto"] and math.hypot(*(res.pith - np.array(PITH))) < 0.02 * radius(0.0)[-1]
+    for k, deg in enumerate([0.0, 120.0, 240.0]):
+        m = match_boundaries(res.transects[k].info["radius_px"], radius(math.radians(deg))[:-1], 3.0)
+        assert m["f1"] >= 0.9, (deg, m)
+    with pytest.raises(ValueError, match="pith: expected .* or 'auto'"):
+        detect_disc_boundaries(rgb, "middle")
+    with pytest.raises(ValueError, match="too few pixels with ring structure"):
+        detect_pith(np.full((64, 64, 3), 0.5, np.float32))
+    with pytest.raises(ValueError, match="window"):
+        detect_pith(rgb, window=4)
+
+
+def test_cli_disc_mode_finds_the_pith(disc_png, tmp_path):
+    path, radius = disc_png
+    out = tmp_path / "auto.csv"
+    rc, _, err = _run("detect_rings", path, "--mode", "disc", "--angles", "0,180", "--out", out)
+    assert rc == 0, err
+    assert re.search(r"pith \(auto\): 1[45]\d\.\d,1[56]\d\.\d px, standard error \d+\.\d px", err), err
+    rows = list(csv.DictReader(open(out, newline="")))
+    assert {int(r["transect"]) for r in rows} == {0, 1}

@@ -8,7 +8,9 @@ the pith towards the bark (filters the whole image; for discs use disc mode). Th
 earlywood transition (torch_appearance.rings.dendro). Writes a CSV with columns index,x_px,y_px,width_px,width_mm
 ordered pith -> bark (width to the previous boundary; empty for the first, width_mm empty without --dpi /
 --pixel-size-mm).
-Disc mode (--pith X,Y): transects run from the pith outwards, given as --angles A1,A2,... (degrees from the +x axis
+Disc mode (--mode disc, implied by --pith, --angles or --edge): the pith is --pith X,Y, or found from the ring
+orientation field (--pith auto, the default; its position and standard error are printed). Transects run from the
+pith outwards, given as --angles A1,A2,... (degrees from the +x axis
 towards +y, i.e. clockwise on screen: 0 = right, 90 = down, 180 = left, 270 = up; each runs to the disc edge or the
 image border) and/or repeated --transect X,Y (the bark-side end point in pixels); default: --angles 0,90,180,270.
 Only a narrow polar strip around each transect is resampled and filtered, once (torch_appearance.rings.disc).
@@ -22,6 +24,7 @@ Examples:
     ta-detect-rings board.jpg --transect 512,500,980,130 --pixel-size-mm 0.05 --out board.csv
     ta-detect-rings disc.jpg --pith 1520,1610 --angles 0,90,180,270 --out disc.csv --overlay disc.png
     ta-detect-rings disc.jpg --pith 1520,1610 --transect 2900,1650 --transect 1480,40 --out disc.csv
+    ta-detect-rings disc.jpg --mode disc --dpi 600 --out disc.csv --pos disc.pos --rwl disc.rwl --last-year 2019
     ta-detect-rings section.png --mode section --out boundary.csv --overlay boundary.png
 """
 import os
@@ -55,7 +58,9 @@ def parse_args(argv=None):
     p.add_argument("--transect", action="append", default=None,
                    help="transect mode: X0,Y0,X1,Y1 in pixels, pith -> bark; disc mode (with --pith): X,Y, the "
                         "transect's bark-side end (repeat for several transects)")
-    p.add_argument("--pith", default=None, help="disc mode: pith position X,Y in pixels")
+    p.add_argument("--pith", default=None,
+                   help="disc mode: pith position X,Y in pixels, or 'auto' (the default in disc mode): found from the "
+                        "ring orientation field, with its uncertainty")
     p.add_argument("--angles", default=None,
                    help="disc mode: transect angles in degrees, comma-separated (from +x towards +y, clockwise on "
                         "screen: 0 right, 90 down); default 0,90,180,270 when no --transect is given")
@@ -67,8 +72,9 @@ def parse_args(argv=None):
     size.add_argument("--dpi", type=float, default=None, help="scan resolution (pixel size 25.4 / dpi mm)")
     size.add_argument("--pixel-size-mm", type=float, default=None, help="pixel size in mm")
     p.add_argument("--width-px", type=int, default=32, help="core mode: uniform core width (default: %(default)s)")
-    p.add_argument("--mode", choices=("core", "section"), default="core",
-                   help="core (also transect with --transect) or section (microscopy); default: %(default)s")
+    p.add_argument("--mode", choices=("core", "disc", "section"), default=None,
+                   help="core (also transect with --transect), disc (also implied by --pith, --angles or --edge) or "
+                        "section (microscopy); default: core")
     p.add_argument("--cell-px", type=float, default=8.0,
                    help="section mode: cell diameter in px (default: %(default)s)")
     files = p.add_argument_group("files for dendrochronology programs (need --dpi or --pixel-size-mm)")
@@ -112,13 +118,15 @@ def check_ring_file_args(args):
         raise ValueError("--pos / --rwl are in millimetres: give the image's --dpi or --pixel-size-mm")
     if args.rwl is not None and args.last_year is None:
         raise ValueError("--rwl: give --last-year, the calendar year of the outermost measured ring")
-    _series_id(args, 6 if args.pith is not None else 8)
+    _series_id(args, 6 if args.mode == "disc" else 8)
 
 
 def write_ring_files(args, transects, pith=None):
     """Write ``--pos`` and ``--rwl`` for the ring boundaries of one or more transects (:class:`RingBoundaries`, pith →
     bark). With the pith (disc mode) each series starts with the ring around the pith; without it (a core or a
     board transect) with the ring after the first boundary. Returns the files written."""
+    if args.pos is None and args.rwl is None:
+        return []
     dpi = args.dpi if args.dpi is not None else 25.4 / args.pixel_size_mm
     mm = 25.4 / dpi
     disc = pith is not None
@@ -221,7 +229,7 @@ def _numbers(text, name, count=None):
 def run_disc(args, rgb):
     """Disc mode: returns the exit code (writes the CSV and the overlay)."""
     try:
-        pith = _numbers(args.pith, "--pith (X,Y)", 2)
+        pith = "auto" if args.pith in (None, "auto") else _numbers(args.pith, "--pith (X,Y or auto)", 2)
         angles = _numbers(args.angles, "--angles") if args.angles is not None else None
         ends = [_numbers(t, "--transect in disc mode (the end point X,Y)", 2) for t in (args.transect or [])]
     except ValueError as e:
@@ -237,6 +245,10 @@ def run_disc(args, rgb):
             png = disc_overlay_png(rgb, res) if args.overlay else None
         except ValueError as e:
             return fail(PROG, str(e))
+    found = res.info["pith"]
+    if found["auto"]:
+        print(f"pith (auto): {found['xy'][0]:.1f},{found['xy'][1]:.1f} px, standard error {found['sigma_px']:.1f} px "
+              f"(give --pith X,Y to set it)", file=sys.stderr)
     rows = []
     for k, tr in enumerate(res.transects):
         for i, ((x, y), kind, r, wp, wm) in enumerate(zip(tr.points, tr.info["kind"], tr.info["radius_px"],
@@ -266,13 +278,17 @@ def main(argv=None):
         return fail(PROG, f"--dpi must be > 0; got {args.dpi}")
     if args.pixel_size_mm is not None and not args.pixel_size_mm > 0:
         return fail(PROG, f"--pixel-size-mm must be > 0; got {args.pixel_size_mm}")
-    disc = args.pith is not None
-    if not disc and (args.angles is not None or args.edge):
-        return fail(PROG, "--angles / --edge need disc mode (--pith X,Y)")
-    if disc and (args.mode == "section" or args.bark is not None):
-        return fail(PROG, "--pith (disc mode) does not combine with --mode section or --bark")
+    implied = args.pith is not None or args.angles is not None or args.edge
+    if implied and args.mode in ("core", "section"):
+        return fail(PROG, f"--pith / --angles / --edge are disc mode; they do not combine with --mode {args.mode}")
+    disc = implied or args.mode == "disc"
+    args.mode = "disc" if disc else (args.mode or "core")
+    if disc and args.bark is not None:
+        return fail(PROG, "--bark is for cores; in disc mode (--pith, --angles, --edge or --mode disc) the transects run "
+                          "from the pith outwards")
     if not disc and args.transect is not None and len(args.transect) > 1:
-        return fail(PROG, "several --transect need disc mode: give the pith with --pith X,Y and each transect's end X,Y")
+        return fail(PROG, "several --transect need disc mode (--mode disc, or --pith X,Y): each is a transect's end "
+                          "X,Y")
     try:
         check_ring_file_args(args)
     except ValueError as e:

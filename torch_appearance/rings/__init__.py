@@ -19,6 +19,7 @@ __all__ += ["RingBoundaries", "detect_core_boundaries", "detect_transect_boundar
 from .disc import DiscBoundaries, detect_disc_boundaries
 from .coorecorder import PosFile, read_pos, write_pos
 from .tucson import RingSeries, read_rwl, write_rwl
+from .pith import PithEstimate, detect_pith
 
 __all__ += ["DiscBoundaries", "detect_disc_boundaries", "PosFile", "read_pos", "write_pos", "RingSeries", "read_rwl",
-            "write_rwl"]
+            "write_rwl", "PithEstimate", "detect_pith"]

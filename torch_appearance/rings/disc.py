@@ -65,7 +65,8 @@ class DiscBoundaries:
             ``info["radius_px"]`` the distance of each point from the pith.
         ends: ``(T, 2)`` end point ``(x, y)`` of each transect as analysed (cut at the disc edge or image border).
         angles_deg: ``(T,)`` transect directions in degrees (from +x towards +y, i.e. clockwise on screen).
-        info: ``filtered_px`` (pixels passed to the Gabor filter, all transects), ``filter_calls``, background.
+        info: ``filtered_px`` (pixels passed to the Gabor filter, all transects), ``filter_calls``, background,
+            ``pith`` (``auto``, ``xy``, ``sigma_px``: the automatic pith's jackknife standard error, or None).
     """
 
     pith: np.ndarray
@@ -264,7 +265,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
 
     Args:
         image: ``(H, W, 3)`` RGB in ``[0, 1]`` (sRGB values) or ``(H, W)`` gray numpy array.
-        pith: ``(x, y)`` pith position in pixels (inside the image).
+        pith: ``(x, y)`` pith position in pixels (inside the image), or ``"auto"``: found from the ring orientation
+            field (:func:`~torch_appearance.rings.pith.detect_pith`; ``info["pith"]`` holds the estimate and its
+            uncertainty).
         angles_deg: transect directions in degrees from +x towards +y (0 = right, 90 = down on screen); each runs
             from the pith to the disc edge (or the image border / ``max_radius``).
         ends: ``(T, 2)`` transect end points ``(x, y)`` in pixels (inside the image); each transect runs from the
@@ -327,6 +330,14 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     # checked for NaN / inf on the strips that are actually sampled)
     chans = [np.ascontiguousarray(rgb[..., c]) for c in range(rgb.shape[2])]
     H, W = a.shape[:2]
+    pith_info = None
+    if isinstance(pith, str):
+        if pith != "auto":
+            raise ValueError(f"pith: expected (x, y) in pixels or 'auto', got {pith!r}")
+        from .pith import detect_pith
+        estimate = detect_pith(a)
+        pith = estimate.xy
+        pith_info = dict(auto=True, xy=estimate.xy.copy(), sigma_px=estimate.sigma_px)
     c = _check_pith(pith, (H, W))
     dirs = []  # (angle_deg, requested length)
     if angles_deg is not None:
@@ -436,7 +447,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         if progress is not None:
             progress(k + 1, len(dirs))
     info = dict(filtered_px=int(sum(s[0] * s[1] for s in calls)), filter_calls=len(calls), background=bg,
-                image_px=H * W)
+                image_px=H * W, pith=pith_info or dict(auto=False, xy=c.copy(), sigma_px=None))
     return DiscBoundaries(pith=c, transects=out, ends=np.array(ends_out).reshape(-1, 2),
                           angles_deg=np.array([d for d, _ in dirs]), info=info)
 

@@ -1,0 +1,197 @@
+#!/usr/bin/env python
+"""Disc mode against HUMAN ring measurements: the TRAS discs C13C and C17C (CooRecorder .pos, 4 radial transects each).
+
+Not part of the test suite: the photos and .pos files are read from DATA/disc_tras_coorecorder_dev/ (MIT, see its
+README). The photos carry TRAS's automatic ring lines burned in red; they are masked (R > 120, R - G > 60,
+R - B > 60, dilated by 1 px) and inpainted (OpenCV Telea) first, as the README asks.
+
+For every disc: the pith is found automatically (``--pith auto``, the default) or taken from the human files
+(``--pith human``: the mean of the four files' first points); the error of the automatic pith against the human one
+is reported in px and in % of the disc radius (the mean distance of the human transects' last points). Each human
+transect becomes a detector transect from the pith used towards the transect's last point, run on to the disc edge
+(``detect_disc_boundaries(..., angles_deg=...)``). Detections and human points are matched one-to-one in 2D
+(:func:`~torch_appearance.rings.dendro.match_boundaries`) at 3 and 5 px. Prints per transect and pooled
+sensitivity, precision and F1, the misses by ring index counted from the pith and from the bark, the signed offset
+of matched boundaries along the transect (positive: on the bark side of the human point), the detection time, and
+writes JSON plus one overlay PNG per disc (human points green on one side of the transect, detections red on the
+other, the pith as a white cross, the human pith as a green one).
+
+Example:
+    python scripts/eval/eval_disc_human.py --out /tmp/human.json --overlay-dir /tmp/human
+"""
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+import cv2
+import numpy as np
+
+from torch_appearance.io import atomic_write_bytes, read_image
+from torch_appearance.rings.coorecorder import read_pos
+from torch_appearance.rings.dendro import match_boundaries
+from torch_appearance.rings.disc import detect_disc_boundaries
+
+PROG = "eval_disc_human.py"
+DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "..",
+                            "shared", "data")
+FOLDER = "disc_tras_coorecorder_dev"
+DISCS = ("C13C", "C17C")
+SIDES = ("east", "north", "south", "west")
+TOLERANCES = (3.0, 5.0)
+
+
+def inpaint_red_lines(rgb):
+    """The photo with TRAS's burned-in red lines masked and inpainted (the dataset README's recipe)."""
+    u8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    r, g, b = (u8[..., k].astype(np.int16) for k in range(3))
+    mask = ((r > 120) & (r - g > 60) & (r - b > 60)).astype(np.uint8)
+    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    bgr = cv2.inpaint(np.ascontiguousarray(u8[..., ::-1]), mask, 3, cv2.INPAINT_TELEA)
+    return bgr[..., ::-1].astype(np.float32) / 255.0, int(mask.sum())
+
+
+def load_disc(data, disc):
+    """``(rgb inpainted, {side: (pith (2,), boundaries (K, 2))})`` in pixels."""
+    folder = os.path.join(data, FOLDER)
+    rgb, _ = inpaint_red_lines(read_image(os.path.join(folder, disc + ".jpg"), space="srgb", name="image"))
+    labels = {}
+    for side in SIDES:
+        pos = read_pos(os.path.join(folder, f"{disc}_{side}.pos"))
+        labels[side] = (pos.points_px[0].copy(), pos.points_px[1:].copy())  # point 0 is the pith (README)
+    return rgb, labels
+
+
+def pooled(rows, tol):
+    m = sum(r[f"tol{tol:g}"]["matched"] for r in rows)
+    nd, nl = sum(r["detected"] for r in rows), sum(r["labelled"] for r in rows)
+    s, p = m / max(nl, 1), m / max(nd, 1)
+    return dict(sensitivity=s, precision=p, f1=2 * s * p / (s + p) if s + p else 0.0, matched=m, detected=nd,
+                labelled=nl)
+
+
+def evaluate_disc(data, disc, pith_mode="auto", **kw):
+    rgb, labels = load_disc(data, disc)
+    human_pith = np.mean([p for p, _ in labels.values()], axis=0)
+    radius = float(np.mean([np.linalg.norm(b[-1] - human_pith) for _, b in labels.values()]))
+    t0 = time.perf_counter()
+    if pith_mode == "auto":
+        from torch_appearance.rings.pith import detect_pith
+        est = detect_pith(rgb)
+        pith, sigma = est.xy, est.sigma_px
+    else:
+        pith, sigma = human_pith, float("nan")
+    t_pith = time.perf_counter() - t0
+    angles = [math.degrees(math.atan2(*(b[-1] - pith)[::-1])) % 360.0 for _, b in labels.values()]
+    res = detect_disc_boundaries(rgb, pith, angles_deg=angles, **kw)
+    seconds = time.perf_counter() - t0
+    rows = []
+    for side, tr, deg in zip(SIDES, res.transects, angles):
+        lab = labels[side][1]
+        det = np.asarray(tr.points, np.float64).reshape(-1, 2)
+        u = np.array([math.cos(math.radians(deg)), math.sin(math.radians(deg))])
+        row = dict(disc=disc, side=side, angle_deg=deg, detected=len(det), labelled=len(lab))
+        for tol in TOLERANCES:
+            m = match_boundaries(det, lab, tol)
+            pairs = np.asarray(m["pairs"], int).reshape(-1, 2)
+            missed = sorted(set(range(len(lab))) - set(pairs[:, 1].tolist()))
+            row[f"tol{tol:g}"] = dict(sensitivity=m["sensitivity"], precision=m["precision"], f1=m["f1"],
+                                      matched=m["matched"], missed_from_pith=missed,
+                                      missed_from_bark=[len(lab) - 1 - i for i in missed],
+                                      false=sorted(set(range(len(det))) - set(pairs[:, 0].tolist())),
+                                      offset_px=[float((det[i] - lab[j]) @ u) for i, j in pairs])
+        rows.append(row)
+    return dict(disc=disc, rgb=rgb, res=res, labels=labels, rows=rows, pith=pith, pith_sigma_px=sigma,
+                human_pith=human_pith, pith_error_px=float(np.linalg.norm(pith - human_pith)), radius_px=radius,
+                seconds=seconds, pith_seconds=t_pith)
+
+
+def overlay(ev):
+    img = np.ascontiguousarray((np.clip(ev["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    res, c = ev["res"], ev["res"].pith
+    t = max(1, round(max(img.shape[:2]) / 1200))
+    for side, tr, end, deg in zip(SIDES, res.transects, res.ends, res.angles_deg):
+        th = math.radians(deg)
+        n = np.array([-math.sin(th), math.cos(th)])
+        cv2.line(img, tuple(np.round(c).astype(int)), tuple(np.round(end).astype(int)), (255, 255, 0), t)
+        for q in ev["labels"][side][1]:
+            cv2.line(img, tuple(np.round(q).astype(int)), tuple(np.round(q + 14 * n).astype(int)), (0, 170, 0), 2 * t)
+        for q in tr.points:
+            cv2.line(img, tuple(np.round(q).astype(int)), tuple(np.round(q - 14 * n).astype(int)), (0, 0, 255), 2 * t)
+    cv2.drawMarker(img, tuple(np.round(ev["human_pith"]).astype(int)), (0, 170, 0), cv2.MARKER_CROSS, 40, 2 * t)
+    cv2.drawMarker(img, tuple(np.round(c).astype(int)), (255, 255, 255), cv2.MARKER_CROSS, 40, t)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("could not encode the overlay")
+    return buf.tobytes()
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", default=DEFAULT_DATA, help=f"folder holding {FOLDER}/ (default: ../shared/data next to "
+                                                        "the checkout)")
+    p.add_argument("--pith", choices=("auto", "human"), default="auto", help="pith used (default: %(default)s)")
+    p.add_argument("--half-width", type=int, default=16, help="strip half-width in px (default: %(default)s)")
+    p.add_argument("--out", default="disc_human_eval.json", help="output JSON (default: %(default)s)")
+    p.add_argument("--overlay-dir", default=None, help="folder for one overlay PNG per disc")
+    args = p.parse_args(argv)
+    missing = [os.path.join(args.data, FOLDER, f) for d in DISCS for f in [d + ".jpg"] + [f"{d}_{s}.pos" for s in SIDES]
+               if not os.path.isfile(os.path.join(args.data, FOLDER, f))]
+    if missing:
+        p.error(f"data missing: {', '.join(missing)}")
+    if args.overlay_dir is not None and not os.path.isdir(args.overlay_dir):
+        p.error(f"--overlay-dir: {args.overlay_dir!r} is not a folder")
+    evs = []
+    for disc in DISCS:
+        try:
+            evs.append(evaluate_disc(args.data, disc, args.pith, half_width=args.half_width))
+        except (OSError, ValueError) as e:
+            print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
+            return 2
+    head = f"{'transect':14s} {'det':>4s} {'lab':>4s}   {'S@3':>5s} {'P@3':>5s} {'F1@3':>5s}   {'S@5':>5s} {'P@5':>5s} " \
+           f"{'F1@5':>5s}  missed @5 (from pith)"
+    print(head)
+    rows = [r for ev in evs for r in ev["rows"]]
+    for r in rows:
+        a, b = r["tol3"], r["tol5"]
+        print(f"{r['disc'] + ' ' + r['side']:14s} {r['detected']:4d} {r['labelled']:4d}   {a['sensitivity']:5.2f} "
+              f"{a['precision']:5.2f} {a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}  "
+              f"{b['missed_from_pith']}")
+    total = {f"tol{t:g}": pooled(rows, t) for t in TOLERANCES}
+    a, b = total["tol3"], total["tol5"]
+    print(f"{'pooled':14s} {b['detected']:4d} {b['labelled']:4d}   {a['sensitivity']:5.2f} {a['precision']:5.2f} "
+          f"{a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}")
+    from_pith, from_bark = np.zeros(40, int), np.zeros(40, int)
+    for r in rows:
+        for i in r["tol5"]["missed_from_pith"]:
+            from_pith[min(i, 39)] += 1
+        for i in r["tol5"]["missed_from_bark"]:
+            from_bark[min(i, 39)] += 1
+    print("misses @5 px by ring index from the pith (0 = innermost):",
+          {i: int(v) for i, v in enumerate(from_pith) if v})
+    print("misses @5 px by ring index from the bark (0 = outermost):",
+          {i: int(v) for i, v in enumerate(from_bark) if v})
+    offsets = np.array([o for r in rows for o in r["tol5"]["offset_px"]])
+    if len(offsets):
+        print(f"matched offset along the transect (+: bark side of the human point): median {np.median(offsets):+.2f} "
+              f"px, mean {offsets.mean():+.2f} px")
+    for ev in evs:
+        print(f"{ev['disc']}: pith {ev['pith'][0]:.1f},{ev['pith'][1]:.1f} ({args.pith}; standard error "
+              f"{ev['pith_sigma_px']:.1f} px), human {ev['human_pith'][0]:.1f},{ev['human_pith'][1]:.1f}: error "
+              f"{ev['pith_error_px']:.1f} px = {100 * ev['pith_error_px'] / ev['radius_px']:.2f} % of the radius "
+              f"{ev['radius_px']:.0f} px; {ev['seconds']:.1f} s for 4 transects (pith {ev['pith_seconds']:.1f} s)")
+        if args.overlay_dir is not None:
+            atomic_write_bytes(os.path.join(args.overlay_dir, f"{ev['disc']}_overlay.png"), overlay(ev))
+    blob = dict(pith=args.pith, half_width=args.half_width, pooled=total, transects=rows,
+                discs=[{k: ev[k] for k in ("disc", "pith", "pith_sigma_px", "human_pith", "pith_error_px", "radius_px",
+                                           "seconds", "pith_seconds")} for ev in evs])
+    atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=lambda o: np.asarray(o).tolist()).encode())
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
