@@ -125,7 +125,7 @@ def main(argv=None):
                    help="transect angles in degrees, from +x towards +y (default: %(default)s)")
     p.add_argument("--edge", action="store_true", help="report the disc edge as the last boundary")
     p.add_argument("--half-width", type=int, default=16, help="strip half-width in px (default: %(default)s)")
-    p.add_argument("--edge-level", type=float, default=0.8,
+    p.add_argument("--edge-level", type=float, default=1.0,
                    help="boundary at this fraction of the steepest V rise on its latewood side; 1 = the steepest "
                         "point (default: %(default)s)")
     p.add_argument("--pith-offset", default="0,0",

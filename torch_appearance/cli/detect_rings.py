@@ -30,6 +30,7 @@ Examples:
 import os
 import re
 import sys
+import warnings
 
 import cv2
 import numpy as np
@@ -326,8 +327,12 @@ def main(argv=None):
         if transect is not None:
             res = detect_transect_boundaries(rgb, transect, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm)
         else:
-            res = detect_core_boundaries(rgb, bark=args.bark, width_px=args.width_px, dpi=args.dpi,
-                                         pixel_size_mm=args.pixel_size_mm)  # warns if --bark contradicts the rings
+            with warnings.catch_warnings(record=True) as caught:  # a contradicted --bark: one line on stderr
+                warnings.simplefilter("always")
+                res = detect_core_boundaries(rgb, bark=args.bark, width_px=args.width_px, dpi=args.dpi,
+                                             pixel_size_mm=args.pixel_size_mm)
+            for w in caught:
+                print(f"{PROG}: warning: {w.message}", file=sys.stderr)
             growth = res.info["growth"]
             if args.bark is None:
                 print(f"bark on the {res.info['bark']} (from the rings' shape, z = {growth['z']:.1f}"
