@@ -63,7 +63,6 @@ def _meet(p, n, w, x0, radius, min_radius, iterations=12, scale_deg=5.0):
     x = np.asarray(x0, np.float64)
     r = float(radius)
     s = math.radians(scale_deg)
-    used = np.zeros(len(p), bool)
     for _ in range(iterations):
         d = x[None] - p
         dist = np.hypot(d[:, 0], d[:, 1])
@@ -86,7 +85,7 @@ def _meet(p, n, w, x0, radius, min_radius, iterations=12, scale_deg=5.0):
             break
         x = np.array([a22 * b[0] - a12 * b[1], a11 * b[1] - a12 * b[0]]) / det
         r = max(min_radius, 0.6 * r)
-    return x, used
+    return x
 
 
 def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: float = 0.08,
@@ -129,7 +128,7 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
     long_side = max(small.shape)
     # start at the coherence-weighted centroid of the wood, with a window of the whole image
     x0 = (w[:, None] * p).sum(0) / w.sum()
-    x, _ = _meet(p, n, w, x0, radius=long_side, min_radius=min_radius * long_side)
+    x = _meet(p, n, w, x0, radius=long_side, min_radius=min_radius * long_side)
     coarse = np.array([(x[0] + 0.5) / sx - 0.5, (x[1] + 0.5) / sy - 0.5])
     est, lines_in = x, (p, n, w)
     to_input = lambda q: np.array([(q[0] + 0.5) / sx - 0.5, (q[1] + 0.5) / sy - 0.5])  # noqa: E731
@@ -147,7 +146,7 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
             p2, n2, w2 = _lines(cs, window)
             if len(p2) >= 50:
                 start = np.array([(coarse[0] - x0i + 0.5) * fx - 0.5, (coarse[1] - y0i + 0.5) * fy - 0.5])
-                x2, _ = _meet(p2, n2, w2, start, radius=max(cs.shape), min_radius=min_radius * max(cs.shape))
+                x2 = _meet(p2, n2, w2, start, radius=max(cs.shape), min_radius=min_radius * max(cs.shape))
                 est, lines_in = x2, (p2, n2, w2)
                 to_input = lambda q: np.array([(q[0] + 0.5) / fx - 0.5 + x0i,  # noqa: E731
                                                 (q[1] + 0.5) / fy - 0.5 + y0i])
@@ -161,7 +160,7 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
         keep = sector != k
         if keep.sum() < 50:
             continue
-        xk, _ = _meet(p[keep], n[keep], w[keep], est, radius=radius_final * 2, min_radius=radius_final,
+        xk = _meet(p[keep], n[keep], w[keep], est, radius=radius_final * 2, min_radius=radius_final,
                       iterations=6)
         leave_out.append(to_input(xk))
     if len(leave_out) >= 3:
