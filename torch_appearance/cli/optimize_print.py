@@ -27,6 +27,8 @@ import sys
 
 from .. import io as ta_io
 from ..fabrication.inks import DEFAULT_INKS, INKS
+from ..fabrication.printer import builtin_printers
+from ..fabrication.quantize import HALFTONES
 from ..pipelines.print.config import RESUME_MAY_CHANGE, SCHEDULES, PrintConfig, config_conflicts
 from ..pipelines.print.loop import optimize_print
 from ..pipelines.runs import RunInterrupted
@@ -114,7 +116,14 @@ def add_optimization_arguments(p, d=None):
     p.add_argument("--parameterization", choices=("sigmoid", "softmax"), default=d.parameterization,
                    help="mixture parameterisation (default: %(default)s, as in the paper)")
     p.add_argument("--printer-dpi", type=float_tuple(3, "--printer-dpi"), default=d.printer_dpi,
-                   help="native printer resolution x,y,z for quantisation (default: 600,300,940)")
+                   help="native printer resolution x,y,z for quantisation (default: 600,300,940, or --printer's)")
+    p.add_argument("--printer", default=d.printer,
+                   help=f"a printer profile, built-in ({', '.join(builtin_printers())}) or a JSON file: quantise at its "
+                        f"resolution and write its package (package-NAME/: print.gcvf, print.3mf) into the run "
+                        f"folder; ta-export-print exports a run again for another printer")
+    p.add_argument("--halftone", choices=HALFTONES, default=d.halftone,
+                   help="how each printer voxel's ink is drawn from its voxel's mixture: independently at random (the "
+                        "paper), or by a 3D blue-noise threshold volume (inks evenly spread) (default: %(default)s)")
     p.add_argument("--ior", type=float, default=d.ior, help="refractive index of the print (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed, help="(default: %(default)s)")
     p.add_argument("--gradient-seed", choices=("same", "independent"), default=d.gradient_seed,
@@ -167,7 +176,7 @@ def parser(prog=PROG):
     return p
 
 
-_PATH_FLAGS = ("target", "bottom_target", "mesh", "texture", "envmap")
+_PATH_FLAGS = ("target", "bottom_target", "mesh", "texture", "envmap", "printer")
 
 
 def absolute_paths(args):

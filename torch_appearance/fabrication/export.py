@@ -19,6 +19,7 @@ import io as _stdio
 import json
 import os
 import re
+import zipfile
 
 import cv2
 import numpy as np
@@ -28,7 +29,8 @@ from ..checks import check_path, describe
 from .inks import InkSet, ink_from_dict
 from .quantize import PRINTER_DPI, _check_dpi
 
-__all__ = ["export_slices", "read_slices", "save_index_volume", "load_index_volume", "VOID", "VOID_RGB"]
+__all__ = ["export_slices", "read_slices", "save_index_volume", "load_index_volume", "IndexVolumeLayers", "VOID",
+           "VOID_RGB"]
 
 #: Material index of "no material" (outside an object) in index volumes.
 VOID = 255
@@ -71,16 +73,19 @@ def _codes(rgb):
     return (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
 
 
-def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI):
+def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI, progress=None):
     """Write one RGB PNG per printer layer plus ``palette.json`` (see the module docstring for the format).
 
     Args:
         indices: (Dz, Hy, Wx) ``uint8`` material indices (e.g. from
-            :func:`~torch_appearance.fabrication.quantize_mixture`), layer 0 at the bottom.
+            :func:`~torch_appearance.fabrication.quantize_mixture`), layer 0 at the bottom; or a layer source with
+            ``shape`` that yields the (Hy, Wx) layers in order (e.g. :class:`IndexVolumeLayers`): it is read once,
+            one layer at a time.
         inks: the :class:`InkSet` the indices refer to; palette colours must be distinct after 8-bit rounding.
         folder: output folder (created if missing). Stale ``slice_*.png`` files from an earlier, thicker export
             are removed.
         dpi: printer resolution ``(x, y, z)``, recorded in the palette (layer thickness 25.4 / dpi_z mm).
+        progress: optional callable ``progress(k)`` after layer k.
 
     Returns:
         The palette dict that was written.
@@ -90,7 +95,14 @@ def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI):
             sharing a palette colour).
     """
     inks = _check_inks(inks)
-    indices = _check_indices(indices, len(inks))
+    if isinstance(indices, np.ndarray):
+        indices = _check_indices(indices, len(inks))
+        void = bool((indices == VOID).any())
+    else:
+        void = None                                             # found out layer by layer
+    shape = getattr(indices, "shape", None)
+    if shape is None or len(shape) != 3:
+        raise TypeError(f"indices: expected a (Dz, Hy, Wx) uint8 ndarray or a layer source, got {describe(indices)}")
     folder = _check_folder(folder)
     dpi = _check_dpi(dpi, "dpi")
     rgb = inks.display_rgb()                                    # (N, 3) uint8
@@ -100,36 +112,53 @@ def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI):
                    if codes[i] == codes[j]]
         raise ValueError(f"inks: slice colours must be distinct to be read back, but these inks share a "
                          f"display_rgb (after 8-bit rounding): {clashes}")
-    void = bool((indices == VOID).any())
-    if void and _codes(np.array(VOID_RGB)) in set(codes.tolist()):
+    void_clash = _codes(np.array(VOID_RGB)) in set(codes.tolist())
+    if void and void_clash:
         raise ValueError(f"inks: an ink's display_rgb equals the void colour {VOID_RGB}; change the ink's colour")
     os.makedirs(folder, exist_ok=True)
-    palette = {
-        "inks": [dict(index=i, name=ink.name, rgb=[int(v) for v in rgb[i]], sigma_t=list(ink.sigma_t),
-                      albedo=list(ink.albedo), g=ink.g) for i, ink in enumerate(inks)],
-        "layer_thickness_mm": 25.4 / dpi[2],
-        "dpi": [int(v) if float(v).is_integer() else v for v in dpi],
-        "order": "bottom_to_top",
-        "layers": int(indices.shape[0]),
-        "shape": [int(v) for v in indices.shape],
-        "file_pattern": "slice_{:04d}.png",
-    }
-    if void:
-        palette["void"] = {"index": VOID, "rgb": list(VOID_RGB)}
     # Remove the palette first: a folder with stale slices but no palette is recognisably incomplete.
     if os.path.exists(os.path.join(folder, _PALETTE)):
         os.remove(os.path.join(folder, _PALETTE))
     bgr_palette = np.zeros((256, 3), dtype=np.uint8)
     bgr_palette[:len(rgb)] = rgb[:, ::-1]                       # OpenCV stores B, G, R
     bgr_palette[VOID] = VOID_RGB[::-1]
-    for z in range(indices.shape[0]):
-        ok, encoded = cv2.imencode(".png", bgr_palette[indices[z]])
+    dz, hy, wx = (int(v) for v in shape)
+    seen_void = False
+    z = -1
+    for z, layer in enumerate(indices):
+        if z >= dz:
+            raise ValueError(f"indices: expected {dz} layers, got more")
+        layer = _check_indices(np.asarray(layer)[None], len(inks))[0] if void is None else layer
+        if layer.shape != (hy, wx):
+            raise ValueError(f"indices: layer {z}: expected shape {(hy, wx)}, got {layer.shape}")
+        if void is None and not seen_void and (layer == VOID).any():
+            seen_void = True
+            if void_clash:
+                raise ValueError(f"inks: an ink's display_rgb equals the void colour {VOID_RGB}; change the ink's "
+                                 f"colour")
+        ok, encoded = cv2.imencode(".png", bgr_palette[layer])
         if not ok:
-            raise RuntimeError(f"OpenCV failed to encode slice {z} of shape {indices.shape[1:]}")
+            raise RuntimeError(f"OpenCV failed to encode slice {z} of shape {(hy, wx)}")
         _io.atomic_write_bytes(os.path.join(folder, f"slice_{z:04d}.png"), encoded.tobytes())
+        if progress is not None:
+            progress(z)
+    if z + 1 != dz:
+        raise ValueError(f"indices: expected {dz} layers, got {z + 1}")
+    palette = {
+        "inks": [dict(index=i, name=ink.name, rgb=[int(v) for v in rgb[i]], sigma_t=list(ink.sigma_t),
+                      albedo=list(ink.albedo), g=ink.g) for i, ink in enumerate(inks)],
+        "layer_thickness_mm": 25.4 / dpi[2],
+        "dpi": [int(v) if float(v).is_integer() else v for v in dpi],
+        "order": "bottom_to_top",
+        "layers": dz,
+        "shape": [dz, hy, wx],
+        "file_pattern": "slice_{:04d}.png",
+    }
+    if void or seen_void:
+        palette["void"] = {"index": VOID, "rgb": list(VOID_RGB)}
     for name in os.listdir(folder):
         match = _SLICE_RE.match(name)
-        if match and int(match.group(1)) >= indices.shape[0]:
+        if match and int(match.group(1)) >= dz:
             os.remove(os.path.join(folder, name))
     _io.write_json(os.path.join(folder, _PALETTE), palette)
     return palette
@@ -221,3 +250,68 @@ def load_index_volume(path):
         indices, dpi, inks_json = archive["indices"], archive["dpi"], str(archive["inks_json"])
     inks = InkSet([ink_from_dict(e, where=f"{path}: inks[{i}]") for i, e in enumerate(json.loads(inks_json))])
     return _check_indices(indices, len(inks)), inks, _check_dpi(tuple(dpi.tolist()), "dpi")
+
+
+class IndexVolumeLayers:
+    """The layers of a volume written by :func:`save_index_volume`, read one at a time (never the whole volume).
+
+    ``shape`` (Dz, Hy, Wx), ``inks`` and ``dpi`` come from the archive; iterating yields the ``uint8`` (Hy, Wx)
+    layers bottom to top, decompressed from the archive as they are read, so memory stays at one layer whatever the
+    number of layers (a 40 mm object at printer resolution holds ~660 M voxels). Each iteration re-reads the file.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not an index volume, a volume that is not uint8 (Dz, Hy, Wx) in C order, a truncated file.
+
+    Example:
+        >>> import tempfile, numpy as np
+        >>> from torch_appearance.fabrication import InkSet
+        >>> path = tempfile.mkdtemp() + "/q.npz"
+        >>> save_index_volume(path, np.arange(24, dtype=np.uint8).reshape(2, 3, 4) % 5, InkSet.from_names())
+        >>> layers = IndexVolumeLayers(path)
+        >>> layers.shape, [int(layer.sum()) for layer in layers]
+        ((2, 3, 4), [21, 25])
+    """
+
+    def __init__(self, path):
+        self.path = check_path("path", path)
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(f"path: no such file {self.path!r}")
+        try:
+            with zipfile.ZipFile(self.path) as archive:
+                missing = [k for k in ("indices.npy", "dpi.npy", "inks_json.npy") if k not in archive.namelist()]
+                if missing:
+                    raise ValueError(f"{self.path!r}: not an index volume, missing entries {missing}")
+                with np.load(self.path, allow_pickle=False) as small:
+                    dpi, inks_json = small["dpi"], str(small["inks_json"])
+                with archive.open("indices.npy") as handle:
+                    self._header(handle)
+        except zipfile.BadZipFile as error:
+            raise ValueError(f"{self.path!r}: not an index volume (not a zip archive: {error})") from None
+        self.inks = InkSet([ink_from_dict(e, where=f"{self.path}: inks[{i}]")
+                            for i, e in enumerate(json.loads(inks_json))])
+        self.dpi = _check_dpi(tuple(dpi.tolist()), "dpi")
+
+    def _header(self, handle):
+        version = np.lib.format.read_magic(handle)
+        read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read is None:
+            raise ValueError(f"{self.path!r}: unsupported .npy version {version}")
+        shape, fortran, dtype = read(handle)
+        if dtype != np.uint8 or fortran or len(shape) != 3 or min(shape) < 1:
+            raise ValueError(f"{self.path!r}: expected uint8 indices (Dz, Hy, Wx) in C order, got {dtype} "
+                             f"{shape}{' (Fortran order)' if fortran else ''}")
+        self.shape = tuple(int(v) for v in shape)
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        _, hy, wx = self.shape
+        with zipfile.ZipFile(self.path) as archive, archive.open("indices.npy") as handle:
+            self._header(handle)
+            for k in range(self.shape[0]):
+                data = handle.read(hy * wx)
+                if len(data) != hy * wx:
+                    raise ValueError(f"{self.path!r}: truncated at layer {k} of {self.shape[0]}")
+                yield np.frombuffer(data, np.uint8).reshape(hy, wx)

@@ -15,7 +15,8 @@ import torch
 from ..checks import check_positive, is_real
 
 __all__ = ["PRINTER_DPI", "micro_voxel_size", "micro_grid_shape", "micro_grid_pitch", "source_index",
-           "resample_nearest", "quantize_mixture", "hold_fixed_fractions", "index_volume_to_weights"]
+           "resample_nearest", "quantize_mixture", "iter_quantized", "HALFTONES", "hold_fixed_fractions",
+           "index_volume_to_weights"]
 
 #: Native resolution of Stratasys PolyJet printers (J7/J8 family) in dots per inch along (x, y, z).
 PRINTER_DPI = (600, 300, 940)
@@ -168,22 +169,31 @@ def _weight_layers(weights):
     return layer, tuple(weights.shape)
 
 
-def quantize_mixture(weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0):
+def quantize_mixture(weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0, halftone="random"):
     """Draw one ink per printer micro-voxel from the mixture of the macro voxel containing its centre.
 
     The micro grid covers the macro box (W·s × H·s × D·s mm) with ``micro_grid_shape`` cells; micro cell
     (k, j, i) maps to macro voxel ``(floor(z_k / s), floor(y_j / s), floor(x_i / s))`` of its centre, exact
     for non-integer factors. Its ink is the first n with ``u < c_n``, where c is the macro voxel's normalised
-    cumulative mixture and u one uniform draw of ``numpy.random.Generator(PCG64(seed)).random()`` per
-    micro-voxel in C order (so ``P(ink n) = ρ_n / Σρ`` exactly, and inks of weight 0 are never drawn).
-    Vectorised; memory is bounded by processing chunks of micro layers (the random stream is the same).
+    cumulative mixture and u the micro-voxel's threshold in [0, 1):
+
+    * ``halftone="random"`` (the paper's choice): u is one uniform draw of
+      ``numpy.random.Generator(PCG64(seed)).random()`` per micro-voxel in C order, so ``P(ink n) = ρ_n / Σρ``
+      exactly, independently per micro-voxel;
+    * ``halftone="blue-noise"``: u is a tiled 3D blue-noise threshold volume (:func:`.halftone.blue_noise_thresholds`,
+      shifted by ``seed``): each ink still takes its fraction ρ_n / Σρ of a region of constant mixture, but its
+      micro-voxels are spread evenly instead of clumping by chance (less visible grain).
+
+    Inks of weight 0 are never drawn. The volume is built layer block by layer block
+    (:func:`iter_quantized`); the random stream is the same whatever the block size.
 
     Args:
         weights: (N, D, H, W) mixture weights (tensor or ndarray, floating point), >= 0, per-voxel sums within
             1e-3 of 1 (they are renormalised exactly). N <= 256.
         voxel_size_mm: macro voxel edge s in mm (cubic voxels, as in the optimisation).
         printer_dpi: ``(x, y, z)`` printer resolution in dots per inch.
-        seed: int >= 0, the random seed.
+        seed: int >= 0, the random seed (the pattern's shift for ``"blue-noise"``).
+        halftone: ``"random"`` or ``"blue-noise"`` (:data:`HALFTONES`).
 
     Returns:
         ``numpy.ndarray`` ``uint8`` of shape ``(Dz, Hy, Wx)`` = ``micro_grid_shape((D, H, W), ...)``: ink
@@ -199,32 +209,68 @@ def quantize_mixture(weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0):
         >>> quantize_mixture(rho, 25.4 / 300).shape     # at 600 × 300 × 940 DPI
         (38, 16, 32)
     """
-    layer, (n, d, h, wd) = _weight_layers(weights)
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
-    dz, hy, wx = micro_grid_shape((d, h, wd), voxel_size_mm, printer_dpi)
-    iz, iy, ix = source_index(d, dz), source_index(h, hy), source_index(wd, wx)
-
-    rng = np.random.Generator(np.random.PCG64(int(seed)))
-    out = np.empty((dz, hy, wx), dtype=np.uint8)
-    layers = max(1, _CHUNK // (hy * wx))
-    starts = np.searchsorted(iz, np.arange(d + 1))    # micro layers [starts[z], starts[z+1]) lie in macro layer z
-    for z in range(d):                                # loop over macro layers, then chunks of micro layers
-        if starts[z] == starts[z + 1]:
-            continue
-        # normalised cumulative weights of layer z, the thresholds c_0..c_{N-2} (c_{N-1} = 1 is implicit); x / x = 1
-        # exactly for trailing zeros. One layer at a time: the same numbers as over the whole volume at once.
-        cdf = np.cumsum(layer(z), axis=0)
-        cdf = cdf[:-1] / cdf[-1:]                                  # (N-1, H, W)
-        thresholds = cdf[:, iy[:, None], ix[None, :]]              # (N-1, Hy, Wx): lateral upsampling of layer z
-        for z0 in range(starts[z], starts[z + 1], layers):
-            z1 = min(starts[z + 1], z0 + layers)
-            u = rng.random((z1 - z0, hy, wx))         # C order over the whole volume, chunk after chunk
-            index = np.zeros(u.shape, dtype=np.uint8)
-            for k in range(n - 1):                    # loop over inks: count the thresholds u has passed
-                index += u >= thresholds[k]
-            out[z0:z1] = index
+    blocks = iter_quantized(weights, voxel_size_mm, printer_dpi, seed, halftone)
+    out = np.empty(blocks.shape, dtype=np.uint8)
+    for z0, block in blocks:
+        out[z0:z0 + len(block)] = block
     return out
+
+
+#: The halftoning options of :func:`quantize_mixture` and :func:`iter_quantized`.
+HALFTONES = ("random", "blue-noise")
+
+
+class iter_quantized:  # noqa: N801 - used like a generator function
+    """The micro layers of :func:`quantize_mixture`, block by block, bottom to top, without the whole volume.
+
+    Iterating yields ``(z0, block)``: ``block`` a ``uint8`` ``(k, Hy, Wx)`` array of micro layers ``z0 .. z0+k-1``
+    (each block lies in one macro layer and holds at most ~4 M micro-voxels); the blocks cover every layer once,
+    in order, and equal the slices of :func:`quantize_mixture`'s volume bit for bit. ``shape`` is the whole
+    ``(Dz, Hy, Wx)``. Peak memory: one macro layer of the mixture in float64 and one block, whatever the number
+    of layers. Arguments as for :func:`quantize_mixture`; they are checked when the object is made.
+    """
+
+    def __init__(self, weights, voxel_size_mm, printer_dpi=PRINTER_DPI, seed=0, halftone="random"):
+        self._layer, (self._n, d, h, wd) = _weight_layers(weights)
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+            raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
+        if halftone not in HALFTONES:
+            raise ValueError(f"halftone: expected one of {HALFTONES}, got {halftone!r}")
+        self.seed, self.halftone, self.macro_shape = int(seed), halftone, (d, h, wd)
+        self.shape = micro_grid_shape((d, h, wd), voxel_size_mm, printer_dpi)
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        d, h, wd = self.macro_shape
+        dz, hy, wx = self.shape
+        iz, iy, ix = source_index(d, dz), source_index(h, hy), source_index(wd, wx)
+        if self.halftone == "random":
+            rng = np.random.Generator(np.random.PCG64(self.seed))
+        else:
+            from .halftone import blue_noise_thresholds
+            thresholds_of = blue_noise_thresholds(self.shape, self.seed)
+        layers = max(1, _CHUNK // (hy * wx))
+        starts = np.searchsorted(iz, np.arange(d + 1))    # micro layers [starts[z], starts[z+1]) lie in macro layer z
+        for z in range(d):                                # loop over macro layers, then blocks of micro layers
+            if starts[z] == starts[z + 1]:
+                continue
+            # normalised cumulative weights of layer z, the thresholds c_0..c_{N-2} (c_{N-1} = 1 is implicit);
+            # x / x = 1 exactly for trailing zeros. One layer at a time: the same numbers as over the whole volume.
+            cdf = np.cumsum(self._layer(z), axis=0)
+            cdf = cdf[:-1] / cdf[-1:]                                  # (N-1, H, W)
+            cuts = cdf[:, iy[:, None], ix[None, :]]                    # (N-1, Hy, Wx): lateral upsampling of layer z
+            for z0 in range(starts[z], starts[z + 1], layers):
+                z1 = min(starts[z + 1], z0 + layers)
+                if self.halftone == "random":
+                    u = rng.random((z1 - z0, hy, wx))     # C order over the whole volume, block after block
+                else:
+                    u = thresholds_of(z0, z1)
+                index = np.zeros(u.shape, dtype=np.uint8)
+                for k in range(self._n - 1):              # loop over inks: count the thresholds u has passed
+                    index += u >= cuts[k]
+                yield int(z0), index
 
 
 def hold_fixed_fractions(indices, weights, voxel_size_mm, fixed, printer_dpi=PRINTER_DPI, seed=0):

@@ -143,9 +143,10 @@ def render_quantized(indices, inks, cfg, macro_hw, faces, spp, seed):
 
 def quantize(target, weights, inks, cfg, seed, fixed=()):
     """Printer-resolution (Dz, Hy, Wx) uint8 ink indices of mixture ``weights`` (N, D, H, W) on ``target``'s grid:
-    one ink per printer micro-voxel drawn with the mixture's probabilities (``seed``), the target's void marked
+    one ink per printer micro-voxel drawn with the mixture's probabilities (``seed``, ``cfg.halftone``), the target's void marked
     (VOID outside an object), fixed ink fractions (``fixed``, see :mod:`.fixed_fractions`) held exactly."""
-    indices = target.quantized_void(quantize_mixture(weights, cfg.voxel_size, cfg.printer_dpi, seed=seed))
+    indices = target.quantized_void(quantize_mixture(weights, cfg.voxel_size, cfg.printer_dpi, seed=seed,
+                                                     halftone=cfg.halftone))
     if fixed:
         indices = hold_fixed_fractions(indices, weights, cfg.voxel_size, fixed, cfg.printer_dpi, seed=seed)
     return indices

@@ -6,7 +6,8 @@ from dataclasses import dataclass, fields
 from typing import Optional, Sequence, Tuple
 
 from ...fabrication.inks import DEFAULT_INKS, Ink, InkSet, ink_from_dict
-from ...fabrication.quantize import PRINTER_DPI
+from ...fabrication.printer import load_printer
+from ...fabrication.quantize import HALFTONES, PRINTER_DPI
 from .fixed_fractions import parse_fixed
 
 __all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts", "SCHEDULES"]
@@ -72,6 +73,8 @@ class PrintConfig:
     remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
     view_size: int = 192  # objects: pixels per side of those renders
+    halftone: str = "random"  # "random" (independent draws, the paper) or "blue-noise" (fabrication.halftone)
+    printer: Optional[str] = None  # a printer profile (name or JSON path): its resolution, and a package at the end
     fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.print.fixed_fractions)
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
     out: str = "results/print"
@@ -112,6 +115,13 @@ class PrintConfig:
             raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
         if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
             raise ValueError(f"printer_dpi: expected three positive DPI values (x, y, z), got {self.printer_dpi!r}")
+        if self.halftone not in HALFTONES:
+            raise ValueError(f"halftone: expected one of {HALFTONES}, got {self.halftone!r}")
+        if self.printer is not None:
+            printer = load_printer(self.printer)
+            if tuple(self.printer_dpi) != tuple(PRINTER_DPI) and not printer.matches(self.printer_dpi, 1e-6):
+                raise ValueError(f"printer_dpi: {tuple(self.printer_dpi)} differs from the resolution of printer "
+                                 f"{printer.name!r} {printer.dpi}; give one of them")
         if self.remap_baseline and self.mesh is None:
             raise ValueError("remap_baseline: the 2.5D remapped baseline is for objects (--mesh)")
         if self.mesh is not None:
@@ -162,6 +172,10 @@ class PrintConfig:
             (32, 8)
         """
         fill = {name: value for name, value in SCHEDULES[self.kind].items() if getattr(self, name) is None}
+        if self.printer is not None:
+            dpi = load_printer(self.printer).dpi
+            if tuple(self.printer_dpi) != dpi:
+                fill["printer_dpi"] = dpi
         return dataclasses.replace(self, **fill) if fill else self
 
     @property

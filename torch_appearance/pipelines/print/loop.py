@@ -21,6 +21,7 @@ import torch
 from ... import distributed
 from ... import io as ta_io
 from ...fabrication.export import export_slices, save_index_volume
+from ...fabrication.printer import load_printer
 from ...nn.losses import AppearanceLoss
 from ...nn.mixture import MaterialMixture
 from .baselines import quantize
@@ -88,6 +89,8 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     ckpt_path = os.path.join(folder, CHECKPOINT)
     _check_not_a_run(cfg, ckpt_path)
     inks = load_inks(cfg.inks)
+    if cfg.printer is not None:
+        load_printer(cfg.printer).material_indices(inks.names)  # an ink the printer lacks: refused before the run
     if cfg.g is None:
         inks.g  # noqa: B018 - raises ValueError if the inks disagree on g
     if target is None:
@@ -395,9 +398,14 @@ class _Run:
         ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), npz_bytes(
             weights=np.asarray(weights.numpy(), np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
         save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
-        export_slices(indices, inks, os.path.join(folder, "slices"))
+        export_slices(indices, inks, os.path.join(folder, "slices"), dpi=cfg.printer_dpi)
         write_figures(folder, rows, cfg, target, inks, weights, final, self.baseline, self.remap)
         view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, final["image"], log=self.log)
+        package = None
+        if cfg.printer is not None:  # the printer's package of the run's volume (pipelines.print.package)
+            from .package import export_run
+            package = export_run(folder, os.path.join(folder, f"package-{load_printer(cfg.printer).name}"),
+                                 cfg.printer, force=True, progress=False, log=self.log)
 
         baseline, remap = self.baseline, self.remap
         opt_rows = [r for r in rows if r["iteration"] > 0]
@@ -415,7 +423,9 @@ class _Run:
             "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
             "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
             "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
-            "parameters": int(self.model.logits.numel()), "views_s": view_seconds,
+            "parameters": int(self.model.logits.numel()), "views_s": view_seconds, "halftone": cfg.halftone,
+            "package": None if package is None else {"printer": package["printer"]["name"],
+                                                     "seconds": package["seconds"]["total"]},
             # the whole call: preparation, baselines, iterations, evaluations, quantisation and outputs (a resumed
             # run: its own call only)
             "job_s": time.perf_counter() - self.t_call,

@@ -28,7 +28,7 @@ from .config import iteration_seed
 from .rendering import render, replay_seed
 from .run_folder import save_image
 
-__all__ = ["ObjectTarget", "fill_void_at_surface"]
+__all__ = ["ObjectTarget", "fill_void_at_surface", "outside_micro_centres"]
 
 _CHUNK = 1 << 22  # micro-voxels per chunk of the quantised-volume passes (bounds their temporaries to ~100 MB)
 
@@ -216,16 +216,14 @@ class ObjectTarget:
 
     # ------------------------------------------------------------------------------------------ quantisation
     def quantized_void(self, indices):
-        """Mark the printer micro-voxels whose centres lie outside the object (SDF > 0, trilinear) as VOID."""
-        dz, hy, wx = indices.shape
-        sdf = self.micro_sdf((dz, hy, wx))
+        """Mark the printer micro-voxels whose centres lie outside the object (:func:`outside_micro_centres`) as
+        VOID."""
         out = indices.copy()
-        step = max(1, _CHUNK // ((hy + 1) * (wx + 1)))
-        for z0 in range(0, dz, step):  # chunks of micro layers: temporaries of ~_CHUNK floats, not of the volume
-            s = sdf[z0:min(dz, z0 + step) + 1]
-            centre = (s[:-1, :-1, :-1] + s[1:, 1:, 1:] + s[1:, :-1, :-1] + s[:-1, 1:, :-1] + s[:-1, :-1, 1:]
-                      + s[1:, 1:, :-1] + s[1:, :-1, 1:] + s[:-1, 1:, 1:]) / 8
-            out[z0:z0 + centre.shape[0]][centre.numpy() > 0] = VOID
+        outside = outside_micro_centres(self.obj.sdf, indices.shape)
+        step = max(1, _CHUNK // (indices.shape[1] * indices.shape[2]))
+        for z0 in range(0, indices.shape[0], step):  # chunks of micro layers: temporaries of ~_CHUNK floats
+            z1 = min(indices.shape[0], z0 + step)
+            out[z0:z1][outside(z0, z1)] = VOID
         return out
 
     def micro_sdf(self, micro_shape):
@@ -395,6 +393,45 @@ class ObjectTarget:
             renders.append(image.numpy())
         views_figure(os.path.join(folder, "views.png"), self, cams, renders, texel_de=texel_de, log=log)
         return time.perf_counter() - t0
+
+
+def _corner_lerp(n_in, n_out):
+    """Linear interpolation of ``n_in`` corner values onto ``n_out`` corners over the same interval (the ends
+    aligned): for each output corner the two input corners and the weight of the second, in float32."""
+    scale = np.float32(n_in - 1) / np.float32(n_out - 1) if n_out > 1 else np.float32(0)
+    src = scale * np.arange(n_out, dtype=np.float32)
+    i0 = np.minimum(src.astype(np.int64), n_in - 1)
+    return i0, np.minimum(i0 + 1, n_in - 1), torch.from_numpy((src - i0).astype(np.float32))
+
+
+def outside_micro_centres(sdf, micro_shape):
+    """Which printer micro-voxels lie outside an object, a block of micro layers at a time.
+
+    The object's corner SDF (D+1, H+1, W+1) on the macro grid is interpolated trilinearly onto the corners of the
+    micro grid ``(Dz, Hy, Wx)`` covering the same box, and a micro-voxel is outside where the mean of its eight
+    corners is > 0. Only the corner layers of the block asked for are interpolated, so the memory does not grow
+    with the number of layers.
+
+    Returns:
+        ``outside(z0, z1)`` → bool ``(z1 - z0, Hy, Wx)`` ndarray.
+    """
+    sdf = torch.as_tensor(sdf).float()
+    dz, hy, wx = micro_shape
+    (z0s, z1s, lz), (y0s, y1s, ly), (x0s, x1s, lx) = (
+        _corner_lerp(n_in, n_out + 1) for n_in, n_out in zip(sdf.shape, (dz, hy, wx)))
+    ly, lx = ly.view(1, -1, 1), lx.view(1, 1, -1)
+
+    def outside(z0, z1):
+        k = slice(z0, z1 + 1)
+        t = lz[k].view(-1, 1, 1)
+        c = sdf[z0s[k]] * (1 - t) + sdf[z1s[k]] * t                     # (k+1, H+1, W+1)
+        c = c[:, y0s] * (1 - ly) + c[:, y1s] * ly                       # (k+1, Hy+1, W+1)
+        c = c[:, :, x0s] * (1 - lx) + c[:, :, x1s] * lx                 # (k+1, Hy+1, Wx+1)
+        centre = (c[:-1, :-1, :-1] + c[1:, 1:, 1:] + c[1:, :-1, :-1] + c[:-1, 1:, :-1] + c[:-1, :-1, 1:]
+                  + c[1:, 1:, :-1] + c[1:, :-1, 1:] + c[:-1, 1:, 1:]) / 8
+        return (centre > 0).numpy()
+
+    return outside
 
 
 def fill_void_at_surface(indices, corner_sdf, passes=4):

@@ -1,0 +1,326 @@
+"""Printer packages of a finished print run: GrabCAD Voxel Print (``.gcvf``), 3MF and the PNG slice stack.
+
+:func:`export_run` reads a run folder that :func:`~.loop.optimize_print` wrote and writes, for one printer profile
+(:func:`~torch_appearance.fabrication.printer.load_printer`), a package folder::
+
+    OUT/print.gcvf      GrabCAD Voxel Print: layer PNGs + ConfigFile.xml (:mod:`~torch_appearance.fabrication.gcvf`)
+    OUT/print.3mf       the object at its printed size coloured by the rendered print (any 3MF viewer shows it)
+    OUT/print-volume.3mf  the same with the per-voxel material volume (3MF Volumetric extension, as far as lib3mf
+                        writes it: :mod:`~torch_appearance.fabrication.threemf`); lib3mf marks such a file as
+                        requiring the Volumetric extension, so viewers without it refuse it, hence the two files
+    OUT/slices/         one palette PNG per layer + palette.json (:func:`~torch_appearance.fabrication.export_slices`)
+    OUT/export.json     what was written: printer, formats, layers, printed size, source of the volume, seconds
+
+The volume is streamed layer by layer, so memory does not grow with the number of layers:
+
+* when the printer's voxels are the run's (:meth:`PrinterProfile.matches`, within 1 % per axis) and the run's
+  halftoning is kept, the layers are read one at a time from the run's ``quantized.npz``: the package holds exactly
+  the run's quantised volume;
+* otherwise (another layer thickness or DPI, or another ``halftone``) the run's mixture (``mixture.npz``) is
+  quantised again at the printer's resolution with the run's quantisation seed
+  (:class:`~torch_appearance.fabrication.quantize.iter_quantized`), an object's outside marked void block by block
+  (:func:`.object_target.outside_micro_centres`).
+
+Everything is written into a temporary folder beside ``OUT`` and renamed at the end: a failed or interrupted export
+leaves no partial package. An existing ``OUT`` is refused unless ``force``.
+"""
+import os
+import shutil
+import tempfile
+import time
+
+import numpy as np
+
+from ... import io as ta_io
+from ...fabrication.export import VOID, IndexVolumeLayers, export_slices
+from ...fabrication.inks import InkSet, ink_from_dict
+from ...fabrication.printer import load_printer
+from ...fabrication.quantize import HALFTONES, iter_quantized, micro_grid_pitch
+from .config import iteration_seed
+
+__all__ = ["export_run", "run_layers", "FORMATS"]
+
+#: The package formats, in the order they are written.
+FORMATS = ("gcvf", "3mf", "slices")
+
+
+class RunFolder:
+    """What an export needs from a run folder, checked once: its config, inks, grid, quantised volume."""
+
+    def __init__(self, folder):
+        if not isinstance(folder, (str, os.PathLike)):
+            raise TypeError(f"run: expected a run folder path, got {type(folder).__name__}")
+        self.folder = os.fspath(folder)
+        if not os.path.isdir(self.folder):
+            raise ValueError(f"run: {self.folder!r} is not a folder")
+        path = os.path.join(self.folder, "config.json")
+        if not os.path.isfile(path):
+            raise ValueError(f"run: {self.folder!r} is not a print run (no config.json)")
+        self.config = ta_io.read_json(path, name="run config.json")
+        needed = ("kind", "inks", "voxel_size_mm", "printer_dpi", "seed")
+        missing = [k for k in needed if k not in self.config]
+        if missing or self.config.get("kind") not in ("slab", "object"):
+            raise ValueError(f"run: {self.folder!r} was written by an incompatible version of torch_appearance "
+                             f"(config.json lacks {missing or ['a known kind']}); optimise it again")
+        self.kind = self.config["kind"]
+        self.inks = InkSet([ink_from_dict(e, where=f"{path}: inks[{i}]") if isinstance(e, dict) else e
+                            for i, e in enumerate(self.config["inks"])])
+        self.quantized = os.path.join(self.folder, "quantized.npz")
+        if not os.path.isfile(self.quantized):
+            raise ValueError(f"run: {self.folder!r} has no quantized.npz: the run has not finished (resume it with "
+                             f"ta-optimize-print --resume --out {self.folder})")
+        self.layers = IndexVolumeLayers(self.quantized)
+        if [i.name for i in self.layers.inks] != [i.name for i in self.inks]:
+            raise ValueError(f"run: quantized.npz holds inks {list(self.layers.inks.names)}, config.json "
+                             f"{list(self.inks.names)}")
+        self.voxel_size = float(self.config["voxel_size_mm"])
+        self.halftone = self.config.get("halftone", "random")
+
+    def mixture(self):
+        path = os.path.join(self.folder, "mixture.npz")
+        if not os.path.isfile(path):
+            raise ValueError(f"run: {self.folder!r} has no mixture.npz to quantise at another resolution")
+        with np.load(path, allow_pickle=False) as data:
+            return data["weights"]
+
+    def mixture_shape(self):
+        """(N, D, H, W) of ``mixture.npz``, from the array's header (the weights are not decompressed)."""
+        import zipfile
+
+        path = os.path.join(self.folder, "mixture.npz")
+        try:
+            with zipfile.ZipFile(path) as archive, archive.open("weights.npy") as handle:
+                version = np.lib.format.read_magic(handle)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                    np.lib.format.read_array_header_2_0
+                return tuple(int(v) for v in read(handle)[0])
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as error:
+            raise ValueError(f"run: {self.folder!r}: mixture.npz is missing or unreadable ({error})") from None
+
+    def object_sdf(self):
+        with np.load(os.path.join(self.folder, "object.npz"), allow_pickle=False) as data:
+            return data["sdf"], data["texel_points"], tuple(data["origin"].tolist())
+
+    def final_texels(self):
+        """The rendered quantised print: (N, 3) texels of an object, (F, H, W, 3) faces of a slab, linear RGB."""
+        if self.kind == "object":
+            return np.load(os.path.join(self.folder, "final.npy"))
+        stems = ["final"] + (["final_bottom"] if os.path.isfile(os.path.join(self.folder, "final_bottom.exr")) else [])
+        return np.stack([ta_io.read_exr(os.path.join(self.folder, f"{s}.exr")) for s in stems])
+
+
+class _Requantized:
+    """Layer source: the run's mixture quantised again at ``dpi`` (an object's outside void), one block at a time."""
+
+    def __init__(self, run, dpi, halftone):
+        if run.config.get("fixed"):
+            raise ValueError(f"printer: the run holds fixed ink fractions ({run.config['fixed']}), which are exact only "
+                             f"at the run's own resolution {tuple(run.layers.dpi)}; export it for a printer with that "
+                             f"resolution, or optimise again with --printer")
+        self.weights = run.mixture()
+        self.blocks = iter_quantized(self.weights, run.voxel_size, dpi,
+                                     iteration_seed(run.config["seed"], -2), halftone)
+        self.shape = self.blocks.shape
+        self.outside = None
+        if run.kind == "object":
+            from .object_target import outside_micro_centres
+            self.outside = outside_micro_centres(run.object_sdf()[0], self.shape)
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __iter__(self):
+        for z0, block in self.blocks:
+            if self.outside is not None:
+                block[self.outside(z0, z0 + len(block))] = VOID
+            yield from block
+
+
+def run_layers(run, printer, halftone=None):
+    """The layer source of ``run`` (a :class:`RunFolder`) for ``printer`` and how it was made (see the module).
+
+    Returns:
+        (layers, source, dpi): an object with ``shape`` that yields the (Hy, Wx) uint8 layers; ``"run"`` or
+        ``"requantized"``; the (x, y, z) DPI of the volume.
+    """
+    halftone = run.halftone if halftone is None else halftone
+    if halftone not in HALFTONES:
+        raise ValueError(f"halftone: expected one of {HALFTONES}, got {halftone!r}")
+    if printer.matches(run.layers.dpi) and halftone == run.halftone:
+        return run.layers, "run", tuple(run.layers.dpi)
+    return _Requantized(run, printer.dpi, halftone), "requantized", printer.dpi
+
+
+def _srgb8(linear):
+    from ...color import linear_to_srgb
+    import torch
+
+    return np.clip(np.round(linear_to_srgb(torch.as_tensor(np.asarray(linear, np.float64))).numpy() * 255), 0,
+                   255).astype(np.uint8)
+
+
+def _object_mesh(run, block=24):
+    """The printed surface of an object run: the zero set of its SDF (the printer prints the voxels whose centre is
+    inside it) by marching cubes, in the print box's mm (origin at the grid corner), each vertex coloured by its
+    nearest texel of the rendered print. The cubes go ``block`` corner layers at a time (the corner coordinates of
+    the whole grid would take 24 bytes per corner: 1 GB at 40 mm); the vertices that neighbouring blocks share on
+    their common corner layer are computed from the same values and merged."""
+    import igl
+    from scipy.spatial import cKDTree
+
+    sdf, texel_points, origin = run.object_sdf()
+    d, h, w = sdf.shape
+    s = run.voxel_size
+    j, i = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    plane = np.stack([i.reshape(-1), j.reshape(-1)], axis=1).astype(np.float64) * s      # (H·W, 2) x, y
+    vertices, faces, offset = [], [], 0
+    for k0 in range(0, d - 1, block):
+        k1 = min(d, k0 + block + 1)                                # corner layers k0 .. k1-1 (shared with the next)
+        grid = np.concatenate([np.c_[plane, np.full(len(plane), k * s)] for k in range(k0, k1)])
+        v, f, _ = igl.marching_cubes(np.ascontiguousarray(sdf[k0:k1].reshape(-1), np.float64), grid, w, h, k1 - k0,
+                                     0.0)
+        if len(f):
+            vertices.append(v)
+            faces.append(f + offset)
+            offset += len(v)
+    vertices, faces = np.concatenate(vertices), np.concatenate(faces)
+    vertices, inverse = np.unique(vertices, axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    texels = texel_points - np.asarray(origin)[None, :]
+    _, nearest = cKDTree(texels).query(vertices)
+    return vertices, faces, {"vertex_rgb": _srgb8(run.final_texels()[nearest])}
+
+
+def _slab_mesh(run, shape):
+    """A closed box of the slab's size; its top (and bottom) face a grid of one quad per texel coloured by the
+    rendered print's texel, the side walls strips that share the faces' edge vertices (watertight)."""
+    _, _, h, w = shape
+    depth = shape[1] * run.voxel_size
+    s = run.voxel_size
+    faces_rgb = _srgb8(run.final_texels())                       # (F, H, W, 3)
+    xs, ys = np.arange(w + 1) * s, np.arange(h + 1) * s
+    gx, gy = np.meshgrid(xs, ys)                                 # (H+1, W+1)
+    top = np.stack([gx, gy, np.full_like(gx, depth)], -1).reshape(-1, 3)
+    bottom = np.stack([gx, gy, np.zeros_like(gx)], -1).reshape(-1, 3)
+    vertices = np.concatenate([top, bottom])
+    n = (h + 1) * (w + 1)
+    jj, ii = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    a = (jj * (w + 1) + ii).reshape(-1)
+    b, c, e = a + 1, a + w + 1, a + w + 2
+    top_faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, e], 1)])[:, ::-1]   # normals up (+z)
+    bottom_faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, e], 1)]) + n       # normals down
+    top_rgb = np.concatenate([faces_rgb[0].reshape(-1, 3)] * 2)
+    bottom_rgb = np.concatenate([faces_rgb[-1].reshape(-1, 3)] * 2) if len(faces_rgb) == 2 else \
+        np.repeat(np.round(faces_rgb[0].reshape(-1, 3).mean(0)).astype(np.uint8)[None], len(bottom_faces), 0)
+    ring = ([(0, x) for x in range(w)] + [(y, w) for y in range(h)] + [(h, x) for x in range(w, 0, -1)]
+            + [(y, 0) for y in range(h, 0, -1)])                 # the boundary, counter-clockwise seen from +z
+    ring_idx = np.array([y * (w + 1) + x for y, x in ring])
+    nxt = np.roll(ring_idx, -1)
+    sides = np.concatenate([np.stack([ring_idx, ring_idx + n, nxt], 1), np.stack([nxt, ring_idx + n, nxt + n], 1)])
+    ys_, xs_ = np.array([min(y, h - 1) for y, _ in ring]), np.array([min(x, w - 1) for _, x in ring])
+    side_rgb = np.concatenate([faces_rgb[0][ys_, xs_]] * 2)
+    faces = np.concatenate([top_faces, bottom_faces, sides]).astype(np.int64)
+    return vertices, faces, {"face_rgb": np.concatenate([top_rgb, bottom_rgb, side_rgb])}
+
+
+def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halftone=None, force=False, progress=True,
+               log=print):
+    """Write the printer package of a finished print run (see the module docstring for the layout).
+
+    Args:
+        run: the run folder (``ta-optimize-print --out``), with ``quantized.npz``.
+        out: the package folder; default ``RUN/package-PRINTER``. An existing one is refused unless ``force``.
+        printer: a profile name, a profile JSON path or a :class:`~torch_appearance.fabrication.printer.PrinterProfile`.
+        formats: any of :data:`FORMATS`.
+        halftone: ``None`` (the run's), or one of :data:`~torch_appearance.fabrication.quantize.HALFTONES`.
+        force: replace an existing ``out``.
+        progress: tqdm bars over the layers. log: one-line messages.
+
+    Returns:
+        The dict written to ``export.json``.
+
+    Raises:
+        TypeError, ValueError: an unknown printer, an ink the printer does not hold, an unknown format, an existing
+            ``out``, a run folder without a quantised volume or from an incompatible version; before anything is
+            written.
+    """
+    t0 = time.perf_counter()
+    run = RunFolder(run)
+    printer = load_printer(printer)
+    if isinstance(formats, str):
+        formats = [f.strip() for f in formats.split(",") if f.strip()]
+    formats = list(dict.fromkeys(formats))
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise ValueError(f"formats: expected some of {FORMATS}, got {formats}")
+    printer.material_indices(run.inks.names)  # an ink the printer lacks: refused before anything is written
+    out = os.path.join(run.folder, f"package-{printer.name}") if out is None else os.fspath(out)
+    if os.path.exists(out) and not force:
+        raise ValueError(f"out: {out!r} exists; pass force=True (--force) to replace it")
+    layers, source, dpi = run_layers(run, printer, halftone)
+    dz, hy, wx = layers.shape
+    macro = run.mixture_shape() if "3mf" in formats else None          # (N, D, H, W)
+    pitch = micro_grid_pitch(macro[1:], run.voxel_size, dpi) if macro else None
+    parent = os.path.dirname(os.path.abspath(out))
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}.", suffix=".tmp", dir=parent)
+    record = {"run": os.path.abspath(run.folder), "printer": printer.to_dict(), "formats": formats,
+              "volume": source, "halftone": run.halftone if halftone is None else halftone,
+              "shape_zyx": [dz, hy, wx], "dpi": list(dpi),
+              "printed_size_mm": [wx * 25.4 / printer.dpi[0], hy * 25.4 / printer.dpi[1],
+                                  dz * printer.layer_thickness_nm * 1e-6], "files": {}, "seconds": {}}
+    try:
+        for fmt in formats:
+            t = time.perf_counter()
+            bar = _bar(progress, dz, f"{fmt} ({printer.name})")
+            tick = None if bar is None else (lambda k: bar.update(1))
+            if fmt == "gcvf":
+                from ...fabrication.gcvf import write_gcvf
+                info = write_gcvf(os.path.join(tmp, "print.gcvf"), layers, printer, run.inks.names, progress=tick)
+                record["files"]["print.gcvf"] = info
+            elif fmt == "3mf":
+                from ...fabrication.threemf import write_3mf
+                vertices, faces, colours = _object_mesh(run) if run.kind == "object" else _slab_mesh(run, macro)
+                materials = [printer.materials[m] for m in printer.material_indices(run.inks.names)]
+                # two files: lib3mf marks a file holding a volume as requiring the Volumetric extension, and a
+                # viewer without it must refuse the whole file; the coloured mesh alone opens anywhere
+                write_3mf(os.path.join(tmp, "print.3mf"), vertices, faces, **colours)
+                write_3mf(os.path.join(tmp, "print-volume.3mf"), vertices, faces, layers=iter(layers),
+                          grid_shape=(dz, hy, wx), pitch_mm=pitch, materials=materials, progress=tick, **colours)
+                for name in ("print.3mf", "print-volume.3mf"):
+                    record["files"][name] = {"triangles": int(len(faces)), "vertices": int(len(vertices)),
+                                             "bytes": os.path.getsize(os.path.join(tmp, name))}
+                record["files"]["print-volume.3mf"]["materials"] = [m[0] for m in materials]
+            else:
+                export_slices(layers, run.inks, os.path.join(tmp, "slices"), dpi=dpi, progress=tick)
+                record["files"]["slices"] = {"layers": dz}
+            if bar is not None:
+                bar.close()
+            record["seconds"][fmt] = round(time.perf_counter() - t, 3)
+        record["seconds"]["total"] = round(time.perf_counter() - t0, 3)
+        ta_io.write_json(os.path.join(tmp, "export.json"), record)
+        os.chmod(tmp, 0o777 & ~_umask())          # mkdtemp makes a private (0700) folder
+        if os.path.exists(out):
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log(f"export: {', '.join(formats)} for {printer.name} ({dz} layers of {wx} x {hy}, {source} volume) in "
+        f"{record['seconds']['total']:.1f} s -> {out}")
+    return record
+
+
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _bar(progress, total, desc):
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="layer", leave=False)
