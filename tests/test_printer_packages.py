@@ -223,16 +223,66 @@ def test_export_of_an_object_for_another_printer_marks_the_outside_void(object_r
 
 # ------------------------------------------------------------------------------------------------ streaming
 def fake_run(folder, layers, h=24, w=32, n_inks=3):
-    """A finished slab run folder whose quantised volume is ``layers`` tall (a tall thin print)."""
+    """A finished slab run folder whose quantised volume is ``layers`` tall (a tall thin print) and ``h`` × ``w``
+    printer voxels wide, with the mixture's shape and the final texels that a 3MF export reads."""
+    from torch_appearance.pipelines.print.run_folder import npz_bytes
+
     os.makedirs(folder)
     inks = InkSet.from_names(["cyan", "yellow", "white"][:n_inks])
+    voxel = 25.4 / 300
+    depth = max(1, round(layers * 300 / 940))                       # macro layers whose micro grid has ~layers
+    macro = (depth, h, w // 2)
+    micro = micro_grid_shape(macro, voxel, (600, 300, 940))
     rng = np.random.default_rng(0)
     save_index_volume(os.path.join(folder, "quantized.npz"),
-                      rng.integers(0, n_inks, size=(layers, h, w)).astype(np.uint8), inks, (600, 300, 940))
+                      rng.integers(0, n_inks, size=micro).astype(np.uint8), inks, (600, 300, 940))
+    ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), npz_bytes(
+        weights=np.full((n_inks, *macro), 1.0 / n_inks, np.float32), inks=np.array(inks.names), voxel_size_mm=voxel))
+    ta_io.write_exr(os.path.join(folder, "final.exr"), rng.random((h, w // 2, 3)).astype(np.float32))
     ta_io.write_json(os.path.join(folder, "config.json"), {
-        "kind": "slab", "inks": [ink.to_dict() for ink in inks], "voxel_size_mm": 25.4 / 300,
+        "kind": "slab", "inks": [ink.to_dict() for ink in inks], "voxel_size_mm": voxel,
         "printer_dpi": [600, 300, 940], "seed": 0, "halftone": "random"})
     return folder
+
+
+def peak_rss_since_reset():
+    """Linux: reset the process's peak resident set (VmHWM) and return a function reading the peak since, in bytes."""
+    try:
+        with open("/proc/self/clear_refs", "w") as handle:
+            handle.write("5")
+    except OSError:
+        pytest.skip("resetting the peak RSS needs Linux /proc/self/clear_refs")
+
+    def read():
+        with open("/proc/self/status") as handle:
+            return 1024 * int(next(line for line in handle if line.startswith("VmHWM")).split()[1])
+    return read
+
+
+def test_3mf_export_memory_does_not_grow_with_the_number_of_layers(tmp_path):
+    """lib3mf keeps buffers per package part until the package is written (~100 kB per sheet); the sheets are
+    streamed into the package instead, so a print 4× as tall peaks at the same resident memory."""
+    export_run(fake_run(str(tmp_path / "warm"), 3, h=48, w=96), None, "j750", ("3mf",), **QUIET)
+    grown = []
+    for layers in (300, 1200):
+        run = fake_run(str(tmp_path / f"run{layers}"), layers, h=48, w=96)
+        import gc
+        gc.collect()
+        with open("/proc/self/status") as handle:
+            before = 1024 * int(next(line for line in handle if line.startswith("VmRSS")).split()[1])
+        peak = peak_rss_since_reset()
+        export_run(run, None, "j750", ("3mf",), **QUIET)
+        grown.append(peak() - before)
+    # 3 materials × 900 more sheets: lib3mf's own packaging grew by ~300 MB here
+    assert grown[1] - grown[0] < 40e6, grown
+    record = json.load(open(os.path.join(run, "package-j750", "export.json")))
+    from torch_appearance.fabrication.threemf import read_3mf
+    back = read_3mf(os.path.join(run, "package-j750", "print-volume.3mf"))
+    indices, inks, _ = load_index_volume(os.path.join(run, "quantized.npz"))
+    printer = load_printer("j750")
+    names = [m[0] for m in back["materials"]]
+    assert np.array_equal(back["indices"], material_volume(indices, inks.names, printer, names))
+    assert record["files"]["print-volume.3mf"]["materials"] == names
 
 
 def test_export_memory_does_not_grow_with_the_number_of_layers(tmp_path):

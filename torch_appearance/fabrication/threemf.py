@@ -52,10 +52,11 @@ What lib3mf 2.5.0 does not support, and how this module works around it:
   NumPy buffers: the binding's Python methods copy element by element (2.5 s instead of 0.01 s for 200 000
   vertices).
 
-lib3mf keeps the package in memory until it is written: the encoded PNGs (about 44 kB per material and layer
-of 472 × 945 random voxels), not the index volume, which is consumed one layer at a time; the materials of a layer
-are encoded in parallel threads. 200 layers × 472 × 945 voxels of 5 random materials: a 44 MB file (4 bits per
-voxel), written in 5.6 s and read back in 2.3 s on 2 cores.
+lib3mf builds the model (mesh, colours, materials, functions, volume data) with one placeholder sheet per image
+stack, because it keeps buffers for every package part until the whole package is written (hundreds of kB per
+sheet: 11 GB for 5 materials × 2873 layers of 524 × 467). The package is then copied with the real sheets streamed
+in, one layer at a time, and each ``<v:imagesheet>`` and relationship pointed at its own part; the materials of a
+layer are encoded in parallel threads. Memory thus stays at the mesh and one layer, whatever the number of layers.
 
 :func:`read_3mf` reads such a file back (geometry, colours, materials, index volume); :func:`iter_3mf_layers` yields
 its index volume one layer at a time.
@@ -297,15 +298,23 @@ def _add_colours(model, mesh, faces, vertex_rgb, face_rgb):
 
 
 _END = object()
+_PLACEHOLDER = "/3D/volumetric/material_{m}/sheets.png"
+_SHEET = "3D/volumetric/material_{m}/sheet_{k:05d}.png"
+_MODEL, _MODEL_RELS = "3D/3dmodel.model", "3D/_rels/3dmodel.model.rels"
+_TEXTURE_REL = "http://schemas.microsoft.com/3dmanufacturing/2013/01/3dtexture"
 
 
-def _add_volume(model, mesh, layers, shape, pitch_file, materials, progress):
-    """Base materials, one image stack + function + volumetric property per material; consumes ``layers``."""
+def _add_volume(model, mesh, shape, pitch_file, materials):
+    """Base materials, and one image stack + function + volumetric property per material. Every sheet of a stack
+    refers to one placeholder part (a blank sheet): the real sheets are streamed into the package afterwards by
+    :func:`_stream_sheets`. (lib3mf 2.5 keeps per-part buffers until the whole package is written, hundreds of kB
+    per sheet: 11 GB for 5 materials × 2873 layers of 524 × 467; one part per stack costs nothing.)"""
     lib3mf, wrapper = _lib3mf()
     depth, height, width = shape
     group = model.AddBaseMaterialGroup()
     for name, rgba in materials:
         group.AddMaterial(name, wrapper.RGBAToColor(*rgba))
+    blank = _encode_mask(np.zeros((height, width), dtype=bool))
     stacks = []
     for m in range(len(materials)):
         stack = model.AddImageStack(width, height, depth)
@@ -316,25 +325,11 @@ def _add_volume(model, mesh, layers, shape, pitch_file, materials, progress):
                                f"{stack.GetRowCount()} rows, {stack.GetSheetCount()} sheets instead of "
                                f"{width}, {height}, {depth}")
         stack.SetName(f"material_{m}")
+        _add_sheet(stack, 0, _PLACEHOLDER.format(m=m), blank)
+        sheet = stack.GetSheet(0)
+        for k in range(1, depth):
+            stack.SetSheet(k, sheet)
         stacks.append(stack)
-    iterator = iter(layers)
-    workers = max(1, min(len(materials), os.cpu_count() or 1, 8))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for k in range(depth):
-            try:
-                layer = next(iterator)
-            except StopIteration:
-                raise ValueError(f"layers: expected grid_shape[0] = {depth} layers, got {k}") from None
-            layer = _check_layer(k, layer, (height, width), len(materials))
-            top_view = layer[::-1]                       # PNG row 0 = largest y (the specification's v = 1)
-            masks = [np.equal(top_view, m) for m in range(len(materials))]
-            for m, png in enumerate(pool.map(_encode_mask, masks)):
-                _add_sheet(stacks[m], k, f"/3D/volumetric/material_{m}/sheet_{k:05d}.png", png)
-            if progress is not None:
-                progress(k)
-    extra = next(iterator, _END)
-    if extra is not _END:
-        raise ValueError(f"layers: expected grid_shape[0] = {depth} layers, got more")
     volume = model.AddVolumeData()
     scale = [1.0 / (n * s) for n, s in zip((width, height, depth), pitch_file)]
     for m, stack in enumerate(stacks):
@@ -348,6 +343,59 @@ def _add_volume(model, mesh, layers, shape, pitch_file, materials, progress):
         prop.SetChannelName("red")
         prop.SetIsRequired(True)
     mesh.SetVolumeData(volume)
+
+
+def _stream_sheets(source, target, layers, shape, n_materials, progress):
+    """Copy the package ``source`` (written by lib3mf with placeholder sheets) to ``target``, streaming the real
+    sheets from ``layers`` (consumed once, one layer at a time) and pointing each ``<v:imagesheet>`` of the model and
+    its relationships at its own part."""
+    import re
+    import xml.etree.ElementTree as ET
+    import zipfile
+
+    depth, height, width = shape
+    with zipfile.ZipFile(source) as old, zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as new:
+        placeholders = {_PLACEHOLDER.format(m=m).lstrip("/") for m in range(n_materials)}
+        for info in old.infolist():
+            if info.filename not in placeholders and info.filename not in (_MODEL, _MODEL_RELS):
+                new.writestr(info.filename, old.read(info.filename))
+        iterator = iter(layers)
+        workers = max(1, min(n_materials, os.cpu_count() or 1, 8))
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for k in range(depth):
+                try:
+                    layer = next(iterator)
+                except StopIteration:
+                    raise ValueError(f"layers: expected grid_shape[0] = {depth} layers, got {k}") from None
+                layer = _check_layer(k, layer, (height, width), n_materials)
+                top_view = layer[::-1]                       # PNG row 0 = largest y (the specification's v = 1)
+                masks = [np.equal(top_view, m) for m in range(n_materials)]
+                for m, png in enumerate(pool.map(_encode_mask, masks)):
+                    new.writestr(zipfile.ZipInfo(_SHEET.format(m=m, k=k), date_time=(2020, 1, 1, 0, 0, 0)),
+                                 png.tobytes(), compress_type=zipfile.ZIP_STORED)   # PNG is compressed already
+                if progress is not None:
+                    progress(k)
+        if next(iterator, _END) is not _END:
+            raise ValueError(f"layers: expected grid_shape[0] = {depth} layers, got more")
+        model = old.read(_MODEL).decode("utf-8")
+        for m in range(n_materials):
+            counter = iter(range(depth))
+            model = re.sub(re.escape(f'path="{_PLACEHOLDER.format(m=m)}"'),
+                           lambda _: f'path="/{_SHEET.format(m=m, k=next(counter))}"', model)
+            if next(counter, None) is not None:
+                raise RuntimeError(f"lib3mf wrote fewer than {depth} sheets of material {m}")
+        new.writestr(_MODEL, model.encode("utf-8"))
+        rels = ET.fromstring(old.read(_MODEL_RELS))
+        ns = rels.tag[:rels.tag.index("}") + 1] if rels.tag.startswith("{") else ""
+        ET.register_namespace("", ns.strip("{}"))
+        for rel in list(rels):
+            if rel.get("Target", "").lstrip("/") in placeholders:
+                rels.remove(rel)
+        for m in range(n_materials):
+            for k in range(depth):
+                ET.SubElement(rels, f"{ns}Relationship", Type=_TEXTURE_REL, Target="/" + _SHEET.format(m=m, k=k),
+                              Id=f"sheet{m}_{k}")
+        new.writestr(_MODEL_RELS, b'<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(rels))
 
 
 def write_3mf(path, vertices, faces, *, vertex_rgb=None, face_rgb=None, layers=None, grid_shape=None, pitch_mm=None,
@@ -433,7 +481,7 @@ def write_3mf(path, vertices, faces, *, vertex_rgb=None, face_rgb=None, layers=N
         if layers is not None:
             metadata.AddMetaData(NAMESPACE, "grid_shape", " ".join(str(v) for v in grid_shape), "string", True)
             metadata.AddMetaData(NAMESPACE, "pitch_mm", " ".join(repr(v) for v in pitch_mm), "string", True)
-            _add_volume(model, mesh, layers, grid_shape, [s * to_file for s in pitch_mm], materials, progress)
+            _add_volume(model, mesh, grid_shape, [s * to_file for s in pitch_mm], materials)
         model.AddBuildItem(mesh, wrapper.GetIdentityTransform())
         writer = model.QueryWriter("3mf")
         writer.SetDecimalPrecision(_DECIMALS)
@@ -446,6 +494,11 @@ def write_3mf(path, vertices, faces, *, vertex_rgb=None, face_rgb=None, layers=N
             writer.WriteToFile(tmp)
         except lib3mf.ELib3MFException as error:
             raise RuntimeError(f"lib3mf failed to write {path!r}: {error}") from error
+        del writer, model
+        if layers is not None:
+            with _temporary(directory, path) as streamed:
+                _stream_sheets(tmp, streamed, layers, grid_shape, len(materials), progress)
+                os.replace(streamed, tmp)
         with open(tmp, "rb+") as handle:
             os.fsync(handle.fileno())
         os.chmod(tmp, _FILE_MODE)
@@ -454,6 +507,18 @@ def write_3mf(path, vertices, faces, *, vertex_rgb=None, face_rgb=None, layers=N
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def _temporary(directory, path):
+    """A temporary file name beside ``path``, removed on leaving unless it was renamed."""
+    fd, name = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+    os.close(fd)
+    try:
+        yield name
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(name)
 
 
 # --------------------------------------------------------------------------------------------------------------
