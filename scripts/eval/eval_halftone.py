@@ -8,9 +8,11 @@ the run's printer resolution and rendered with the same spp and seed. Reported p
 * ``dE00_vs_continuous``: mean CIEDE2000 of the quantised print's texels against the continuous optimum's (what the
   quantisation costs), and ``dE00_vs_target`` (the print's score);
 * ``grain``: the high-frequency energy of the texels' lightness, mean (L* − local mean L*)² — for a slab the local
-  mean is a Gaussian of σ = --sigma texels, for an object the mean of the 8 nearest texels on the surface — and
-  ``grain_excess``, that energy minus the continuous render's (whose high frequencies are Monte Carlo noise alone;
-  the renders share spp and seed).
+  mean is a Gaussian of σ = --sigma texels, for an object the mean of the 8 nearest texels on the surface — free of
+  Monte Carlo noise: every volume is rendered with two seeds and the two high-pass images are multiplied (their
+  noise is independent, so the product's mean estimates the energy of the noise-free image); ``grain_excess``, that
+  energy minus the continuous optimum's (the image's own detail), is what the halftoning adds. The colour errors
+  use the mean of the two renders.
 
 Writes ``halftone.json`` and prints a Markdown table.
 
@@ -40,25 +42,28 @@ def lightness(texels):
     return rgb_to_lab(torch.as_tensor(np.asarray(texels), dtype=torch.float64))[..., 0].numpy()
 
 
-def grain_slab(texels, sigma):
-    """Mean (L* − Gaussian-blurred L*)² over the faces' texels (a border of 3σ left out)."""
+def high_slab(texels, sigma):
+    """L* minus its Gaussian blur (σ texels), per face, a border of 3σ left out: (F, H', W')."""
     import cv2
 
+    b = int(np.ceil(3 * sigma))
     out = []
     for face in np.asarray(texels):
         L = lightness(face)
-        high = L - cv2.GaussianBlur(L, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
-        b = int(np.ceil(3 * sigma))
-        out.append(high[b:-b, b:-b] ** 2)
-    return float(np.mean(out))
+        out.append((L - cv2.GaussianBlur(L, (0, 0), sigma, borderType=cv2.BORDER_REFLECT))[b:-b, b:-b])
+    return np.stack(out)
 
 
-def grain_object(texels, neighbours):
+def high_object(texels, neighbours):
+    """L* minus the mean L* of each texel's 8 nearest texels on the surface: (N,)."""
     L = lightness(texels)
-    return float(np.mean((L - L[neighbours].mean(1)) ** 2))
+    return L - L[neighbours].mean(1)
 
 
 def evaluate(folder, spp, sigma, seed, log=print):
+    """Rows of the continuous optimum and each halftoning (see the module docstring). Each volume is rendered with
+    two seeds; ``grain`` is the mean product of the two renders' high-pass L*, whose expectation is the high-pass
+    energy of the noise-free image (the renders' Monte Carlo noise is independent and cancels)."""
     cfg = PrintConfig.from_record(ta_io.read_json(os.path.join(folder, "config.json"))).resolved()
     inks = load_inks(cfg.inks)
     t0 = time.perf_counter()
@@ -71,33 +76,37 @@ def evaluate(folder, spp, sigma, seed, log=print):
 
         points = target.obj.texel_points.numpy()
         neighbours = cKDTree(points).query(points, k=9)[1][:, 1:]
-        grain = lambda t: grain_object(t, neighbours)          # noqa: E731
+        high = lambda t: high_object(t, neighbours)            # noqa: E731
     else:
-        grain = lambda t: grain_slab(t, sigma)                  # noqa: E731
-    render_seed = iteration_seed(seed, -1)
+        high = lambda t: high_slab(t, sigma)                    # noqa: E731
+    seeds = (iteration_seed(seed, -1), iteration_seed(seed, -3))
     with torch.no_grad():
         sigma_t, albedo = mix_inks(weights, inks)
-        continuous = target.render(sigma_t, albedo, spp, render_seed).detach()
+        continuous = [target.render(sigma_t, albedo, spp, s).detach().numpy() for s in seeds]
         del sigma_t, albedo
-    log(f"{folder}: continuous render at {spp} spp after {time.perf_counter() - t0:.0f} s")
-    reference = torch.as_tensor(continuous).reshape(-1, 3).double()
+    log(f"{folder}: continuous renders at {spp} spp after {time.perf_counter() - t0:.0f} s")
+    reference = torch.as_tensor((continuous[0] + continuous[1]) / 2).reshape(-1, 3).double()
     goal = torch.as_tensor(target.target).reshape(-1, 3).double()
-    rows = [{"run": os.path.basename(folder.rstrip("/")), "kind": target.kind, "halftone": "continuous",
-             "dE00_vs_continuous": 0.0, "dE00_vs_target": float(delta_e_2000(reference, goal).mean()),
-             "grain": grain(continuous.numpy()), "grain_excess": 0.0, "seconds": 0.0}]
+    name = os.path.basename(folder.rstrip("/"))
+
+    def row(halftone, renders, seconds):
+        mean = torch.as_tensor((renders[0] + renders[1]) / 2).reshape(-1, 3).double()
+        return {"run": name, "kind": target.kind, "texels": int(len(goal)), "halftone": halftone,
+                "dE00_vs_continuous": float(delta_e_2000(mean, reference).mean()),
+                "dE00_vs_target": float(delta_e_2000(mean, goal).mean()),
+                "grain": float(np.mean(high(renders[0]) * high(renders[1]))), "seconds": seconds}
+
+    rows = [row("continuous", continuous, 0.0)]
     for halftone in ("random", "blue-noise"):
         t = time.perf_counter()
         run_cfg = PrintConfig(**{**cfg.__dict__, "halftone": halftone})
         indices = quantize(target, weights, inks, run_cfg, iteration_seed(cfg.seed, -2))
-        image = target.render_quantized(indices, inks, cfg.printer_dpi, spp, render_seed)
+        renders = [target.render_quantized(indices, inks, cfg.printer_dpi, spp, s).numpy() for s in seeds]
         del indices
-        flat = torch.as_tensor(image).reshape(-1, 3).double()
-        g = grain(image.numpy())
-        rows.append({"run": rows[0]["run"], "kind": target.kind, "halftone": halftone,
-                     "dE00_vs_continuous": float(delta_e_2000(flat, reference).mean()),
-                     "dE00_vs_target": float(delta_e_2000(flat, goal).mean()),
-                     "grain": g, "grain_excess": g - rows[0]["grain"], "seconds": time.perf_counter() - t})
+        rows.append(row(halftone, renders, time.perf_counter() - t))
+        rows[-1]["grain_excess"] = rows[-1]["grain"] - rows[0]["grain"]
         log(f"  {halftone}: {rows[-1]}")
+    rows[0]["grain_excess"] = 0.0
     return rows
 
 
@@ -116,7 +125,8 @@ def main(argv=None):
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as handle:
         json.dump({"spp": args.spp, "sigma": args.sigma, "rows": rows}, handle, indent=2)
-    fields = ["run", "kind", "halftone", "dE00_vs_continuous", "dE00_vs_target", "grain", "grain_excess", "seconds"]
+    fields = ["run", "kind", "texels", "halftone", "dE00_vs_continuous", "dE00_vs_target", "grain", "grain_excess",
+              "seconds"]
     print("| " + " | ".join(fields) + " |\n|" + "---|" * len(fields))
     for r in rows:
         print("| " + " | ".join(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in fields) + " |")
