@@ -128,6 +128,21 @@ def test_gcvf_refusals_leave_no_file(tmp_path):
     (tmp_path / "cut.gcvf").write_bytes(data[: len(data) // 2])
     with pytest.raises(ValueError, match="not a GCVF package"):
         read_gcvf(tmp_path / "cut.gcvf")
+    # a layer with a colour that is no material's, and a missing layer
+    import cv2
+    with zipfile.ZipFile(tmp_path / "x.gcvf") as old, zipfile.ZipFile(tmp_path / "odd.gcvf", "w") as new, \
+            zipfile.ZipFile(tmp_path / "gap.gcvf", "w") as gap:
+        for name in old.namelist():
+            data = old.read(name)
+            if name == "layer_1.png":
+                data = cv2.imencode(".png", np.full((4, 5, 3), 7, np.uint8))[1].tobytes()
+            else:
+                gap.writestr(name, data)
+            new.writestr(name, data)
+    with pytest.raises(ValueError, match=r"layer_1.png: pixel \(row 0, column 0\) has colour \[7, 7, 7\]"):
+        read_gcvf(tmp_path / "odd.gcvf")
+    with pytest.raises(ValueError, match=r"missing \['layer_1.png'\]"):
+        read_gcvf(tmp_path / "gap.gcvf")
 
 
 # ------------------------------------------------------------------------------------------------ run folders
@@ -195,8 +210,9 @@ def test_export_of_a_slab_run_for_its_own_and_another_printer(slab_run, tmp_path
     assert record["volume"] == "requantized"
     weights = np.load(os.path.join(slab_run, "mixture.npz"))["weights"]
     config = json.load(open(os.path.join(slab_run, "config.json")))
-    expected = quantize_mixture(weights, config["voxel_size_mm"], hq.dpi, seed=iteration_seed(config["seed"], -2))
-    assert expected.shape[0] > 1.8 * indices.shape[0]
+    expected = quantize_mixture(weights, config["voxel_size_mm"], hq.dpi, seed=iteration_seed(config["seed"], -2),
+                                halftone=config["halftone"])
+    assert expected.shape[0] > 1.8 * indices.shape[0] and config["halftone"] == "blue-noise"   # the default
     back, meta = read_gcvf(tmp_path / "hq" / "print.gcvf")
     assert np.array_equal(back, material_volume(expected, inks.names, hq, meta["materials"]))
     assert meta["layer_thickness_nm"] == 14000
@@ -210,7 +226,8 @@ def test_export_of_an_object_for_another_printer_marks_the_outside_void(object_r
     back, meta = read_gcvf(tmp_path / "hq" / "print.gcvf")
     weights = np.load(os.path.join(object_run, "mixture.npz"))["weights"]
     config = json.load(open(os.path.join(object_run, "config.json")))
-    expected = quantize_mixture(weights, config["voxel_size_mm"], hq.dpi, seed=iteration_seed(config["seed"], -2))
+    expected = quantize_mixture(weights, config["voxel_size_mm"], hq.dpi, seed=iteration_seed(config["seed"], -2),
+                                halftone=config["halftone"])
     sdf = torch.from_numpy(np.load(os.path.join(object_run, "object.npz"))["sdf"]).float()
     dz, hy, wx = expected.shape
     s = torch.nn.functional.interpolate(sdf[None, None], size=(dz + 1, hy + 1, wx + 1), mode="trilinear",
@@ -219,6 +236,14 @@ def test_export_of_an_object_for_another_printer_marks_the_outside_void(object_r
     expected[(centre > 0).numpy()] = VOID
     inks = InkSet.from_names()
     assert np.array_equal(back, material_volume(expected, inks.names, hq, meta["materials"]))
+
+
+def test_runs_recorded_before_the_halftone_option_were_random():
+    assert PrintConfig().halftone == "blue-noise"
+    assert PrintConfig.from_record({"seed": 3}).halftone == "random"
+    assert PrintConfig.from_record({"halftone": "blue-noise"}).halftone == "blue-noise"
+    with pytest.raises(ValueError, match="halftone"):
+        PrintConfig(halftone="ordered").validate()
 
 
 # ------------------------------------------------------------------------------------------------ streaming
@@ -317,6 +342,11 @@ def test_streamed_quantisation_equals_the_whole_volume():
 
 
 # ------------------------------------------------------------------------------------------------ halftoning
+def test_the_shipped_tile_is_the_computed_one():
+    from torch_appearance.fabrication.halftone import shipped_tile
+    assert np.array_equal(shipped_tile(), blue_noise_tile(32))
+
+
 def test_blue_noise_tile_is_a_permutation_with_little_low_frequency_energy():
     tile = blue_noise_tile(16)
     assert np.array_equal(np.sort(tile.reshape(-1)), np.arange(16 ** 3))

@@ -6,7 +6,9 @@ optimised mixture (mixture.npz) rendered at --spp (the continuous optimum), then
 the run's printer resolution and rendered with the same spp and seed. Reported per halftoning:
 
 * ``dE00_vs_continuous``: mean CIEDE2000 of the quantised print's texels against the continuous optimum's (what the
-  quantisation costs), and ``dE00_vs_target`` (the print's score);
+  quantisation costs, with the renders' remaining noise), ``dE00_vs_continuous_smoothed`` the same after smoothing
+  both (slabs: a Gaussian of σ = 3 texels; objects: the mean of each texel and its 8 nearest), which leaves the
+  colour shift and takes out most noise and grain, and ``dE00_vs_target`` (the print's score);
 * ``grain``: the high-frequency energy of the texels' lightness, mean (L* − local mean L*)² — for a slab the local
   mean is a Gaussian of σ = --sigma texels, for an object the mean of the 8 nearest texels on the surface — free of
   Monte Carlo noise: every volume is rendered with two seeds and the two high-pass images are multiplied (their
@@ -14,7 +16,7 @@ the run's printer resolution and rendered with the same spp and seed. Reported p
   energy minus the continuous optimum's (the image's own detail), is what the halftoning adds. The colour errors
   use the mean of the two renders.
 
-Writes ``halftone.json`` and prints a Markdown table.
+Writes ``halftone.json``, the renders (``halftone_RUN_renders.npz``) and prints a Markdown table.
 
 Examples:
     python scripts/eval/eval_halftone.py results/demo /tmp/spot25 --spp 64
@@ -60,11 +62,13 @@ def high_object(texels, neighbours):
     return L - L[neighbours].mean(1)
 
 
-def evaluate(folder, spp, sigma, seed, log=print):
+def evaluate(folder, spp, sigma, seed, log=print, mesh=None, texture=None):
     """Rows of the continuous optimum and each halftoning (see the module docstring). Each volume is rendered with
     two seeds; ``grain`` is the mean product of the two renders' high-pass L*, whose expectation is the high-pass
     energy of the noise-free image (the renders' Monte Carlo noise is independent and cancels)."""
     cfg = PrintConfig.from_record(ta_io.read_json(os.path.join(folder, "config.json"))).resolved()
+    if mesh is not None:                      # the run's mesh moved: the same mesh from another place
+        cfg = PrintConfig(**{**cfg.__dict__, "mesh": mesh, "texture": texture or cfg.texture})
     inks = load_inks(cfg.inks)
     t0 = time.perf_counter()
     target = build_target(cfg, log=lambda *a: None)
@@ -75,10 +79,16 @@ def evaluate(folder, spp, sigma, seed, log=print):
         from scipy.spatial import cKDTree
 
         points = target.obj.texel_points.numpy()
-        neighbours = cKDTree(points).query(points, k=9)[1][:, 1:]
+        near = cKDTree(points).query(points, k=9)[1]
+        neighbours = near[:, 1:]
         high = lambda t: high_object(t, neighbours)            # noqa: E731
+        smooth = lambda t: np.asarray(t)[near].mean(1)          # noqa: E731
     else:
+        import cv2
+
         high = lambda t: high_slab(t, sigma)                    # noqa: E731
+        smooth = lambda t: np.stack([cv2.GaussianBlur(np.asarray(f, np.float32), (0, 0), 3.0,   # noqa: E731
+                                                      borderType=cv2.BORDER_REFLECT) for f in t])
     seeds = (iteration_seed(seed, -1), iteration_seed(seed, -3))
     with torch.no_grad():
         sigma_t, albedo = mix_inks(weights, inks)
@@ -89,10 +99,16 @@ def evaluate(folder, spp, sigma, seed, log=print):
     goal = torch.as_tensor(target.target).reshape(-1, 3).double()
     name = os.path.basename(folder.rstrip("/"))
 
+    smooth_reference = torch.as_tensor(smooth((continuous[0] + continuous[1]) / 2)).reshape(-1, 3).double()
+    saved = {"continuous": np.stack(continuous)}
+
     def row(halftone, renders, seconds):
+        saved[halftone] = np.stack(renders)
         mean = torch.as_tensor((renders[0] + renders[1]) / 2).reshape(-1, 3).double()
+        smoothed = torch.as_tensor(smooth((renders[0] + renders[1]) / 2)).reshape(-1, 3).double()
         return {"run": name, "kind": target.kind, "texels": int(len(goal)), "halftone": halftone,
                 "dE00_vs_continuous": float(delta_e_2000(mean, reference).mean()),
+                "dE00_vs_continuous_smoothed": float(delta_e_2000(smoothed, smooth_reference).mean()),
                 "dE00_vs_target": float(delta_e_2000(mean, goal).mean()),
                 "grain": float(np.mean(high(renders[0]) * high(renders[1]))), "seconds": seconds}
 
@@ -107,7 +123,7 @@ def evaluate(folder, spp, sigma, seed, log=print):
         rows[-1]["grain_excess"] = rows[-1]["grain"] - rows[0]["grain"]
         log(f"  {halftone}: {rows[-1]}")
     rows[0]["grain_excess"] = 0.0
-    return rows
+    return rows, saved
 
 
 def main(argv=None):
@@ -117,16 +133,20 @@ def main(argv=None):
     p.add_argument("--spp", type=int, default=64, help="samples per texel of every render (default: %(default)s)")
     p.add_argument("--sigma", type=float, default=1.5, help="slabs: the local mean's Gaussian σ in texels")
     p.add_argument("--seed", type=int, default=1, help="render seed (default: %(default)s)")
+    p.add_argument("--mesh", default=None, help="objects: the run's mesh, where it is now (default: config.json's)")
+    p.add_argument("--texture", default=None, help="objects: the run's texture, where it is now")
     p.add_argument("--out", default="results/halftone.json")
     args = p.parse_args(argv)
     rows = []
-    for run in args.runs:
-        rows += evaluate(run, args.spp, args.sigma, args.seed)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    for run in args.runs:
+        more, renders = evaluate(run, args.spp, args.sigma, args.seed, mesh=args.mesh, texture=args.texture)
+        rows += more
+        np.savez_compressed(os.path.splitext(args.out)[0] + f"_{more[0]['run']}_renders.npz", **renders)
     with open(args.out, "w") as handle:
         json.dump({"spp": args.spp, "sigma": args.sigma, "rows": rows}, handle, indent=2)
-    fields = ["run", "kind", "texels", "halftone", "dE00_vs_continuous", "dE00_vs_target", "grain", "grain_excess",
-              "seconds"]
+    fields = ["run", "kind", "texels", "halftone", "dE00_vs_continuous", "dE00_vs_continuous_smoothed", "dE00_vs_target",
+              "grain", "grain_excess", "seconds"]
     print("| " + " | ".join(fields) + " |\n|" + "---|" * len(fields))
     for r in rows:
         print("| " + " | ".join(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in fields) + " |")

@@ -78,13 +78,18 @@ def main(argv=None):
     ax.imshow(layer, interpolation="nearest", aspect=aspect)        # 600 x 300 DPI: a y voxel is twice as long
     ax.set_title(f"print.gcvf: layer {k} of {n} ({layer.shape[1]} x {layer.shape[0]} px)", fontsize=9)
     ax.axis("off")
-    ys, xs = np.nonzero(layer.sum(2))
+    # the enlarged corner: where the layer mixes the most materials (the two commonest and the background aside)
+    codes = (layer[..., 0].astype(np.int64) << 16) | (layer[..., 1].astype(np.int64) << 8) | layer[..., 2]
+    values, counts = np.unique(codes[codes != 0], return_counts=True)
+    common = values[np.argsort(counts)[-2:]]
+    mixed = cv2.blur(((codes != 0) & ~np.isin(codes, common)).astype(np.float32), (args.crop, args.crop // 2))
+    cy, cx = np.unravel_index(np.argmax(mixed), mixed.shape)
     c = args.crop
-    y0 = int(np.clip(np.median(ys) - c // 4, 0, max(0, layer.shape[0] - c // 2))) if len(ys) else 0
-    x0 = int(np.clip(np.median(xs) - c // 2, 0, max(0, layer.shape[1] - c))) if len(xs) else 0
+    y0 = int(np.clip(cy - c // 4, 0, max(0, layer.shape[0] - c // 2)))
+    x0 = int(np.clip(cx - c // 2, 0, max(0, layer.shape[1] - c)))
     ax = fig.add_subplot(grid[1])
     ax.imshow(layer[y0:y0 + c // 2, x0:x0 + c], interpolation="nearest", aspect=aspect)
-    ax.set_title(f"its voxels ({c} x {c // 2} px, true aspect)", fontsize=9)
+    ax.set_title(f"a corner of it ({c} x {c // 2} voxels)", fontsize=9)
     ax.axis("off")
     for i, (image, name) in enumerate(zip(views, ("front", "side", "above"))):
         ax = fig.add_subplot(grid[2 + i])

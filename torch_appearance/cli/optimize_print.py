@@ -122,8 +122,9 @@ def add_optimization_arguments(p, d=None):
                         f"resolution and write its package (package-NAME/: print.gcvf, print.3mf) into the run "
                         f"folder; ta-export-print exports a run again for another printer")
     p.add_argument("--halftone", choices=HALFTONES, default=d.halftone,
-                   help="how each printer voxel's ink is drawn from its voxel's mixture: independently at random (the "
-                        "paper), or by a 3D blue-noise threshold volume (inks evenly spread) (default: %(default)s)")
+                   help="how each printer voxel's ink is drawn from its voxel's mixture: by a 3D blue-noise threshold "
+                        "volume (inks evenly spread: less grain at the same colour on Spot and the ColorChecker), or "
+                        "independently at random (the paper) (default: %(default)s)")
     p.add_argument("--ior", type=float, default=d.ior, help="refractive index of the print (default: %(default)s)")
     p.add_argument("--seed", type=int, default=d.seed, help="(default: %(default)s)")
     p.add_argument("--gradient-seed", choices=("same", "independent"), default=d.gradient_seed,

@@ -73,6 +73,27 @@ def _codes(rgb):
     return (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
 
 
+def palette_decoder(colours, values, unknown):
+    """A function ``decode(image, where)`` mapping an (H, W, 3) uint8 RGB image whose pixels are exactly the
+    ``colours`` (K, 3) to ``values`` (K,) uint8; a pixel of another colour raises ValueError naming ``where``, the
+    pixel and its colour, "which is ``unknown``"."""
+    codes = _codes(np.asarray(colours))
+    order = np.argsort(codes)
+    sorted_codes, sorted_values = codes[order], np.asarray(values, np.uint8)[order]
+
+    def decode(image, where):
+        pixel = _codes(image)
+        pos = np.clip(np.searchsorted(sorted_codes, pixel), 0, len(sorted_codes) - 1)
+        known = sorted_codes[pos] == pixel
+        if not known.all():
+            j, i = np.argwhere(~known)[0]
+            raise ValueError(f"{where}: pixel (row {j}, column {i}) has colour {image[j, i].tolist()}, which is "
+                             f"{unknown}")
+        return sorted_values[pos]
+
+    return decode
+
+
 def export_slices(indices, inks, folder, *, dpi=PRINTER_DPI, progress=None):
     """Write one RGB PNG per printer layer plus ``palette.json`` (see the module docstring for the format).
 
@@ -193,9 +214,7 @@ def read_slices(folder):
     if "void" in palette:
         colours = np.concatenate([colours, np.array([palette["void"]["rgb"]], dtype=np.int64)])
         index_of = np.append(index_of, VOID)
-    codes = _codes(colours)
-    order = np.argsort(codes)
-    sorted_codes = codes[order]
+    decode = palette_decoder(colours, index_of, f"not in the palette {colours.tolist()}")
     indices = np.empty(shape, dtype=np.uint8)
     for z in range(shape[0]):
         path = os.path.join(folder, f"slice_{z:04d}.png")
@@ -205,14 +224,7 @@ def read_slices(folder):
                              f"{image.shape[2]} channel(s)")
         if image.shape[:2] != shape[1:]:
             raise ValueError(f"{path!r}: expected size (H, W) = {shape[1:]}, got {image.shape[:2]}")
-        pixel = _codes(image)
-        pos = np.clip(np.searchsorted(sorted_codes, pixel), 0, len(sorted_codes) - 1)
-        known = sorted_codes[pos] == pixel
-        if not known.all():
-            j, i = np.argwhere(~known)[0]
-            raise ValueError(f"{path!r}: pixel (row {j}, column {i}) has colour {image[j, i].tolist()}, "
-                             f"which is not in the palette {colours.tolist()}")
-        indices[z] = index_of[order[pos]]
+        indices[z] = decode(image, repr(path))
     return indices, palette
 
 

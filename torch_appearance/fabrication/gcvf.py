@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from ..checks import check_path, describe
+from .export import palette_decoder
 from .printer import load_printer
 
 __all__ = ["write_gcvf", "read_gcvf", "CONFIG_FILE", "LAYER_PREFIX"]
@@ -244,12 +245,10 @@ def read_gcvf(path):
             extra = sorted(layer_files - expected, key=len)[:5]
             raise ValueError(f"{where}: expected layers {prefix}{start}.png .. {prefix}{start + dz - 1}.png, "
                              f"missing {missing}, unexpected {extra}")
-        codes = np.array([(c[0] << 16) | (c[1] << 8) | c[2] for c in rgba + [background]], dtype=np.int64)
-        if len(set(codes.tolist())) != len(codes):
+        colours = np.array([c[:3] for c in rgba + [background]], dtype=np.int64)
+        if len({tuple(c) for c in colours.tolist()}) != len(colours):
             raise ValueError(f"{where}: two materials (or one and the background) share an RGB colour")
-        order = np.argsort(codes)
-        sorted_codes = codes[order]
-        index_of = np.append(np.arange(len(materials)), _VOID).astype(np.uint8)[order]
+        decode = palette_decoder(colours, np.append(np.arange(len(materials)), _VOID), "no material's")
         indices = np.empty((dz, hy, wx), dtype=np.uint8)
         for k in range(dz):
             name = f"{prefix}{start + k}.png"
@@ -263,14 +262,7 @@ def read_gcvf(path):
             if image.shape[:2] != (hy, wx):
                 raise ValueError(f"{where}: {name} is {image.shape[1]} x {image.shape[0]} pixels, the package "
                                  f"declares {wx} x {hy}")
-            pixel = (image[..., 2].astype(np.int64) << 16) | (image[..., 1].astype(np.int64) << 8) | image[..., 0]
-            pos = np.clip(np.searchsorted(sorted_codes, pixel), 0, len(codes) - 1)
-            known = sorted_codes[pos] == pixel
-            if not known.all():
-                j, i = np.argwhere(~known)[0]
-                raise ValueError(f"{where}: {name} pixel (row {j}, column {i}) has colour "
-                                 f"{image[j, i, ::-1].tolist()}, which is no material's")
-            indices[k] = index_of[pos]
+            indices[k] = decode(np.ascontiguousarray(image[..., ::-1]), f"{where}: {name}")   # OpenCV's BGR
     counts = np.bincount(indices.reshape(-1), minlength=256)[:len(materials)]
     if counts.tolist() != declared:
         raise ValueError(f"{where}: the layers hold {counts.tolist()} voxels of {materials}, the package declares "

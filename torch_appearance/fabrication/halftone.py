@@ -10,17 +10,20 @@ within one voxel per tile, in evenly spread voxels.
 The tile comes from the void-and-cluster method (Ulichney, "The void-and-cluster method for dither array
 generation", SPIE 1913, 1993), in 3D with periodic boundaries: a Gaussian energy marks the tightest cluster of
 set voxels and the largest void; an initial pattern is relaxed by moving points from clusters to voids, its points
-are ranked by removing tightest clusters, and the rest by filling largest voids. The tile is computed once per
-process (about 2 s for 32³) and shifted by the seed so that different seeds give different patterns.
+are ranked by removing tightest clusters, and the rest by filling largest voids. The 32³ tile takes about 5 s to
+compute, so the package ships it (``blue_noise_32.npy``, ``blue_noise_tile(32)`` as uint16; a test checks that
+they agree); it is shifted by the seed so that different seeds give different patterns.
 """
 import functools
+import os
 
 import numpy as np
 
-__all__ = ["blue_noise_tile", "blue_noise_thresholds", "TILE"]
+__all__ = ["blue_noise_tile", "shipped_tile", "blue_noise_thresholds", "TILE"]
 
 #: Edge of the threshold tile in micro-voxels.
 TILE = 32
+_SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "blue_noise_32.npy")
 
 
 def _kernel(size, sigma):
@@ -90,12 +93,21 @@ def blue_noise_tile(size=TILE, sigma=1.5, seed=0):
     return rank.reshape((size,) * 3)
 
 
+@functools.lru_cache(maxsize=1)
+def shipped_tile():
+    """The shipped ``blue_noise_tile(TILE)`` (int32), checked to be a permutation of 0 .. TILE³ - 1."""
+    tile = np.load(_SHIPPED, allow_pickle=False).astype(np.int32)
+    if tile.shape != (TILE,) * 3 or not np.array_equal(np.sort(tile.reshape(-1)), np.arange(TILE ** 3)):
+        raise ValueError(f"{_SHIPPED!r}: not a {TILE}³ rank permutation; reinstall torch_appearance")
+    return tile
+
+
 def blue_noise_thresholds(shape, seed):
     """A function ``thresholds(z0, z1)`` giving the float64 ``(z1 - z0, Hy, Wx)`` thresholds in (0, 1) of micro
     layers ``z0 .. z1-1`` of a ``(Dz, Hy, Wx)`` volume: the tiled blue-noise ranks ``(r + ½) / T³``, the tile
     shifted by three offsets drawn from ``seed``."""
     dz, hy, wx = shape
-    tile = blue_noise_tile()
+    tile = shipped_tile()
     t = tile.shape[0]
     values = (tile.astype(np.float64) + 0.5) / tile.size
     oz, oy, ox = np.random.Generator(np.random.PCG64(int(seed))).integers(0, t, 3)

@@ -73,7 +73,8 @@ class PrintConfig:
     remap_baseline: bool = False  # objects: also the 2.5D remapped baseline (a slab optimised in UV space)
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
     view_size: int = 192  # objects: pixels per side of those renders
-    halftone: str = "random"  # "random" (independent draws, the paper) or "blue-noise" (fabrication.halftone)
+    halftone: str = "blue-noise"  # or "random" (independent draws, the paper): blue noise has less grain at the same
+    # colour (scripts/bench/README.md, "Halftoning"); a run recorded without this field was quantised at random
     printer: Optional[str] = None  # a printer profile (name or JSON path): its resolution, and a package at the end
     fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.print.fixed_fractions)
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
@@ -150,6 +151,7 @@ class PrintConfig:
         if not isinstance(record, dict):
             raise TypeError(f"config: expected a dict (a run's config.json), got {type(record).__name__}")
         values = {f.name: record[f.name] for f in fields(cls) if f.name in record}
+        values.setdefault("halftone", "random")  # runs from before the option were quantised at random
         for name in ("gamma", "printer_dpi", "fixed"):
             if isinstance(values.get(name), list):
                 values[name] = tuple(values[name])
