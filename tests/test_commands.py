@@ -53,6 +53,7 @@ BAD = {
     "ta-render-wood-volume": (["--synthetic", "1", "--spp", "x"], "--spp"),
     "ta-detect-rings": (["missing.png", "--out", "."], "--out"),
     "ta-eval-rings": (["a.csv"], "labels_csv"),
+    "ta-export-print": (["run", "--format", "stl"], "--format"),
 }
 
 

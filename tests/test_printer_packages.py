@@ -192,6 +192,18 @@ def test_the_optimiser_writes_the_printers_package(object_run):
     assert meta["layers"] == indices.shape[0] and meta["dpi_xy"] == (600.0, 300.0)
     record = json.load(open(os.path.join(object_run, "package-j750", "export.json")))
     assert record["volume"] == "run" and set(record["formats"]) == {"gcvf", "3mf"}
+    # the 3MF read back through lib3mf: the same volume, the profile's materials, a closed coloured mesh inside the box
+    from torch_appearance.fabrication.threemf import read_3mf
+    import trimesh
+    volume = read_3mf(os.path.join(object_run, "package-j750", "print-volume.3mf"))
+    names = [m[0] for m in volume["materials"]]
+    assert names == ["VeroCY-V", "VeroMGT-V", "VeroYL-V", "VeroBlackPlus", "VUltraWhite"]
+    assert np.array_equal(volume["indices"], material_volume(indices, inks.names, printer, names))
+    plain = read_3mf(os.path.join(object_run, "package-j750", "print.3mf"))
+    assert plain["indices"] is None and plain["vertex_rgb"] is not None
+    mesh = trimesh.Trimesh(plain["vertices"], plain["faces"], process=False)
+    box = np.array(volume["grid_shape"][::-1]) * np.array(volume["pitch_mm"])
+    assert mesh.is_watertight and mesh.volume > 0 and np.all(mesh.bounds[0] >= 0) and np.all(mesh.bounds[1] <= box)
 
 
 def test_export_of_a_slab_run_for_its_own_and_another_printer(slab_run, tmp_path):

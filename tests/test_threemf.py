@@ -422,3 +422,18 @@ def test_materials_without_void_and_single_material(tmp_path):
     data = read_3mf(path)
     np.testing.assert_array_equal(data["indices"], indices)
     assert data["materials"] == [("clear", (255, 255, 255, 0))]
+
+
+def test_the_process_locale_is_left_alone(tmp_path):
+    """lib3mf sets the C locale; Python's text streams (subprocess output, open()) would then be ASCII."""
+    import locale
+
+    before = locale.setlocale(locale.LC_ALL)
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    write_3mf(tmp_path / "t.3mf", vertices, faces, layers=iter([np.zeros((2, 3), np.uint8)]), grid_shape=(1, 2, 3),
+              pitch_mm=(0.1, 0.1, 0.1), materials=[("a", (1, 2, 3, 255))])
+    assert locale.setlocale(locale.LC_ALL) == before
+    read_3mf(tmp_path / "t.3mf")
+    list(iter_3mf_layers(tmp_path / "t.3mf"))
+    assert locale.setlocale(locale.LC_ALL) == before

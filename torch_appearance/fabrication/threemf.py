@@ -64,6 +64,7 @@ its index volume one layer at a time.
 import contextlib
 import ctypes
 import functools
+import locale
 import math
 import os
 import tempfile
@@ -102,6 +103,19 @@ class _MissingFileError(FileNotFoundError, ValueError):
 # --------------------------------------------------------------------------------------------------------------
 # lib3mf access
 # --------------------------------------------------------------------------------------------------------------
+def _keeps_locale(function):
+    """Restore the process's locale after ``function``: lib3mf sets the C locale (LC_ALL) and leaves it, which made
+    Python's text streams of later subprocesses ASCII (UnicodeDecodeError on a "µ" in another command's output)."""
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        saved = locale.setlocale(locale.LC_ALL)
+        try:
+            return function(*args, **kwargs)
+        finally:
+            locale.setlocale(locale.LC_ALL, saved)
+    return wrapper
+
+
 @functools.lru_cache(maxsize=1)
 def _lib3mf():
     """``(module, wrapper)`` of lib3mf, loaded once."""
@@ -398,6 +412,7 @@ def _stream_sheets(source, target, layers, shape, n_materials, progress):
         new.writestr(_MODEL_RELS, b'<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(rels))
 
 
+@_keeps_locale
 def write_3mf(path, vertices, faces, *, vertex_rgb=None, face_rgb=None, layers=None, grid_shape=None, pitch_mm=None,
               materials=None, unit="millimeter", progress=None):
     """Write a printed object as a 3MF file: its mesh, viewer colours, and material volume (atomic).
@@ -781,12 +796,14 @@ def iter_3mf_layers(path):
             encoding; while iterating: a sheet that is not a binary PNG of the stack's size, a voxel set in two
             materials' sheets.
     """
-    path, _, _, _, volume, _ = _open(path)
+    path, _, _, _, volume, _ = _keeps_locale(_open)(path)
     if not volume.present:
         raise ValueError(f"path: {path!r} holds no volume data")
-    return (volume.layer(k) for k in range(volume.shape[0]))
+    layer = _keeps_locale(volume.layer)
+    return (layer(k) for k in range(volume.shape[0]))
 
 
+@_keeps_locale
 def read_3mf(path):
     """Read a 3MF file written by :func:`write_3mf` (and the mesh and colours of other single-mesh 3MF files).
 
