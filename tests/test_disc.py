@@ -83,6 +83,30 @@ def test_disc_boundaries_on_synthetic_disc(disc, include_edge):
         assert tr.info["kind"][:-1] == ["ring"] * (len(tr.points) - 1)
 
 
+def test_rings_that_shrink_five_fold_towards_the_bark_are_all_found():
+    """Ring width falling from 40 px at the pith to 8 px at the bark (as on the human-labelled discs, several-fold
+    along a radius), with noisy pixels: every ring is found within 3 px along four transects, with the automatic
+    pith."""
+    widths = np.geomspace(40, 8, 14)
+    size = int(2 * widths.sum() * 1.12 + 40)
+    pith = (size / 2 + 3.0, size / 2 - 5.0)
+    # pixel noise 0.08 on a white background: the border must still read as one colour, and the wood -> background
+    # step at the disc edge must not count as a ring (both failed before: the last ring was lost to a false one)
+    rgb, radius = synthetic_disc(size=(size, size), pith=pith, widths=widths, ecc=0.04, seed=1, noise=0.08)
+    angles = [0.0, 90.0, 180.0, 270.0]
+    res = detect_disc_boundaries(rgb, "auto", angles_deg=angles)
+    assert all(tr.info["edge_px"] is not None for tr in res.transects)
+    assert math.dist(res.pith, pith) < 0.02 * widths.sum()
+    for deg, tr in zip(angles, res.transects):
+        truth = radius(math.radians(deg))[:-1]
+        # the transect starts at the detected pith: compare the boundary points, not radii from different centres
+        u = np.array([math.cos(math.radians(deg)), math.sin(math.radians(deg))])
+        labels = np.asarray(pith) + truth[:, None] * u
+        found = np.hypot(*(tr.points - np.asarray(pith)).T)
+        m = match_boundaries(found, np.hypot(*(labels - np.asarray(pith)).T), 3.0)
+        assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(found), np.round(truth))
+
+
 @pytest.mark.parametrize("mag_weight", [True, False])
 def test_crack_along_a_transect(disc, mag_weight):
     # an open crack (background colour) 25 px wide along the 0-degree transect hides 25 of the strip's 33 rows:

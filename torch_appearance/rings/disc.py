@@ -146,8 +146,11 @@ def _polar_sample(channels, pith, angle_deg, length, half_width):
 
 def _background_colour(rgb, tol):
     """Median colour ``(C,)`` of the image border, or None when the border is not one uniform colour (half of its
-    pixels farther than ``tol / 2`` from the median: the disc fills the frame, no background to mask)."""
-    border = np.concatenate([rgb[0], rgb[-1], rgb[:, 0], rgb[:, -1]])
+    pixels, averaged over 9 along the border, farther than ``tol / 2`` from the median: the disc fills the frame,
+    no background to mask)."""
+    # each border line averaged over 9 pixels along it: the noise of single pixels is not a second colour
+    border = np.concatenate([ndimage.uniform_filter1d(np.asarray(line, np.float64), 9, axis=0, mode="nearest")
+                             for line in (rgb[0], rgb[-1], rgb[:, 0], rgb[:, -1])])
     bg = np.median(border, axis=0)
     return bg if np.median(np.linalg.norm(border - bg, axis=1)) <= tol / 2 else None
 
@@ -383,7 +386,10 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         if not np.isfinite(strip).all():
             raise ValueError(f"image contains NaN or infinite values along the transect at {deg:g} deg")
         inside = (X >= -0.5) & (X <= W - 0.5) & (Y >= -0.5) & (Y <= H - 0.5)
-        wood = inside if bg is None else (np.linalg.norm(strip - bg, axis=2) > background_tol) & inside
+        # background by colour on the strip smoothed over about a pixel: the noise of single pixels (sensor, JPEG)
+        # would otherwise turn background into "wood" (and light earlywood into background) by chance
+        wood = inside if bg is None else (np.linalg.norm(
+            ndimage.gaussian_filter(strip, (1.0, 1.0, 0.0), mode="nearest") - bg, axis=2) > background_tol) & inside
         S, L = wood.shape
         yc = (S - 1) // 2
         central = wood[max(0, yc - S // 4):yc + S // 4 + 1].mean(0)
@@ -435,10 +441,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             # the pith is not a ring boundary: nothing within a quarter ring period of it (the strip's rows also
             # converge there, which makes the first samples unreliable)
             pos = pos[pos >= max(3.0, 0.25 * sinfo["period_px"])]
+        if edge is not None:
+            # the wood -> background step at the disc edge is not a ring boundary, and the last ring boundary
+            # coincides with the edge when it lies within 2 px of it
+            pos = pos[pos < edge - 2.0]
         kinds = ["ring"] * len(pos)
         if include_edge and edge is not None:
-            # the last ring boundary coincides with the edge when it lies within 2 px of it
-            pos = pos[pos < edge - 2.0]
             kinds = ["ring"] * len(pos) + ["edge"]
             pos = np.r_[pos, edge]
         pts = c[None, :] + pos[:, None] * u[None, :]
