@@ -107,6 +107,33 @@ def test_rings_that_shrink_five_fold_towards_the_bark_are_all_found():
         assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(found), np.round(truth))
 
 
+def test_disc_edge_without_a_uniform_background():
+    """A photo like the human-labelled discs: dark bark around the disc, a black cloth, a wooden table and a white
+    ruler at the border (so the border is not one colour and nothing can be masked by colour). The wood ends where
+    the bark begins: nothing is detected in the bark, the cloth, the table or the ruler, and every ring is found."""
+    widths = np.linspace(30, 14, 12)
+    size = 760
+    pith = (372.0, 385.0)
+    rgb, radius = synthetic_disc(size=(size, size), pith=pith, widths=widths, ecc=0.03, seed=2,
+                                 background=(0.08, 0.08, 0.08))
+    yy, xx = np.mgrid[0:size, 0:size]
+    phi = np.arctan2(yy - pith[1], xx - pith[0])
+    rho = np.hypot(xx - pith[0], yy - pith[1])
+    edge = widths.sum() * (1 + 0.03 * np.cos(phi - 0.7))
+    bark = (rho >= edge) & (rho < edge + 14)
+    rgb[bark] = (0.22, 0.14, 0.09)
+    rgb[:90] = np.where(rho[:90, :, None] >= edge[:90, :, None] + 14, (0.85, 0.62, 0.35), rgb[:90])   # a table
+    rgb[:, -60:] = np.where(rho[:, -60:, None] >= edge[:, -60:, None] + 14, (0.95, 0.95, 0.93), rgb[:, -60:])
+    angles = [0.0, 90.0, 180.0, 270.0]
+    res = detect_disc_boundaries(rgb, pith, angles_deg=angles)
+    assert res.info["background"] is None                       # the border is not one colour
+    for deg, tr in zip(angles, res.transects):
+        truth = radius(math.radians(deg))
+        assert tr.info["edge_px"] is not None and abs(tr.info["edge_px"] - truth[-1]) < 3.0, (deg, tr.info["edge_px"])
+        m = match_boundaries(tr.info["radius_px"], truth[:-1], 3.0)
+        assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(tr.info["radius_px"]), truth)
+
+
 @pytest.mark.parametrize("mag_weight", [True, False])
 def test_crack_along_a_transect(disc, mag_weight):
     # an open crack (background colour) 25 px wide along the 0-degree transect hides 25 of the strip's 33 rows:

@@ -138,6 +138,9 @@ def main(argv=None):
     p.add_argument("--edge-level", type=float, default=1.0,
                    help="boundary where dV/dt has fallen to this fraction of its peak on the latewood side; 1 = the "
                         "steepest point (default: %(default)s)")
+    p.add_argument("--include-edge", action="store_true",
+                   help="count the wood's edge at the bark as the outermost boundary (CooRecorder's last point is the "
+                        "outer edge of the last ring, at the bark)")
     p.add_argument("--out", default="disc_human_eval.json", help="output JSON (default: %(default)s)")
     p.add_argument("--overlay-dir", default=None, help="folder for one overlay PNG per disc")
     args = p.parse_args(argv)
@@ -151,7 +154,7 @@ def main(argv=None):
     for disc in DISCS:
         try:
             evs.append(evaluate_disc(args.data, disc, args.pith, half_width=args.half_width,
-                                     edge_level=args.edge_level))
+                                     edge_level=args.edge_level, include_edge=args.include_edge))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
             return 2
@@ -189,7 +192,8 @@ def main(argv=None):
               f"{ev['radius_px']:.0f} px; {ev['seconds']:.1f} s for 4 transects (pith {ev['pith_seconds']:.1f} s)")
         if args.overlay_dir is not None:
             atomic_write_bytes(os.path.join(args.overlay_dir, f"{ev['disc']}_overlay.png"), overlay(ev))
-    blob = dict(pith=args.pith, half_width=args.half_width, edge_level=args.edge_level, pooled=total, transects=rows,
+    blob = dict(pith=args.pith, half_width=args.half_width, edge_level=args.edge_level, include_edge=args.include_edge,
+                pooled=total, transects=rows,
                 discs=[{k: ev[k] for k in ("disc", "pith", "pith_sigma_px", "human_pith", "pith_error_px", "radius_px",
                                            "seconds", "pith_seconds")} for ev in evs])
     atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=lambda o: np.asarray(o).tolist()).encode())

@@ -155,6 +155,46 @@ def _background_colour(rgb, tol):
     return bg if np.median(np.linalg.norm(border - bg, axis=1)) <= tol / 2 else None
 
 
+def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, tail=0.8, min_tail=20, min_run=20, outer=0.6):
+    """Where the wood ends along a transect whose photo has no uniform background (a cloth, a ruler, a label, a
+    table around the disc): the last column of wood, or None.
+
+    A column is *dark* when the central rows' smoothed brightness (HSV V) is below ``dark`` times the wood's (the
+    median over the inner 60 % of the transect): bark, a dark cloth; it is *not wood* when dark or when its
+    saturation is below ``grey`` times the wood's (a white or grey ruler, paper). Beyond ``outer`` of the transect
+    (bark and background lie outside; knots, stains and cracks inside must not end it) the wood ends at the first
+    run of ``min_run`` dark columns (the bark, even when a wooden table lies beyond it), or at the first column from
+    which at least ``tail`` of the rest (and ``min_tail`` px) is not wood; the last wood column is then the one
+    before the steepest fall of brightness within two smoothing widths of that column.
+    """
+    rgb = rows.mean(0)                                            # (L, 3)
+    hi, lo = rgb.max(1), rgb.min(1)
+    v = ndimage.gaussian_filter1d(hi, sigma, mode="nearest")
+    sat = ndimage.gaussian_filter1d(np.where(hi > 1e-6, (hi - lo) / np.maximum(hi, 1e-6), 0.0), sigma, mode="nearest")
+    L = len(v)
+    if L < 3 * min_run:
+        return None
+    inner = slice(0, int(outer * L))
+    v_wood, s_wood = np.median(v[inner]), np.median(sat[inner])
+    if v_wood <= 0 or s_wood <= 0.05:                              # grey wood (or a grey photo): no colour to follow
+        return None
+    is_dark = v < dark * v_wood
+    nonwood = is_dark | (sat < grey * s_wood)
+    runs = np.convolve(is_dark.astype(int), np.ones(min_run, int), "valid") == min_run   # a dark run starts here
+    suffix = np.cumsum(nonwood[::-1])[::-1] / np.arange(L, 0, -1)  # fraction of non-wood from each column on
+    cols = np.arange(L)
+    start = int(outer * L)
+    hits = np.nonzero((cols[:len(runs)] >= start) & runs)[0]
+    hits = np.r_[hits, np.nonzero((cols >= start) & (suffix >= tail) & (cols <= L - min_tail) & nonwood)[0]]
+    if not len(hits):
+        return None
+    # the wood's edge itself: the steepest fall of the lightly smoothed brightness within two smoothing widths
+    c = int(hits.min())
+    a, b = max(1, c - int(2 * sigma)), min(L - 1, c + int(2 * sigma) + 1)
+    fall = np.diff(ndimage.gaussian_filter1d(hi, 1.5, mode="nearest"))[a - 1:b - 1]
+    return a - 1 + int(np.argmin(fall))
+
+
 def _detrend(v):
     """The strip's V with its slow brightness trend along the radius removed (heartwood / sapwood, stains)."""
     return v - ndimage.gaussian_filter1d(v, max(32.0, v.shape[1] / 20.0), axis=1, mode="nearest")
@@ -400,6 +440,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             prepared.append((deg, u, None, None, None, 0))
             continue
         last = int(woody[-1])
+        if bg is None and strip.shape[2] >= 3:  # no uniform background: the wood ends where its colour does
+            end = _wood_colour_end(strip[max(0, yc - S // 4):yc + S // 4 + 1])
+            if end is not None and end < last:
+                last = end
+                frac = frac.copy()
+                frac[end + 1:] = 0.0
         if last < L - 3:  # the wood ends before the transect does: the disc edge
             nxt = min(last + 1, L - 1)
             a_, b_ = frac[last], frac[nxt]
