@@ -11,9 +11,11 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    bark on the right; eccentric or wavy rings are only slightly tilted.
 2. **Wood / background.** Pixels whose colour is within ``background_tol`` (RGB distance, values in [0, 1]) of the
    background colour (the median of the image border, or ``background``) are *not wood*: the background around the
-   disc and open cracks; a border that is not one uniform colour (the disc fills the frame) gives no background.
-   The disc edge along the transect is where the wood fraction of the strip's central rows last drops below one
-   half; the strip is cut there. Non-wood pixels are replaced by the mean of the wood pixels of their column (i.e.
+   disc and open cracks; a border that is not one uniform colour (the disc fills the frame, or it lies on a cloth
+   beside a ruler and a label) gives no background. The disc edge along the transect is where the wood fraction of
+   the strip's central rows last drops below one half; without a background, where the wood's colour ends beyond
+   60 % of the transect (the first 20 px of bark darker than 0.45 of the wood, or a rest that is mostly dark or grey:
+   :func:`_wood_colour_end`). The strip is cut there, and the edge is never a ring boundary. Non-wood pixels are replaced by the mean of the wood pixels of their column (i.e.
    filled *along the ring*), so a crack along the transect does not hide the rings.
 3. **Filter.** The strip's HSV value is filtered with the curved Gabor filter (normal oriented pith -> bark), as in
    core mode (:mod:`torch_appearance.rings.dendro`), with the orientation field clamped to ``max_tilt_deg`` from
