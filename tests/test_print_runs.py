@@ -24,21 +24,13 @@ from torch_appearance.pipelines.print.baselines import render_quantized, render_
 from torch_appearance.pipelines.print.rendering import render_indexed, slab_scene
 from torch_appearance.pipelines.print.slab_target import SlabTarget, slab_memory_bytes
 from torch_appearance.pipelines.runs import RunInterrupted, check_memory, lock_run_folder
-from torch_appearance.testing import run_command
+from torch_appearance.testing import run_command, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
 
-def tiny_target(path, h=6, w=8):
-    img = np.zeros((h, w, 3), np.float32)
-    img[:, : w // 2] = (0.5, 0.1, 0.05)
-    img[:, w // 2:] = (0.05, 0.2, 0.5)
-    ta_io.write_exr(str(path), img)
-    return str(path)
-
-
 def small_cfg(tmp_path, **kw):
-    base = dict(target=tiny_target(tmp_path / "t.exr"), thickness_mm=0.34, spp=2, eval_spp=4, eval_every=2,
+    base = dict(target=tiny_print_target(tmp_path / "t.exr"), thickness_mm=0.34, spp=2, eval_spp=4, eval_every=2,
                 table_steps=2, iterations=4, out=str(tmp_path / "run"), seed=5)
     base.update(kw)
     return PrintConfig(**base)
@@ -67,7 +59,7 @@ def test_a_locked_run_folder_is_refused(tmp_path):
 def test_two_concurrent_commands_on_one_folder(tmp_path):
     """Two ta-optimize-print processes started together on one --out: one runs, the other exits 2 with one line
     (refused by the lock, or by the finished run's checkpoint if it came late), and the folder holds one run."""
-    target = tiny_target(tmp_path / "t.exr", 12, 16)
+    target = tiny_print_target(tmp_path / "t.exr", 12, 16)
     out = tmp_path / "run"
     args = ["--target", target, "--thickness-mm", "0.34", "--spp", "2", "--eval-spp", "4", "--iterations", "6",
             "--eval-every", "3", "--table-steps", "2", "--quiet", "--out", out]
@@ -86,7 +78,7 @@ def test_two_concurrent_commands_on_one_folder(tmp_path):
 # ------------------------------------------------------------------------------------------------ memory
 def test_slab_too_large_is_refused_before_any_file(tmp_path):
     out = tmp_path / "run"
-    rc, _, err = run_command("optimize_print", "--target", tiny_target(tmp_path / "t.exr"), "--width-mm", "2000",
+    rc, _, err = run_command("optimize_print", "--target", tiny_print_target(tmp_path / "t.exr"), "--width-mm", "2000",
                              "--out", out, "--quiet")
     assert rc == 2 and len(err.strip().splitlines()) == 1
     assert re.search(r"width_mm/height_mm: a 23622×17717×12-voxel slab \(2000\.0 × 1500\.\d × 1 mm at 300 DPI\) "

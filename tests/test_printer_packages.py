@@ -18,11 +18,12 @@ from torch_appearance.fabrication import InkSet, load_index_volume, quantize_mix
 from torch_appearance.fabrication.export import VOID, IndexVolumeLayers
 from torch_appearance.fabrication.gcvf import read_gcvf, write_gcvf
 from torch_appearance.fabrication.halftone import blue_noise_tile
-from torch_appearance.fabrication.printer import PrinterProfile, builtin_printers, load_printer
+from torch_appearance.fabrication.printer import builtin_printers, load_printer
 from torch_appearance.fabrication.quantize import iter_quantized, micro_grid_shape
 from torch_appearance.pipelines.print import PrintConfig, optimize_print
 from torch_appearance.pipelines.print.config import iteration_seed
 from torch_appearance.pipelines.print.package import export_run
+from torch_appearance.testing import reset_peak_rss, status_kb, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -146,18 +147,10 @@ def test_gcvf_refusals_leave_no_file(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ run folders
-def tiny_target(path, h=6, w=8):
-    img = np.zeros((h, w, 3), np.float32)
-    img[:, : w // 2] = (0.5, 0.1, 0.05)
-    img[:, w // 2:] = (0.05, 0.2, 0.5)
-    ta_io.write_exr(str(path), img)
-    return str(path)
-
-
 @pytest.fixture(scope="module")
 def slab_run(tmp_path_factory):
     folder = tmp_path_factory.mktemp("slab")
-    cfg = PrintConfig(target=tiny_target(folder / "t.exr"), thickness_mm=0.34, spp=2, eval_spp=4, eval_every=2,
+    cfg = PrintConfig(target=tiny_print_target(folder / "t.exr"), thickness_mm=0.34, spp=2, eval_spp=4, eval_every=2,
                       iterations=2, naive_baseline=False, out=str(folder / "run"), seed=5)
     optimize_print(cfg, **QUIET)
     return str(folder / "run")
@@ -282,20 +275,6 @@ def fake_run(folder, layers, h=24, w=32, n_inks=3):
     return folder
 
 
-def peak_rss_since_reset():
-    """Linux: reset the process's peak resident set (VmHWM) and return a function reading the peak since, in bytes."""
-    try:
-        with open("/proc/self/clear_refs", "w") as handle:
-            handle.write("5")
-    except OSError:
-        pytest.skip("resetting the peak RSS needs Linux /proc/self/clear_refs")
-
-    def read():
-        with open("/proc/self/status") as handle:
-            return 1024 * int(next(line for line in handle if line.startswith("VmHWM")).split()[1])
-    return read
-
-
 def test_3mf_export_memory_does_not_grow_with_the_number_of_layers(tmp_path):
     """lib3mf keeps buffers per package part until the package is written (~100 kB per sheet); the sheets are
     streamed into the package instead, so a print 4× as tall peaks at the same resident memory."""
@@ -305,11 +284,11 @@ def test_3mf_export_memory_does_not_grow_with_the_number_of_layers(tmp_path):
         run = fake_run(str(tmp_path / f"run{layers}"), layers, h=48, w=96)
         import gc
         gc.collect()
-        with open("/proc/self/status") as handle:
-            before = 1024 * int(next(line for line in handle if line.startswith("VmRSS")).split()[1])
-        peak = peak_rss_since_reset()
+        before = status_kb("VmRSS")
+        if before is None or not reset_peak_rss():
+            pytest.skip("the peak resident memory needs Linux /proc/self/status and clear_refs")
         export_run(run, None, "j750", ("3mf",), **QUIET)
-        grown.append(peak() - before)
+        grown.append(1024 * (status_kb("VmHWM") - before))
     # 3 materials × 900 more sheets: lib3mf's own packaging grew by ~300 MB here
     assert grown[1] - grown[0] < 40e6, grown
     record = json.load(open(os.path.join(run, "package-j750", "export.json")))
@@ -455,6 +434,26 @@ def test_the_command_refuses_bad_input_in_one_line_and_leaves_no_file(tmp_path, 
     ta_io.write_json(os.path.join(run, "config.json"), {"inks": []})
     result = cli(run)
     assert result.returncode == 2 and "incompatible version" in result.stderr
+
+
+def test_a_failed_export_leaves_no_package_and_fixed_fractions_are_not_requantised(tmp_path, monkeypatch):
+    run = fake_run(str(tmp_path / "run"), 6)
+    import torch_appearance.fabrication.gcvf as gcvf
+
+    def broken(path, *args, **kwargs):
+        open(path, "wb").write(b"half a package")
+        raise RuntimeError("the disk is full")
+
+    monkeypatch.setattr(gcvf, "write_gcvf", broken)
+    with pytest.raises(RuntimeError, match="disk is full"):
+        export_run(run, tmp_path / "out", "j750", ("slices", "gcvf"), **QUIET)
+    assert sorted(os.listdir(tmp_path)) == ["run"]              # neither the package nor its temporary folder
+    monkeypatch.undo()
+    config = json.load(open(os.path.join(run, "config.json")))
+    ta_io.write_json(os.path.join(run, "config.json"), {**config, "fixed": ["white=0.5:mask.png"]})
+    with pytest.raises(ValueError, match="fixed ink fractions"):
+        export_run(run, tmp_path / "hq", "j750-hq", ("gcvf",), **QUIET)
+    assert sorted(os.listdir(tmp_path)) == ["run"]
 
 
 def test_the_command_writes_and_replaces_with_force(tmp_path, cli):

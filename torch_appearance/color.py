@@ -14,7 +14,8 @@ The numerical work is done by :mod:`kornia.color`; this module adapts it to the 
 
 All functions are differentiable and keep dtype and device.
 """
-import torch  # noqa: F401 (the docstring examples use it)
+import numpy as np
+import torch
 from kornia.color import lab_to_rgb as _kornia_lab_to_rgb
 from kornia.color import linear_rgb_to_rgb as _kornia_linear_rgb_to_rgb
 from kornia.color import rgb_to_lab as _kornia_rgb_to_lab
@@ -22,7 +23,7 @@ from kornia.color import rgb_to_linear_rgb as _kornia_rgb_to_linear_rgb
 
 from .checks import check_tensor, describe
 
-__all__ = ["linear_to_srgb", "srgb_to_linear", "rgb_to_lab", "lab_to_rgb"]
+__all__ = ["linear_to_srgb", "linear_to_srgb8", "srgb_to_linear", "rgb_to_lab", "lab_to_rgb"]
 
 
 def _channel_dim(name, image, dim):
@@ -76,6 +77,17 @@ def linear_to_srgb(image):
     """
     check_tensor("image", image, "(..., 3) or (*, 3, H, W)", dtypes="floating")
     return _apply_elementwise(_kornia_linear_rgb_to_rgb, image)
+
+
+def linear_to_srgb8(linear):
+    """Linear RGB (array or tensor, any shape) clipped to [0, 1], sRGB-encoded and rounded to ``uint8`` bytes: the
+    display colour of a rendered texel (point clouds, mesh colours, figures).
+
+    >>> linear_to_srgb8([0.0, 0.2159, 1.5, -0.2]).tolist()
+    [0, 128, 255, 0]
+    """
+    x = torch.as_tensor(np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0))
+    return np.round(linear_to_srgb(x).numpy() * 255).astype(np.uint8)
 
 
 def srgb_to_linear(image):

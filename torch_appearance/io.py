@@ -29,6 +29,7 @@ import math
 import os
 import pathlib
 import re
+import shutil
 import tempfile
 import threading
 import warnings
@@ -43,12 +44,13 @@ from .color import linear_to_srgb, srgb_to_linear
 
 __all__ = ["read_image", "read_image_bytes", "read_mask", "decode_image", "strict_pillow", "IMAGE_FORMATS",
            "write_exr", "read_exr", "write_png", "read_png", "write_json", "write_csv", "save_figure",
-           "atomic_write_bytes", "read_json", "nan_to_none", "markdown_table"]
+           "atomic_write_bytes", "atomic_output", "read_json", "nan_to_none", "markdown_table"]
 
 # Permissions that a plain open() would give a new file (mkstemp creates 0600 files).
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 _FILE_MODE = 0o666 & ~_UMASK
+_DIR_MODE = 0o777 & ~_UMASK
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -76,8 +78,61 @@ def _as_rgb_image(name, image):
 # --------------------------------------------------------------------------------------------------------------
 # atomic writing
 # --------------------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_output(path, *, folder=False):
+    """Write ``path`` atomically through a temporary name beside it: the context yields that name (a file, or with
+    ``folder=True`` an empty folder) to write to; when the block ends normally its content is made durable, it gets
+    the permissions a plain ``open()`` / ``mkdir`` would give, and it is renamed over ``path`` (an existing folder
+    is replaced); when the block raises, it is removed and ``path`` keeps its old content. The parent folder must
+    exist.
+
+    Example:
+        >>> import tempfile
+        >>> target = os.path.join(tempfile.mkdtemp(), "a.txt")
+        >>> with atomic_output(target) as tmp:
+        ...     with open(tmp, "w") as handle:
+        ...         _ = handle.write("done")
+        >>> open(target).read()
+        'done'
+    """
+    path = check_path("path", path)
+    directory = os.path.dirname(os.path.abspath(path))
+    prefix = f".{os.path.basename(path)}."
+    if folder:
+        tmp = tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=directory)
+    else:
+        fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=directory)
+        os.close(fd)
+    try:
+        yield tmp
+        if folder:
+            os.chmod(tmp, _DIR_MODE)                       # mkdtemp makes a private (0700) folder
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+        else:
+            with open(tmp, "rb+") as handle:
+                os.fsync(handle.fileno())
+            os.chmod(tmp, _FILE_MODE)                      # mkstemp makes a private (0600) file
+        os.replace(tmp, path)
+    except BaseException:
+        if folder:
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        raise
+    # Make the rename itself durable where the platform allows it.
+    with contextlib.suppress(OSError, AttributeError):
+        dir_fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+
+
 def atomic_write_bytes(path, data):
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, fsync, :func:`os.replace`).
+    """Write ``data`` to ``path`` atomically (:func:`atomic_output`: temporary file in the same folder, fsync,
+    :func:`os.replace`).
 
     Readers see either the old file or the complete new one, never a partial file; on any error the
     temporary file is removed and the error is re-raised. The folder must exist.
@@ -89,26 +144,9 @@ def atomic_write_bytes(path, data):
     path = check_path("path", path)
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise TypeError(f"data: expected bytes, got {describe(data)}")
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as handle:
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as handle:
             handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, _FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    # Make the rename itself durable where the platform allows it.
-    with contextlib.suppress(OSError, AttributeError):
-        dir_fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ import warnings
 import torch
 
 __all__ = ["bonferroni_z", "seed_stats", "assert_z", "simd_walk_level", "status_kb", "reset_peak_rss",
-           "run_command", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
+           "tiny_print_target", "run_command", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
 
 
 def bonferroni_z(n_tests, family_alpha=1e-3):
@@ -88,6 +88,20 @@ def reset_peak_rss():
         return True
     except OSError:
         return False
+
+
+def tiny_print_target(path, h=6, w=8):
+    """Write a two-colour (H, W) linear-RGB EXR print target (left half red-brown, right half blue) to ``path`` and
+    return the path as a str: the smallest slab target a print run takes."""
+    import numpy as np
+
+    from . import io as ta_io
+
+    img = np.zeros((h, w, 3), np.float32)
+    img[:, : w // 2] = (0.5, 0.1, 0.05)
+    img[:, w // 2:] = (0.05, 0.2, 0.5)
+    ta_io.write_exr(str(path), img)
+    return str(path)
 
 
 def run_command(name, *args):

@@ -264,6 +264,17 @@ def load_index_volume(path):
     return _check_indices(indices, len(inks)), inks, _check_dpi(tuple(dpi.tolist()), "dpi")
 
 
+def npy_header(handle, where):
+    """``(shape, fortran_order, dtype)`` of the ``.npy`` array that the open binary ``handle`` (e.g. a member of an
+    ``.npz`` opened with :mod:`zipfile`) starts with; the handle is left at the first byte of the data, which is not
+    read. ValueError naming ``where`` for a file that is not ``.npy`` version 1 or 2."""
+    version = np.lib.format.read_magic(handle)
+    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+    if read is None:
+        raise ValueError(f"{where}: unsupported .npy version {version}")
+    return read(handle)
+
+
 class IndexVolumeLayers:
     """The layers of a volume written by :func:`save_index_volume`, read one at a time (never the whole volume).
 
@@ -305,11 +316,7 @@ class IndexVolumeLayers:
         self.dpi = _check_dpi(tuple(dpi.tolist()), "dpi")
 
     def _header(self, handle):
-        version = np.lib.format.read_magic(handle)
-        read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(version)
-        if read is None:
-            raise ValueError(f"{self.path!r}: unsupported .npy version {version}")
-        shape, fortran, dtype = read(handle)
+        shape, fortran, dtype = npy_header(handle, repr(self.path))
         if dtype != np.uint8 or fortran or len(shape) != 3 or min(shape) < 1:
             raise ValueError(f"{self.path!r}: expected uint8 indices (Dz, Hy, Wx) in C order, got {dtype} "
                              f"{shape}{' (Fortran order)' if fortran else ''}")

@@ -23,10 +23,8 @@ Material names, colours, resolution, layer thickness and bit depth come from a :
 archive is written to a temporary file beside ``path`` one layer at a time (peak memory: one layer) and renamed at
 the end, so a failed export leaves nothing.
 """
-import contextlib
 import os
 import re
-import tempfile
 import xml.etree.ElementTree as ET
 import zipfile
 
@@ -34,6 +32,7 @@ import cv2
 import numpy as np
 
 from ..checks import check_path, describe
+from ..io import atomic_output
 from .export import palette_decoder
 from .printer import load_printer
 
@@ -129,51 +128,35 @@ def write_gcvf(path, layers, printer, ink_names, *, progress=None):
     colours[:] = printer.background_rgba[2::-1]
     for i in range(len(ink_names)):
         colours[i] = materials[lut[i]][1][2::-1]
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
-    os.close(fd)
     counts = np.zeros(len(materials), dtype=np.int64)
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
-            k = -1
-            for k, layer in enumerate(source):
-                if k >= dz:
-                    raise ValueError(f"layers: expected {dz} layers, got more")
-                layer = np.asarray(layer)
-                if layer.shape != (hy, wx) or layer.dtype != np.uint8:
-                    raise ValueError(f"layers: layer {k}: expected uint8 of shape {(hy, wx)}, got {layer.dtype} "
-                                     f"{layer.shape}")
-                hist = np.bincount(layer.reshape(-1), minlength=256)
-                bad = np.flatnonzero(hist[len(ink_names):_VOID]) + len(ink_names)
-                if len(bad):
-                    raise ValueError(f"layers: layer {k} holds ink index {int(bad[0])}, but only "
-                                     f"{len(ink_names)} inks {ink_names} are given")
-                np.add.at(counts, lut[:len(ink_names)], hist[:len(ink_names)])
-                ok, png = cv2.imencode(".png", colours[layer])
-                if not ok:
-                    raise RuntimeError(f"OpenCV failed to encode layer {k} of shape {(hy, wx)}")
-                archive.writestr(f"{LAYER_PREFIX}{k}.png", png.tobytes())  # PNG is compressed already: stored
-                if progress is not None:
-                    progress(k)
-            if k + 1 != dz:
-                raise ValueError(f"layers: expected {dz} layers, got {k + 1}")
-            archive.writestr(zipfile.ZipInfo(CONFIG_FILE, date_time=(2020, 1, 1, 0, 0, 0)),
-                             _config_xml(printer, (dz, hy, wx), materials, counts),
-                             compress_type=zipfile.ZIP_DEFLATED)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED,
+                                                     allowZip64=True) as archive:
+        k = -1
+        for k, layer in enumerate(source):
+            if k >= dz:
+                raise ValueError(f"layers: expected {dz} layers, got more")
+            layer = np.asarray(layer)
+            if layer.shape != (hy, wx) or layer.dtype != np.uint8:
+                raise ValueError(f"layers: layer {k}: expected uint8 of shape {(hy, wx)}, got {layer.dtype} "
+                                 f"{layer.shape}")
+            hist = np.bincount(layer.reshape(-1), minlength=256)
+            bad = np.flatnonzero(hist[len(ink_names):_VOID]) + len(ink_names)
+            if len(bad):
+                raise ValueError(f"layers: layer {k} holds ink index {int(bad[0])}, but only "
+                                 f"{len(ink_names)} inks {ink_names} are given")
+            np.add.at(counts, lut[:len(ink_names)], hist[:len(ink_names)])
+            ok, png = cv2.imencode(".png", colours[layer])
+            if not ok:
+                raise RuntimeError(f"OpenCV failed to encode layer {k} of shape {(hy, wx)}")
+            archive.writestr(f"{LAYER_PREFIX}{k}.png", png.tobytes())  # PNG is compressed already: stored
+            if progress is not None:
+                progress(k)
+        if k + 1 != dz:
+            raise ValueError(f"layers: expected {dz} layers, got {k + 1}")
+        archive.writestr(zipfile.ZipInfo(CONFIG_FILE, date_time=(2020, 1, 1, 0, 0, 0)),
+                         _config_xml(printer, (dz, hy, wx), materials, counts), compress_type=zipfile.ZIP_DEFLATED)
     return {"materials": [m[0] for m in materials], "voxel_counts": counts.tolist(), "layers": dz,
             "bytes": os.path.getsize(path)}
-
-
-def _umask():
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _child(node, tag, where):

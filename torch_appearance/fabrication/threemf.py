@@ -61,13 +61,11 @@ layer are encoded in parallel threads. Memory thus stays at the mesh and one lay
 :func:`read_3mf` reads such a file back (geometry, colours, materials, index volume); :func:`iter_3mf_layers` yields
 its index volume one layer at a time.
 """
-import contextlib
 import ctypes
 import functools
 import locale
 import math
 import os
-import tempfile
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -75,6 +73,7 @@ import numpy as np
 import torch
 
 from ..checks import check_choice, check_path, describe, is_int, is_real
+from ..io import atomic_output
 from .export import VOID
 
 __all__ = ["write_3mf", "read_3mf", "iter_3mf_layers", "UNITS_MM"]
@@ -89,12 +88,6 @@ NAMESPACE = "urn:torch-appearance:3mf:1"
 _PNG_PARAMS = [cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1]   # level 6: +0.3 % smaller, 1.4x slower
 _DECIMALS = 9                       # vertex coordinates: finer than float32 steps for coordinates >= 0.01 mm
 _CV_CHANNEL = {"red": 2, "green": 1, "blue": 0, "alpha": 3}   # channel name -> index in OpenCV's BGR(A) order
-
-# Permissions that a plain open() would give a new file (mkstemp creates 0600 files).
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-_FILE_MODE = 0o666 & ~_UMASK
-
 
 class _MissingFileError(FileNotFoundError, ValueError):
     """A file to read does not exist: both a FileNotFoundError and a ValueError (like io.UnsupportedOperation)."""
@@ -502,38 +495,15 @@ def write_3mf(path, vertices, faces, *, vertex_rgb=None, face_rgb=None, layers=N
         writer.SetDecimalPrecision(_DECIMALS)
     except lib3mf.ELib3MFException as error:
         raise RuntimeError(f"lib3mf failed to build the 3MF model for {path!r}: {error}") from error
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
-    try:
-        os.close(fd)
+    with atomic_output(path) as tmp:
         try:
             writer.WriteToFile(tmp)
         except lib3mf.ELib3MFException as error:
             raise RuntimeError(f"lib3mf failed to write {path!r}: {error}") from error
         del writer, model
         if layers is not None:
-            with _temporary(directory, path) as streamed:
+            with atomic_output(tmp) as streamed:       # the package again, its sheets streamed in
                 _stream_sheets(tmp, streamed, layers, grid_shape, len(materials), progress)
-                os.replace(streamed, tmp)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.chmod(tmp, _FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
-@contextlib.contextmanager
-def _temporary(directory, path):
-    """A temporary file name beside ``path``, removed on leaving unless it was renamed."""
-    fd, name = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
-    os.close(fd)
-    try:
-        yield name
-    finally:
-        with contextlib.suppress(OSError):
-            os.unlink(name)
 
 
 # --------------------------------------------------------------------------------------------------------------

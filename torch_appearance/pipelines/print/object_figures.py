@@ -4,9 +4,9 @@ CIEDE2000 on the mesh, from the same cameras (pyvista offscreen for the mesh pic
 import sys
 
 import numpy as np
-import torch
 
 from ... import io as ta_io
+from ...color import linear_to_srgb8
 
 __all__ = ["mesh_views", "views_figure"]
 
@@ -76,13 +76,6 @@ def mesh_views(mesh, cams, *, scalars=None, cmap="magma", clim=None):
         return None
 
 
-def _srgb8(linear):
-    from ...color import linear_to_srgb
-
-    rgb = np.asarray(linear_to_srgb(torch.as_tensor(np.clip(linear, 0, 1)).double()))
-    return np.round(rgb * 255).astype(np.uint8)
-
-
 def views_figure(path, target, cams, renders, *, texel_de=None, log=print):
     """``views.png``: the target texture on the mesh (top), the rendered quantised print (middle) and, with
     ``texel_de`` (N,), its per-texel CIEDE2000 on the mesh (bottom), one column per camera."""
@@ -91,7 +84,7 @@ def views_figure(path, target, cams, renders, *, texel_de=None, log=print):
 
     rows = [("target (texture on the mesh, unlit)", mesh_views(target.mesh, cams) if target.mesh is not None
              else None),
-            ("print (quantised, rendered)", [_srgb8(r) for r in renders])]
+            ("print (quantised, rendered)", [linear_to_srgb8(r) for r in renders])]
     clim = None
     if texel_de is not None and target.mesh is not None:
         _, nearest = cKDTree(target.obj.texel_points.numpy()).query(np.asarray(target.mesh.vertices), workers=-1)

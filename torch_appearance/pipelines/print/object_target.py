@@ -308,7 +308,7 @@ class ObjectTarget:
         when the mesh has a UV layout, ``stem_uv.png`` baked into it."""
         import trimesh
 
-        from ...color import linear_to_srgb
+        from ...color import linear_to_srgb8
         from ...geometry.bake import bake_texels
 
         rgb = np.asarray(texels, np.float32).reshape(-1, 3)
@@ -319,8 +319,7 @@ class ObjectTarget:
             image, _ = bake_texels(self.mesh, self.obj.texel_points.numpy(), np.clip(rgb, 0, 1),
                                    size=self._bake_size())
             ta_io.write_png(os.path.join(folder, f"{stem}_uv.png"), image)
-        srgb = np.asarray(linear_to_srgb(torch.as_tensor(np.clip(rgb, 0, 1)).double()))
-        colours = np.concatenate([np.round(srgb * 255), np.full((len(rgb), 1), 255)], axis=1).astype(np.uint8)
+        colours = np.concatenate([linear_to_srgb8(rgb), np.full((len(rgb), 1), 255, np.uint8)], axis=1)
         cloud = trimesh.PointCloud(self.obj.texel_points.numpy(), colors=colours)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.ply"), cloud.export(file_type="ply"))
 

@@ -25,14 +25,13 @@ Everything is written into a temporary folder beside ``OUT`` and renamed at the 
 leaves no partial package. An existing ``OUT`` is refused unless ``force``.
 """
 import os
-import shutil
-import tempfile
 import time
 
 import numpy as np
 
 from ... import io as ta_io
-from ...fabrication.export import VOID, IndexVolumeLayers, export_slices
+from ...color import linear_to_srgb8
+from ...fabrication.export import VOID, IndexVolumeLayers, export_slices, npy_header
 from ...fabrication.inks import InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
 from ...fabrication.quantize import HALFTONES, iter_quantized, micro_grid_pitch
@@ -90,10 +89,7 @@ class RunFolder:
         path = os.path.join(self.folder, "mixture.npz")
         try:
             with zipfile.ZipFile(path) as archive, archive.open("weights.npy") as handle:
-                version = np.lib.format.read_magic(handle)
-                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                    np.lib.format.read_array_header_2_0
-                return tuple(int(v) for v in read(handle)[0])
+                return tuple(int(v) for v in npy_header(handle, "mixture.npz")[0])
         except (OSError, KeyError, ValueError, zipfile.BadZipFile) as error:
             raise ValueError(f"run: {self.folder!r}: mixture.npz is missing or unreadable ({error})") from None
 
@@ -114,9 +110,9 @@ class _Requantized:
 
     def __init__(self, run, dpi, halftone):
         if run.config.get("fixed"):
-            raise ValueError(f"printer: the run holds fixed ink fractions ({run.config['fixed']}), which are exact only "
-                             f"at the run's own resolution {tuple(run.layers.dpi)}; export it for a printer with that "
-                             f"resolution, or optimise again with --printer")
+            raise ValueError(f"printer: the run holds fixed ink fractions ({run.config['fixed']}), which are exact "
+                             f"only at the run's own resolution {tuple(run.layers.dpi)}; export it for a printer with "
+                             f"that resolution, or optimise again with --printer")
         self.weights = run.mixture()
         self.blocks = iter_quantized(self.weights, run.voxel_size, dpi,
                                      iteration_seed(run.config["seed"], -2), halftone)
@@ -151,14 +147,6 @@ def run_layers(run, printer, halftone=None):
     return _Requantized(run, printer.dpi, halftone), "requantized", printer.dpi
 
 
-def _srgb8(linear):
-    from ...color import linear_to_srgb
-    import torch
-
-    return np.clip(np.round(linear_to_srgb(torch.as_tensor(np.asarray(linear, np.float64))).numpy() * 255), 0,
-                   255).astype(np.uint8)
-
-
 def _object_mesh(run, block=24):
     """The printed surface of an object run: the zero set of its SDF (the printer prints the voxels whose centre is
     inside it) by marching cubes, in the print box's mm (origin at the grid corner), each vertex coloured by its
@@ -189,7 +177,7 @@ def _object_mesh(run, block=24):
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     texels = texel_points - np.asarray(origin)[None, :]
     _, nearest = cKDTree(texels).query(vertices)
-    return vertices, faces, {"vertex_rgb": _srgb8(run.final_texels()[nearest])}
+    return vertices, faces, {"vertex_rgb": linear_to_srgb8(run.final_texels()[nearest])}
 
 
 def _slab_mesh(run, shape):
@@ -198,7 +186,7 @@ def _slab_mesh(run, shape):
     _, _, h, w = shape
     depth = shape[1] * run.voxel_size
     s = run.voxel_size
-    faces_rgb = _srgb8(run.final_texels())                       # (F, H, W, 3)
+    faces_rgb = linear_to_srgb8(run.final_texels())                       # (F, H, W, 3)
     xs, ys = np.arange(w + 1) * s, np.arange(h + 1) * s
     gx, gy = np.meshgrid(xs, ys)                                 # (H+1, W+1)
     top = np.stack([gx, gy, np.full_like(gx, depth)], -1).reshape(-1, 3)
@@ -264,13 +252,12 @@ def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halfto
     pitch = micro_grid_pitch(macro[1:], run.voxel_size, dpi) if macro else None
     parent = os.path.dirname(os.path.abspath(out))
     os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}.", suffix=".tmp", dir=parent)
     record = {"run": os.path.abspath(run.folder), "printer": printer.to_dict(), "formats": formats,
               "volume": source, "halftone": run.halftone if halftone is None else halftone,
               "shape_zyx": [dz, hy, wx], "dpi": list(dpi),
               "printed_size_mm": [wx * 25.4 / printer.dpi[0], hy * 25.4 / printer.dpi[1],
                                   dz * printer.layer_thickness_nm * 1e-6], "files": {}, "seconds": {}}
-    try:
+    with ta_io.atomic_output(out, folder=True) as tmp:   # a failed export leaves no partial package
         for fmt in formats:
             t = time.perf_counter()
             bar = _bar(progress, dz, f"{fmt} ({printer.name})")
@@ -300,22 +287,9 @@ def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halfto
             record["seconds"][fmt] = round(time.perf_counter() - t, 3)
         record["seconds"]["total"] = round(time.perf_counter() - t0, 3)
         ta_io.write_json(os.path.join(tmp, "export.json"), record)
-        os.chmod(tmp, 0o777 & ~_umask())          # mkdtemp makes a private (0700) folder
-        if os.path.exists(out):
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     log(f"export: {', '.join(formats)} for {printer.name} ({dz} layers of {wx} x {hy}, {source} volume) in "
         f"{record['seconds']['total']:.1f} s -> {out}")
     return record
-
-
-def _umask():
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _bar(progress, total, desc):
