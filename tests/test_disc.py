@@ -107,6 +107,51 @@ def test_rings_that_shrink_five_fold_towards_the_bark_are_all_found():
         assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(found), np.round(truth))
 
 
+def _strip_of_rings(widths, *, rows=25, ramp=0.5, noise=0.01, seed=0):
+    """A polar strip (rows = arc, columns = radius from the pith): sawtooth rings of the given widths (px) on a
+    brightness ramp along the radius, with the true boundary positions."""
+    B = np.cumsum(widths)
+    L = int(B[-1]) + 20
+    x = np.arange(L) + 0.5
+    k = np.searchsorted(B, x)
+    t = (x - np.r_[0, B][k]) / np.r_[widths, widths[-1]][k]
+    ring = np.where(t < 0.65, 0.75 - 0.1 * t, 0.7 - 0.35 * (t - 0.65) / 0.35)
+    v = ring[None, :] + ramp * x[None, :] / L + noise * np.random.default_rng(seed).standard_normal((rows, L))
+    return v, B
+
+
+def test_local_ring_period_follows_the_rings():
+    """The filter's local frequency along a transect follows the ring width (40 px rings, then 12 px rings), and
+    every boundary of both is found."""
+    v, B = _strip_of_rings(np.r_[np.full(10, 40.0), np.full(12, 12.0)])
+    pos, info = disc_mod._strip_boundaries(v, np.ones_like(v), period=30.0, p_periods=2.0, band=1.0, p=None, q=None,
+                                           f_max=0.4, min_rel_rise=0.1, edge_level=1.0, tilt_sigma=2.0,
+                                           max_tilt_deg=40.0, device="cpu", num_workers=1, calls=[])
+    lp = info["local_period_px"]
+    assert lp.shape == (v.shape[1],)
+    assert abs(np.median(lp[100:350]) - 40.0) < 2.0
+    assert abs(np.median(lp[430:int(B[-1]) - 20]) - 12.0) < 1.0
+    # every boundary but those of the last 40 px, where the strip ends inside a ring (no edge to stop at)
+    assert match_boundaries(pos, B[B < v.shape[1] - 40], 2.0)["f1"] == 1.0
+
+
+def test_narrow_ring_boundaries_come_from_the_fine_pass_only_between_close_coarse_ones():
+    """The fine pass's boundaries are added where one coarse cycle spans narrow rings (a coarse gap below
+    0.8 P), not in wide rings (its extra cycles there are earlywood texture), and not twice."""
+    coarse = np.array([100.0, 140.0, 300.0, 330.0])
+    fine = np.array([101.0, 121.0, 140.5, 220.0, 302.0, 307.0, 323.0])
+    out = disc_mod._narrow_ring_boundaries(coarse, fine, period=80.0, fine_period=40.0, end=400.0)
+    # 121 splits the 40 px gap 100-140; 220 lies in a 160 px gap (a wide ring); 101 / 140.5 / 302 repeat coarse
+    # ones; 307 and 323 sit within a quarter of the 30 px gap 300-330 of its ends
+    np.testing.assert_array_equal(out, [100.0, 121.0, 140.0, 300.0, 330.0])
+    # the pith (0) and the strip's end close the list: a narrow first or last ring is found too
+    out = disc_mod._narrow_ring_boundaries(np.array([40.0]), np.array([20.0, 70.0]), period=80.0, fine_period=40.0,
+                                           end=100.0)
+    np.testing.assert_array_equal(out, [20.0, 40.0, 70.0])
+    np.testing.assert_array_equal(disc_mod._narrow_ring_boundaries(coarse, np.zeros(0), period=80.0,
+                                                                   fine_period=40.0, end=400.0), coarse)
+
+
 def test_disc_edge_without_a_uniform_background():
     """A photo like the human-labelled discs: dark bark around the disc, a black cloth, a wooden table and a white
     ruler at the border (so the border is not one colour and nothing can be masked by colour). The wood ends where
@@ -174,13 +219,17 @@ def test_filters_only_strips_once(disc, monkeypatch):
     hw = 12
     res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw)
     H, W = rgb.shape[:2]
-    assert len(calls) == 4  # one filter call per transect, none for the whole image
+    # two filter calls per transect (the ring period and the fine pass), none for the whole image
+    assert len(calls) == 8
     assert all(s[0] == 2 * hw + 1 for s in calls)  # each call is a strip of 2 hw + 1 rows
     filtered = sum(a * b for a, b in calls)
     assert filtered == res.info["filtered_px"]
-    # at most the strips of rays to the image border: far less than filtering the image once per transect
-    assert filtered <= 4 * (2 * hw + 1) * (math.hypot(H, W) / 2 + 1)
-    assert filtered < 0.25 * H * W
+    # at most twice the strips of rays to the image border: far less than filtering the image once per transect
+    assert filtered <= 2 * 4 * (2 * hw + 1) * (math.hypot(H, W) / 2 + 1)
+    assert filtered < 0.5 * H * W
+    calls.clear()
+    detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw, fine_scale=None)
+    assert len(calls) == 4  # one pass
 
 
 def test_transects_by_end_points(disc):

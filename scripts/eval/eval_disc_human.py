@@ -10,7 +10,12 @@ For every disc: the pith is found automatically (``--pith auto``, the default) o
 is reported in px and in % of the disc radius (the mean distance of the human transects' last points). Each human
 transect becomes a detector transect from the pith used towards the transect's last point, run on to the disc edge
 (``detect_disc_boundaries(..., angles_deg=...)``). Detections and human points are matched one-to-one in 2D
-(:func:`~torch_appearance.rings.dendro.match_boundaries`) at 3 and 5 px. Prints per transect and pooled
+(:func:`~torch_appearance.rings.dendro.match_boundaries`) at 3 and 5 px (``--match 2d``, the default), or by
+their distances from the pith (``--match radial``: the distance from a human point to the ring boundary through
+the detection, taking rings as circles about the pith). The human transects are not straight rays from the pith:
+on C17C their inner points lie up to 8 px beside the ray to their last point, so a detection on the right ring
+can be more than 5 px from the click in 2D; the radial match does not count that as a miss. Both pooled figures
+are always printed. Prints per transect and pooled
 sensitivity, precision and F1, the misses by ring index counted from the pith and from the bark, the signed offset
 of matched boundaries along the transect (positive: on the bark side of the human point), the detection time, and
 writes JSON plus one overlay PNG per disc (human points green on one side of the transect, detections red on the
@@ -72,7 +77,15 @@ def pooled(rows, tol):
                 labelled=nl)
 
 
-def evaluate_disc(data, disc, pith_mode="auto", **kw):
+def _match(det, lab, tol, pith, mode):
+    """One-to-one matching of detections ``(N, 2)`` and human points ``(K, 2)``: in 2D, or by radius from the pith."""
+    if mode == "radial":
+        rd, rl = np.linalg.norm(det - pith, axis=1), np.linalg.norm(lab - pith, axis=1)
+        det, lab = np.c_[rd, np.zeros_like(rd)], np.c_[rl, np.zeros_like(rl)]
+    return match_boundaries(det, lab, tol)
+
+
+def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
     rgb, labels = load_disc(data, disc)
     human_pith = np.mean([p for p, _ in labels.values()], axis=0)
     radius = float(np.mean([np.linalg.norm(b[-1] - human_pith) for _, b in labels.values()]))
@@ -94,7 +107,10 @@ def evaluate_disc(data, disc, pith_mode="auto", **kw):
         u = np.array([math.cos(math.radians(deg)), math.sin(math.radians(deg))])
         row = dict(disc=disc, side=side, angle_deg=deg, detected=len(det), labelled=len(lab))
         for tol in TOLERANCES:
-            m = match_boundaries(det, lab, tol)
+            other = "radial" if match == "2d" else "2d"
+            mo = _match(det, lab, tol, pith, other)
+            row[f"{other}_tol{tol:g}"] = dict(matched=mo["matched"])
+            m = _match(det, lab, tol, pith, match)
             pairs = np.asarray(m["pairs"], int).reshape(-1, 2)
             missed = sorted(set(range(len(lab))) - set(pairs[:, 1].tolist()))
             row[f"tol{tol:g}"] = dict(sensitivity=m["sensitivity"], precision=m["precision"], f1=m["f1"],
@@ -141,6 +157,9 @@ def main(argv=None):
     p.add_argument("--include-edge", action="store_true",
                    help="count the wood's edge at the bark as the outermost boundary (CooRecorder's last point is the "
                         "outer edge of the last ring, at the bark)")
+    p.add_argument("--match", choices=("2d", "radial"), default="2d",
+                   help="match detections and human points in 2D, or by their distance from the pith (the ring "
+                        "through the detection; docstring) (default: %(default)s)")
     p.add_argument("--out", default="disc_human_eval.json", help="output JSON (default: %(default)s)")
     p.add_argument("--overlay-dir", default=None, help="folder for one overlay PNG per disc")
     args = p.parse_args(argv)
@@ -153,7 +172,7 @@ def main(argv=None):
     evs = []
     for disc in DISCS:
         try:
-            evs.append(evaluate_disc(args.data, disc, args.pith, half_width=args.half_width,
+            evs.append(evaluate_disc(args.data, disc, args.pith, args.match, half_width=args.half_width,
                                      edge_level=args.edge_level, include_edge=args.include_edge))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
@@ -171,6 +190,14 @@ def main(argv=None):
     a, b = total["tol3"], total["tol5"]
     print(f"{'pooled':14s} {b['detected']:4d} {b['labelled']:4d}   {a['sensitivity']:5.2f} {a['precision']:5.2f} "
           f"{a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}")
+    other = "radial" if args.match == "2d" else "2d"
+    total_other = {}
+    for t in TOLERANCES:
+        key = f"{other}_tol{t:g}"
+        total_other[f"tol{t:g}"] = pooled([dict(r, **{f"tol{t:g}": r[key]}) for r in rows], t)
+    a, b = total_other["tol3"], total_other["tol5"]
+    print(f"{'pooled, ' + other:14s} {b['detected']:4d} {b['labelled']:4d}   {a['sensitivity']:5.2f} "
+          f"{a['precision']:5.2f} {a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}")
     from_pith, from_bark = np.zeros(40, int), np.zeros(40, int)
     for r in rows:
         for i in r["tol5"]["missed_from_pith"]:
@@ -192,7 +219,7 @@ def main(argv=None):
               f"{ev['radius_px']:.0f} px; {ev['seconds']:.1f} s for 4 transects (pith {ev['pith_seconds']:.1f} s)")
         if args.overlay_dir is not None:
             atomic_write_bytes(os.path.join(args.overlay_dir, f"{ev['disc']}_overlay.png"), overlay(ev))
-    blob = dict(pith=args.pith, half_width=args.half_width, edge_level=args.edge_level, include_edge=args.include_edge,
+    blob = dict(pith=args.pith, match=args.match, pooled_other={other: total_other}, half_width=args.half_width, edge_level=args.edge_level, include_edge=args.include_edge,
                 pooled=total, transects=rows,
                 discs=[{k: ev[k] for k in ("disc", "pith", "pith_sigma_px", "human_pith", "pith_error_px", "radius_px",
                                            "seconds", "pith_seconds")} for ev in evs])

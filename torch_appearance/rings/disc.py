@@ -24,7 +24,11 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    single strip's estimate is easily pulled to the scale of heartwood or stain patterns. The filter resolves ring
    spacings up to ``p`` px, and rings vary more along a pith-to-bark radius (wide juvenile rings near the pith)
    than along a core segment, hence 2 P rather than core mode's 1.5 P (F02b, 8 transects: F1 at 5 px 0.86 with
-   1.5 P, 0.89 with 2 P, 0.89 with 2.5 P).
+   1.5 P, 0.89 with 2 P, 0.89 with 2.5 P). The filter sees the strip less its blur along the radius (sigma
+   ``highpass_periods P``, default 1): the filter's local frequency is the peak of the spectrum in its window,
+   which a brightness trend across the window (heartwood, stains) otherwise pins to the window's lowest frequency,
+   so that the phase does not follow the rings there. The local ring period along the transect is reported
+   (``info["local_period_px"]``).
 4. **Profile.** The local ring tilt in the strip (magnitude-weighted doubled-angle mean of the Gabor orientation
    over the central rows, smoothed along the radius) gives a shear per column; the V profile and the complex
    Gabor response are averaged over the central ``band`` of rows (all by default) along that local tilt, weighted
@@ -33,12 +37,17 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
 5. **Boundaries.** The cycles of the unwrapped phase and the latewood-side foot of the steepest V rise in each
    cycle give the boundaries (``_cycle_boundaries`` of core mode), converted back to image coordinates.
    Boundaries within a quarter of the strip's dominant ring period (at least 3 px) of the pith are dropped (the
-   pith is not a ring boundary). Boundaries closer than ``min_ring_px`` to the previous one are merged (the weaker
-   is dropped). With
+   pith is not a ring boundary). Ring width changes several-fold along a radius: where one cycle at the ring
+   period spans two or more narrow rings (towards the bark), the phase skips them. A second pass at ``fine_scale P``
+   (default P / 2) adds its boundaries where two neighbouring first-pass boundaries are less than ``narrow_gap P``
+   (0.8) apart and the new one lies at least a quarter of that gap from both (``_narrow_ring_boundaries``); in wide
+   rings the fine pass's extra cycles (earlywood texture) fall in wider gaps and are not taken. Boundaries closer
+   than ``min_ring_px`` to the previous one are merged (the weaker is dropped). With
    ``include_edge`` the disc edge (outer end of the last ring, where CooRecorder users and CS-TRD put the last
    boundary) is appended as a boundary of kind ``"edge"`` when the transect reaches it.
 
-The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` instead of ``O(n_transects * H W (p + q))``.
+The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass) instead
+of ``O(n_transects * H W (p + q))``.
 """
 from __future__ import annotations
 
@@ -234,9 +243,11 @@ def _pooled_period(strips, f_max, n_bins=64):
 
 
 def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_rise, edge_level, tilt_sigma,
-                      max_tilt_deg, device, num_workers, calls, mag_weight=True):
+                      max_tilt_deg, device, num_workers, calls, mag_weight=True, highpass=1.0):
     """Boundaries (column positions) on a filled strip ``v`` ``(S, L)`` with wood weights ``wood`` ``(S, L)``;
-    ``period`` is the ring period (px) that sets the default ``p = p_periods period`` and ``q = period``."""
+    ``period`` is the ring period (px) that sets the default ``p = p_periods period`` and ``q = period``. The filter
+    sees ``v`` less its Gaussian blur along the radius (sigma ``highpass period``; 0: the raw strip), so that its
+    local frequency follows the rings rather than brightness trends across its window."""
     S, L = v.shape
     if period is None:  # the strip's own estimate, on the detrended strip
         _, _, period = _gabor_params(_detrend(v).astype(np.float32), p, q, f_max)
@@ -252,7 +263,8 @@ def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_
     lim = math.radians(max_tilt_deg)
     theta = (math.pi / 2 + np.clip(dev, -lim, lim)).astype(np.float32)
     calls.append(v.shape)
-    res = curved_gabor(v.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max),
+    vf = v - ndimage.gaussian_filter1d(v, highpass * period, axis=1, mode="nearest") if highpass > 0 else v
+    res = curved_gabor(vf.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max),
                        normal_reference=(1.0, 0.0), device=device, num_workers=num_workers)
     yc = (S - 1) / 2.0
     half = max(0.5, band * S / 2.0)
@@ -278,8 +290,33 @@ def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_
     norm = wt.sum(0)
     v_prof = (sample(v) * wt).sum(0) / norm
     z_prof = ((sample(z.real) + 1j * sample(z.imag)) * wt).sum(0) / norm
+    f_prof = (sample(res.frequency.astype(np.float64)) * wt).sum(0) / norm
     pos = _cycle_boundaries(v_prof, z_prof, min_rel_rise=min_rel_rise, edge_level=edge_level)
-    return pos, dict(period_px=period, p=p, q=q, shear=shear, profile_v=v_prof, profile_z=z_prof)
+    return pos, dict(period_px=period, p=p, q=q, shear=shear, profile_v=v_prof, profile_z=z_prof,
+                     local_period_px=1.0 / f_prof)
+
+
+def _narrow_ring_boundaries(coarse, fine, *, period, fine_period, end, narrow_gap=0.8, same=0.15, margin=0.25):
+    """Boundaries of the fine pass that the coarse one missed where the rings are narrow (both ``(K,)`` sorted
+    column positions; ``end`` the strip's outer end). A fine boundary is added when no coarse boundary lies within
+    ``same fine_period`` of it, the two coarse boundaries around it (the pith at 0 and ``end`` close the list) are
+    less than ``narrow_gap period`` apart - one coarse cycle that spans two or more narrow rings - and it lies at
+    least ``margin`` of that gap from both. In wide rings the fine pass's extra cycles (pores, earlywood texture)
+    fall in coarse gaps wider than that and are not taken."""
+    coarse = np.asarray(coarse, np.float64)
+    if len(fine) == 0:
+        return coarse
+    add = []
+    for x in fine:
+        if len(coarse) and np.abs(coarse - x).min() < same * fine_period:
+            continue
+        j = int(np.searchsorted(coarse, x))
+        a = coarse[j - 1] if j > 0 else 0.0
+        b = coarse[j] if j < len(coarse) else float(end)
+        gap = b - a
+        if gap < narrow_gap * period and min(x - a, b - x) >= margin * gap:
+            add.append(x)
+    return np.sort(np.r_[coarse, add])
 
 
 def _merge_close(pos, v_prof, min_gap):
@@ -304,8 +341,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            pixel_size_mm=None, p: int | None = None, q: int | None = None, f_max: float = 0.4,
                            min_rel_rise: float = 0.1, edge_level: float = 1.0, tilt_sigma: float = 2.0,
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
-                           p_periods: float = 2.0,
-                           device="cpu", num_workers: int | None = None, progress=None) -> DiscBoundaries:
+                           p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
+                           narrow_gap: float = 0.8, device="cpu", num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
     Args:
@@ -333,6 +370,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             transects of ``scripts/eval/eval_disc_human.py`` the matched boundaries sit a median 0.08 px from the
             clicks with 1, and 1.29 px on the pith side with 0.8).
         p_periods: default ``p`` in ring periods.
+        highpass_periods: the filter sees the strip less its blur along the radius with sigma this many ring periods
+            (0: the raw strip); its local frequency then follows the rings, not the brightness trend in its window.
+        fine_scale: a second pass at ``fine_scale P`` adds the narrow rings the first one missed (module docstring,
+            step 5); None: one pass. Ignored when ``p`` or ``q`` is given.
+        narrow_gap: the second pass's boundaries are taken only between first-pass boundaries less than
+            ``narrow_gap P`` apart.
         period_px: ring period ``P`` (px) for ``p`` / ``q``; default: the dominant period pooled over all strips
             (module docstring, step 3).
         tilt_sigma: smoothing of the local ring tilt along the radius, in ring periods.
@@ -364,6 +407,10 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     if period_px is not None:
         _number(period_px, "period_px", 2.0)
     _number(p_periods, "p_periods", 0.5, 10.0)
+    _number(highpass_periods, "highpass_periods", 0.0, 100.0)
+    if fine_scale is not None:
+        _number(fine_scale, "fine_scale", 0.05, 0.95)
+    _number(narrow_gap, "narrow_gap", 0.0, 10.0)
     if not isinstance(include_edge, bool):
         raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
     a = np.asarray(image)
@@ -480,15 +527,26 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             pos = np.zeros(0)
             sinfo = {}
         else:
-            pos, sinfo = _strip_boundaries(v, wd, period=period, p_periods=p_periods, band=band, p=p, q=q, f_max=f_max,
-                                           min_rel_rise=min_rel_rise,
-                                           edge_level=edge_level, tilt_sigma=tilt_sigma,
-                                           max_tilt_deg=max_tilt_deg, device=device, mag_weight=mag_weight,
-                                           num_workers=num_workers, calls=calls)
-            pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
+            common = dict(p_periods=p_periods, band=band, f_max=f_max, min_rel_rise=min_rel_rise,
+                          edge_level=edge_level, tilt_sigma=tilt_sigma, max_tilt_deg=max_tilt_deg, device=device,
+                          mag_weight=mag_weight, num_workers=num_workers, calls=calls, highpass=highpass_periods)
+            pos, sinfo = _strip_boundaries(v, wd, period=period, p=p, q=q, **common)
             # the pith is not a ring boundary: nothing within a quarter ring period of it (the strip's rows also
             # converge there, which makes the first samples unreliable)
             pos = pos[pos >= max(3.0, 0.25 * sinfo["period_px"])]
+            end = edge if edge is not None else Lc - 1
+            if edge is not None:  # the edge is no boundary (below); a gap ending there is a ring's width
+                pos = pos[pos < edge - 2.0]
+            if fine_scale is not None and p is None and q is None:
+                fine_period = fine_scale * sinfo["period_px"]
+                fpos, finfo = _strip_boundaries(v, wd, period=fine_period, p=None, q=None, **common)
+                fpos = fpos[(fpos >= max(3.0, 0.25 * fine_period)) & (fpos < end - 2.0)]
+                n_coarse = len(pos)
+                pos = _narrow_ring_boundaries(pos, fpos, period=sinfo["period_px"], fine_period=fine_period,
+                                              end=end, narrow_gap=narrow_gap)
+                sinfo.update(fine_period_px=fine_period, fine_p=finfo["p"], fine_q=finfo["q"],
+                             narrow_added=len(pos) - n_coarse)
+            pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
         if edge is not None:
             # the wood -> background step at the disc edge is not a ring boundary, and the last ring boundary
             # coincides with the edge when it lies within 2 px of it
