@@ -219,7 +219,8 @@ def main(argv=None):
               f"{ev['radius_px']:.0f} px; {ev['seconds']:.1f} s for 4 transects (pith {ev['pith_seconds']:.1f} s)")
         if args.overlay_dir is not None:
             atomic_write_bytes(os.path.join(args.overlay_dir, f"{ev['disc']}_overlay.png"), overlay(ev))
-    blob = dict(pith=args.pith, match=args.match, pooled_other={other: total_other}, half_width=args.half_width, edge_level=args.edge_level, include_edge=args.include_edge,
+    blob = dict(pith=args.pith, match=args.match, pooled_other={other: total_other}, half_width=args.half_width,
+                edge_level=args.edge_level, include_edge=args.include_edge,
                 pooled=total, transects=rows,
                 discs=[{k: ev[k] for k in ("disc", "pith", "pith_sigma_px", "human_pith", "pith_error_px", "radius_px",
                                            "seconds", "pith_seconds")} for ev in evs])

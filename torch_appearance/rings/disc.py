@@ -342,7 +342,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            min_rel_rise: float = 0.1, edge_level: float = 1.0, tilt_sigma: float = 2.0,
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
-                           narrow_gap: float = 0.8, device="cpu", num_workers: int | None = None, progress=None) -> DiscBoundaries:
+                           narrow_gap: float = 0.8, device="cpu", num_workers: int | None = None,
+                           progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
     Args:
