@@ -64,7 +64,6 @@ its index volume one layer at a time.
 import ctypes
 import functools
 import locale
-import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -72,7 +71,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..checks import check_choice, check_path, describe, is_int, is_real
+from ..checks import check_choice, check_path, check_real, check_vector3, describe, is_int
 from ..io import atomic_output
 from .export import VOID
 
@@ -228,14 +227,7 @@ def _check_grid_shape(grid_shape):
 
 
 def _check_pitch(pitch_mm):
-    if not isinstance(pitch_mm, (list, tuple, np.ndarray)) or len(pitch_mm) != 3:
-        raise TypeError(f"pitch_mm: expected 3 numbers (sx, sy, sz) in mm, got {describe(pitch_mm)}")
-    if not all(is_real(v) for v in pitch_mm):
-        raise TypeError(f"pitch_mm: expected 3 real numbers (sx, sy, sz) in mm, got {tuple(pitch_mm)}")
-    pitch = tuple(float(v) for v in pitch_mm)
-    if not all(math.isfinite(v) and v > 0 for v in pitch):
-        raise ValueError(f"pitch_mm: expected finite values > 0, got {pitch}")
-    return pitch
+    return tuple(check_real("pitch_mm", v, lo=0.0, lo_open=True) for v in check_vector3("pitch_mm", pitch_mm))
 
 
 def _check_layer(k, layer, shape, n_materials):

@@ -242,12 +242,23 @@ def _pooled_period(strips, f_max, n_bins=64):
     return 1.0 / math.sqrt(edges[k] * edges[k + 1])
 
 
+def _strip_orientation(v, max_tilt_deg):
+    """Ring orientation ``(S, L)`` float32 of a strip: rings run along its columns (vertical) up to the tilt of
+    eccentric rings, so the orientation field is clamped to ``max_tilt_deg`` from vertical, and cracks, rays or
+    stains along the transect cannot turn the filter."""
+    theta, _ = orientation_field(v.astype(np.float32))
+    dev = theta.astype(np.float64) - math.pi / 2  # theta in [0, pi): dev in [-pi/2, pi/2)
+    lim = math.radians(max_tilt_deg)
+    return (math.pi / 2 + np.clip(dev, -lim, lim)).astype(np.float32)
+
+
 def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_rise, edge_level, tilt_sigma,
-                      max_tilt_deg, device, num_workers, calls, mag_weight=True, highpass=1.0):
+                      max_tilt_deg, device, num_workers, calls, mag_weight=True, highpass=1.0, theta=None):
     """Boundaries (column positions) on a filled strip ``v`` ``(S, L)`` with wood weights ``wood`` ``(S, L)``;
     ``period`` is the ring period (px) that sets the default ``p = p_periods period`` and ``q = period``. The filter
     sees ``v`` less its Gaussian blur along the radius (sigma ``highpass period``; 0: the raw strip), so that its
-    local frequency follows the rings rather than brightness trends across its window."""
+    local frequency follows the rings rather than brightness trends across its window. ``theta``: the strip's
+    :func:`_strip_orientation`, when the caller has it already."""
     S, L = v.shape
     if period is None:  # the strip's own estimate, on the detrended strip
         _, _, period = _gabor_params(_detrend(v).astype(np.float32), p, q, f_max)
@@ -256,12 +267,8 @@ def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_
     if q is None:
         q = int(np.clip(round(period), 2, 40))
     q = min(q, max(1, S // 2 - 1))
-    # rings run along the strip's columns (vertical) up to the tilt of eccentric rings: clamp the orientation
-    # field there, so that cracks, rays or stains along the transect cannot turn the filter
-    theta, _ = orientation_field(v.astype(np.float32))
-    dev = theta.astype(np.float64) - math.pi / 2  # theta in [0, pi): dev in [-pi/2, pi/2)
-    lim = math.radians(max_tilt_deg)
-    theta = (math.pi / 2 + np.clip(dev, -lim, lim)).astype(np.float32)
+    if theta is None:
+        theta = _strip_orientation(v, max_tilt_deg)
     calls.append(v.shape)
     vf = v - ndimage.gaussian_filter1d(v, highpass * period, axis=1, mode="nearest") if highpass > 0 else v
     res = curved_gabor(vf.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max),
@@ -530,7 +537,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         else:
             common = dict(p_periods=p_periods, band=band, f_max=f_max, min_rel_rise=min_rel_rise,
                           edge_level=edge_level, tilt_sigma=tilt_sigma, max_tilt_deg=max_tilt_deg, device=device,
-                          mag_weight=mag_weight, num_workers=num_workers, calls=calls, highpass=highpass_periods)
+                          mag_weight=mag_weight, num_workers=num_workers, calls=calls, highpass=highpass_periods,
+                          theta=_strip_orientation(v, max_tilt_deg))  # one orientation field for both passes
             pos, sinfo = _strip_boundaries(v, wd, period=period, p=p, q=q, **common)
             # the pith is not a ring boundary: nothing within a quarter ring period of it (the strip's rows also
             # converge there, which makes the first samples unreliable)
