@@ -217,7 +217,7 @@ def test_filters_only_strips_once(disc, monkeypatch):
 
     monkeypatch.setattr(disc_mod, "curved_gabor", counting)
     hw = 12
-    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw)
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw, link=False)
     H, W = rgb.shape[:2]
     # two filter calls per transect (the ring period and the fine pass), none for the whole image
     assert len(calls) == 8
@@ -228,8 +228,16 @@ def test_filters_only_strips_once(disc, monkeypatch):
     assert filtered <= 2 * 4 * (2 * hw + 1) * (math.hypot(H, W) / 2 + 1)
     assert filtered < 0.5 * H * W
     calls.clear()
-    detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw, fine_scale=None)
+    detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw, fine_scale=None, link=False)
     assert len(calls) == 4  # one pass
+    calls.clear()
+    # linked (the default): one helper transect between neighbours, filtered like the others but not returned
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw)
+    assert len(calls) == 16 and len(res.transects) == 4
+    assert np.allclose(np.sort(res.info["helpers_deg"]), [30.0, 90.0, 150.0, 270.0])  # midway, the wide gap too
+    calls.clear()
+    detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:4], half_width=hw, helpers=0)
+    assert len(calls) == 8
 
 
 def test_transects_by_end_points(disc):

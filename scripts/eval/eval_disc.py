@@ -30,6 +30,7 @@ import numpy as np
 from torch_appearance.io import atomic_write_bytes, read_image
 from torch_appearance.rings.dendro import match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries
+from torch_appearance.rings.pith import detect_pith
 
 PROG = "eval_disc.py"
 DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "..", "shared", "data")
@@ -66,18 +67,28 @@ def load_labels(path):
     return np.array([col, row], dtype=np.float64), polys
 
 
-def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, pith_offset=(0.0, 0.0), **kw):
+def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, pith_offset=(0.0, 0.0),
+             pith_mode="labels", **kw):
     """Run disc mode on F02b and match against the polygons. CS-TRD's innermost polygon (mean radius < 12 px)
-    outlines the pith, not a ring boundary, and is left out unless ``keep_pith_polygon``. ``pith_offset`` (px) is
-    added to the pith given to the detector (a user's click error); the labels stay on the true pith's rays."""
+    outlines the pith, not a ring boundary, and is left out unless ``keep_pith_polygon``. The detector gets the
+    labels' pith plus ``pith_offset`` (px; a user's click error), or (``pith_mode="auto"``) the pith it finds
+    itself (:func:`~torch_appearance.rings.pith.detect_pith`, timed with the detection); the labels are the polygon
+    crossings of the transects actually analysed. Returns ``(rgb, res, labels, rows, pooled, seconds, pith_info)``
+    with ``pith_info`` the pith used, the labels' pith and the distance between them."""
     rgb = read_image(os.path.join(data, DISC[0], DISC[1]), space="srgb", name="image")
     pith, polys = load_labels(os.path.join(data, DISC[0], DISC[2]))
     if not keep_pith_polygon:
         polys = [q for q in polys if np.linalg.norm(q - pith, axis=1).mean() >= 12.0]
     t0 = time.perf_counter()
-    given = pith + np.asarray(pith_offset, dtype=np.float64)
+    if pith_mode == "auto":
+        given = detect_pith(rgb).xy
+    else:
+        given = pith + np.asarray(pith_offset, dtype=np.float64)
     res = detect_disc_boundaries(rgb, given, angles_deg=angles, **kw)
     seconds = time.perf_counter() - t0
+    radius = max((float(np.linalg.norm(q - pith, axis=1).mean()) for q in polys), default=float("nan"))
+    pith_info = dict(mode=pith_mode, xy=[float(v) for v in given], labels_xy=[float(v) for v in pith],
+                     error_px=float(np.linalg.norm(given - pith)), radius_px=radius)
     rows, labels = [], []
     for deg, tr in zip(res.angles_deg, res.transects):
         lab = polygon_radii(polys, given, deg)  # the label polygons crossed by the transect actually analysed
@@ -86,6 +97,9 @@ def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, pith_
         for tol in tolerances:
             m = match_boundaries(tr.info["radius_px"], lab, tol)
             row[f"tol{tol:g}"] = {k: m[k] for k in ("sensitivity", "precision", "f1", "matched", "mean_error_px")}
+            inf = [i for i, kind in enumerate(tr.info["kind"]) if kind == "inferred"]
+            row[f"tol{tol:g}"]["inferred_on_label"] = len(set(inf) & {int(i) for i, _ in m["pairs"]})
+        row["inferred"] = tr.info["kind"].count("inferred")
         rows.append(row)
     pooled = {}
     for tol in tolerances:
@@ -94,7 +108,7 @@ def evaluate(data, angles, tolerances=(3.0, 5.0), keep_pith_polygon=False, pith_
         s, p = m / max(nl, 1), m / max(nd, 1)
         pooled[f"tol{tol:g}"] = dict(sensitivity=s, precision=p, f1=2 * s * p / (s + p) if s + p else 0.0,
                                      matched=m, detected=nd, labelled=nl)
-    return rgb, res, labels, rows, pooled, seconds
+    return rgb, res, labels, rows, pooled, seconds, pith_info
 
 
 def overlay(rgb, res, labels):
@@ -107,9 +121,10 @@ def overlay(rgb, res, labels):
         for r in lab:  # labels on one side of the transect, detections on the other
             p = c + r * u
             cv2.line(img, tuple(np.round(p).astype(int)), tuple(np.round(p + 7 * n).astype(int)), (0, 160, 0), 2)
-        for r in tr.info["radius_px"]:
+        for r, kind in zip(tr.info["radius_px"], tr.info["kind"]):  # inferred from the neighbours: orange
             p = c + r * u
-            cv2.line(img, tuple(np.round(p).astype(int)), tuple(np.round(p - 7 * n).astype(int)), (0, 0, 255), 2)
+            col = (0, 140, 255) if kind == "inferred" else (0, 0, 255)
+            cv2.line(img, tuple(np.round(p).astype(int)), tuple(np.round(p - 7 * n).astype(int)), col, 2)
     ok, buf = cv2.imencode(".png", img)
     if not ok:
         raise ValueError("could not encode the overlay")
@@ -128,12 +143,20 @@ def main(argv=None):
     p.add_argument("--edge-level", type=float, default=1.0,
                    help="boundary at this fraction of the steepest V rise on its latewood side; 1 = the steepest "
                         "point (default: %(default)s)")
+    p.add_argument("--pith", choices=("labels", "auto"), default="labels",
+                   help="pith given to the detector: the labels' (plus --pith-offset) or found automatically "
+                        "(default: %(default)s)")
+    p.add_argument("--no-link", action="store_true",
+                   help="do not link the transects (no rings inferred from the neighbouring transects)")
+    p.add_argument("--helpers", type=int, default=1,
+                   help="helper transects between neighbouring transects when linking (default: %(default)s)")
     p.add_argument("--pith-offset", default="0,0",
                    help="DX,DY px added to the pith given to the detector (click error study; default: %(default)s)")
     p.add_argument("--keep-pith-polygon", action="store_true",
                    help="also count CS-TRD's innermost polygon (the outline of the pith) as a boundary")
     p.add_argument("--out", default="disc_eval.json", help="output JSON (default: %(default)s)")
-    p.add_argument("--overlay", default=None, help="optional overlay PNG (labels green, detections red)")
+    p.add_argument("--overlay", default=None,
+                   help="optional overlay PNG (labels green, detections red, inferred from the neighbours orange)")
     args = p.parse_args(argv)
     try:
         angles = [float(a) for a in args.angles.split(",")]
@@ -144,6 +167,9 @@ def main(argv=None):
         offset = [float(a) for a in args.pith_offset.split(",")]
         if len(offset) != 2:
             raise ValueError
+        if args.pith == "auto" and any(offset):
+            print(f"{PROG}: error: --pith-offset applies to --pith labels only", file=sys.stderr)
+            return 2
     except ValueError:
         print(f"{PROG}: error: --pith-offset must be DX,DY; got {args.pith_offset!r}", file=sys.stderr)
         return 2
@@ -158,12 +184,16 @@ def main(argv=None):
             return 2
     from tqdm import tqdm
 
+    def progress(k, n):
+        bar.total = n
+        bar.update(1)
+
     with tqdm(total=len(angles), desc="transects", unit="transect", disable=None) as bar:
         try:
-            rgb, res, labels, rows, pooled, seconds = evaluate(
-                args.data, angles, keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset, include_edge=args.edge,
-                half_width=args.half_width, edge_level=args.edge_level,
-                progress=lambda k, n: bar.update(1))
+            rgb, res, labels, rows, pooled, seconds, pith_info = evaluate(
+                args.data, angles, keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset,
+                pith_mode=args.pith, include_edge=args.edge, half_width=args.half_width, edge_level=args.edge_level,
+                link=not args.no_link, helpers=args.helpers, progress=progress)
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {e}", file=sys.stderr)
             return 2
@@ -175,11 +205,20 @@ def main(argv=None):
         ang = f"{r['angle_deg']:6.1f}" if not isinstance(r["angle_deg"], str) else f"{r['angle_deg']:>6s}"
         print(f"{ang} {r['detected']:4d} {r['labelled']:4d}   {a['sensitivity']:5.2f} {a['precision']:5.2f} "
               f"{a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}")
-    print(f"detection time {seconds:.1f} s for {len(angles)} transects; filtered {res.info['filtered_px']} px "
-          f"({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the image)")
+    inferred = sum(tr.info["kind"].count("inferred") for tr in res.transects)
+    moved = sum(len(tr.info.get("moved_px", [])) for tr in res.transects)
+    print(f"pith ({args.pith}) {pith_info['xy'][0]:.1f},{pith_info['xy'][1]:.1f}; labels' pith "
+          f"{pith_info['labels_xy'][0]:.1f},{pith_info['labels_xy'][1]:.1f}: {pith_info['error_px']:.1f} px apart = "
+          f"{100 * pith_info['error_px'] / pith_info['radius_px']:.2f} % of the outermost polygon's mean radius")
+    on = sum(r["tol5"]["inferred_on_label"] for r in rows)
+    print(f"linked: {'no' if args.no_link else f'{inferred} rings inferred ({on} on a label at 5 px), {moved} moved'}")
+    print(f"detection time {seconds:.1f} s for {len(angles)} transects (pith included); filtered "
+          f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
+          f"image)")
     blob = dict(data=os.path.abspath(os.path.join(args.data, DISC[0])), label="CS-TRD automatic polygons (weak)",
                 angles_deg=angles, edge=args.edge, half_width=args.half_width, edge_level=args.edge_level,
-                keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset, seconds=seconds, transects=rows,
+                keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset, pith=pith_info, link=not args.no_link,
+                helpers=args.helpers, inferred=inferred, moved=moved, seconds=seconds, transects=rows,
                 pooled=pooled, filtered_px=res.info["filtered_px"], image_px=res.info["image_px"])
     atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=float).encode())
     if args.overlay:

@@ -118,6 +118,12 @@ def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
                                       missed_from_bark=[len(lab) - 1 - i for i in missed],
                                       false=sorted(set(range(len(det))) - set(pairs[:, 0].tolist())),
                                       offset_px=[float((det[i] - lab[j]) @ u) for i, j in pairs])
+            if tol == 5.0:  # the boundaries inferred from the neighbouring transects, and the human ring each is on
+                ring_of = {int(i): int(j) for i, j in pairs}
+                kinds = tr.info["kind"]
+                row["inferred"] = [dict(radius_px=float(tr.info["radius_px"][i]), human_ring=ring_of.get(i))
+                                   for i in range(len(kinds)) if kinds[i] == "inferred"]
+                row["moved_px"] = [list(map(float, m)) for m in tr.info.get("moved_px", [])]
         rows.append(row)
     return dict(disc=disc, rgb=rgb, res=res, labels=labels, rows=rows, pith=pith, pith_sigma_px=sigma,
                 human_pith=human_pith, pith_error_px=float(np.linalg.norm(pith - human_pith)), radius_px=radius,
@@ -157,6 +163,10 @@ def main(argv=None):
     p.add_argument("--include-edge", action="store_true",
                    help="count the wood's edge at the bark as the outermost boundary (CooRecorder's last point is the "
                         "outer edge of the last ring, at the bark)")
+    p.add_argument("--no-link", action="store_true",
+                   help="do not link the transects (no rings inferred from the neighbouring transects)")
+    p.add_argument("--helpers", type=int, default=1,
+                   help="helper transects between neighbouring transects when linking (default: %(default)s)")
     p.add_argument("--match", choices=("2d", "radial"), default="2d",
                    help="match detections and human points in 2D, or by their distance from the pith (the ring "
                         "through the detection; docstring) (default: %(default)s)")
@@ -173,7 +183,8 @@ def main(argv=None):
     for disc in DISCS:
         try:
             evs.append(evaluate_disc(args.data, disc, args.pith, args.match, half_width=args.half_width,
-                                     edge_level=args.edge_level, include_edge=args.include_edge))
+                                     edge_level=args.edge_level, include_edge=args.include_edge,
+                                     link=not args.no_link, helpers=args.helpers))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
             return 2
@@ -208,6 +219,16 @@ def main(argv=None):
           {i: int(v) for i, v in enumerate(from_pith) if v})
     print("misses @5 px by ring index from the bark (0 = outermost):",
           {i: int(v) for i, v in enumerate(from_bark) if v})
+    linked = [(r, x) for r in rows for x in r["inferred"]]
+    if not args.no_link:
+        on = sum(x["human_ring"] is not None for _, x in linked)
+        print(f"inferred from the neighbouring transects: {len(linked)}, {on} on a human ring at 5 px; moved onto "
+              f"their ring's curve: {sum(len(r['moved_px']) for r in rows)}")
+        for r in rows:
+            if r["inferred"]:
+                print(f"  {r['disc']} {r['side']}: " + ", ".join(
+                    f"r {x['radius_px']:.0f} px ({'human ring ' + str(x['human_ring']) if x['human_ring'] is not None else 'no human ring'})"
+                    for x in r["inferred"]))
     offsets = np.array([o for r in rows for o in r["tol5"]["offset_px"]])
     if len(offsets):
         print(f"matched offset along the transect (+: bark side of the human point): median {np.median(offsets):+.2f} "

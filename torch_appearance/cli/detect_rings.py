@@ -14,8 +14,12 @@ pith outwards, given as --angles A1,A2,... (degrees from the +x axis
 towards +y, i.e. clockwise on screen: 0 = right, 90 = down, 180 = left, 270 = up; each runs to the disc edge or the
 image border) and/or repeated --transect X,Y (the bark-side end point in pixels); default: --angles 0,90,180,270.
 Only a narrow polar strip around each transect is resampled and filtered, once (torch_appearance.rings.disc).
-Writes one CSV with columns transect,angle_deg,index,kind,x_px,y_px,radius_px,width_px,width_mm (kind: ring, or
-edge for the disc edge with --edge) and one overlay with all transects.
+Each ring boundary is then followed round the disc to the neighbouring transects (and to --helpers helper
+transects between them); a ring that the curves from both neighbours agree on and that the transect missed is
+added as inferred (torch_appearance.rings.consistency; --no-link to turn this off).
+Writes one CSV with columns transect,angle_deg,index,kind,x_px,y_px,radius_px,width_px,width_mm (kind: ring,
+inferred, or edge for the disc edge with --edge) and one overlay with all transects (inferred boundaries: a tick
+with a dot).
 Section mode (--mode section): a stained microscopy cross-section; writes the boundary polyline (index,x_px,y_px,
 about 1 px apart; header only if none was found); --cell-px is the typical cell diameter in pixels.
 
@@ -67,6 +71,11 @@ def parse_args(argv=None):
                         "screen: 0 right, 90 down); default 0,90,180,270 when no --transect is given")
     p.add_argument("--edge", action="store_true",
                    help="disc mode: report the disc edge (outer end of the last ring) as the last boundary")
+    p.add_argument("--no-link", action="store_true",
+                   help="disc mode: do not follow the rings between transects (no inferred rings)")
+    p.add_argument("--helpers", type=int, default=1,
+                   help="disc mode: helper transects between neighbouring transects, evidence for linking only "
+                        "(default: %(default)s)")
     p.add_argument("--half-width", type=int, default=16,
                    help="disc mode: half-width of the strip filtered around each transect, px (default: %(default)s)")
     size = p.add_mutually_exclusive_group()
@@ -187,8 +196,9 @@ _COLOURS = [(0, 0, 255), (0, 200, 0), (255, 128, 0), (255, 0, 255), (0, 200, 255
 
 
 def disc_overlay_png(rgb, res):
-    """PNG bytes of the disc with each transect (its own colour), a tick across it at every boundary (a circle at
-    the edge) and its number at the outer end; the pith is a white cross."""
+    """PNG bytes of the disc with each transect (its own colour), a tick across it at every boundary (with a dot
+    when inferred from the neighbouring transects, a circle at the edge) and its number at the outer end; the pith
+    is a white cross."""
     img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
     h, w = img.shape[:2]
     thick = max(1, int(round(max(h, w) / 1500)))
@@ -205,6 +215,8 @@ def disc_overlay_png(rgb, res):
             else:
                 a, b = np.array([x, y]) - tick * n, np.array([x, y]) + tick * n
                 cv2.line(img, tuple(int(round(t)) for t in a), tuple(int(round(t)) for t in b), col, thick)
+                if kind == "inferred":
+                    cv2.circle(img, (int(round(x)), int(round(y))), thick + 1, col, -1)
         pos = (int(np.clip(end[0], 0, w - 30)), int(np.clip(end[1], 15, h - 5)))
         cv2.putText(img, str(k), pos, cv2.FONT_HERSHEY_SIMPLEX, 0.5 * thick, col, thick)
     cx, cy = int(round(c[0])), int(round(c[1]))
@@ -237,12 +249,16 @@ def run_disc(args, rgb):
         return fail(PROG, str(e))
     from tqdm import tqdm
 
+    def progress(k, n):
+        bar.total = n
+        bar.update(1)
+
     with tqdm(total=(len(angles or []) + len(ends)) or 4, desc="transects", unit="transect",
               disable=None) as bar:
         try:
             res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
                                          half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,
-                                         progress=lambda k, n: bar.update(1))
+                                         link=not args.no_link, helpers=args.helpers, progress=progress)
             png = disc_overlay_png(rgb, res) if args.overlay else None
         except ValueError as e:
             return fail(PROG, str(e))
@@ -267,6 +283,10 @@ def run_disc(args, rgb):
     except ValueError as e:
         return fail(PROG, str(e))
     counts = ", ".join(str(len(tr.points)) for tr in res.transects)
+    inferred = [[i for i, kind in enumerate(tr.info["kind"]) if kind == "inferred"] for tr in res.transects]
+    if any(inferred):
+        print("inferred from the neighbouring transects (boundary index from the pith): "
+              + "; ".join(f"transect {k}: {v}" for k, v in enumerate(inferred) if v), file=sys.stderr)
     print(f"{len(rows)} boundaries on {len(res.transects)} transects ({counts}); filtered "
           f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
           f"image) -> {', '.join([args.out] + extra)}")

@@ -45,13 +45,23 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    than ``min_ring_px`` to the previous one are merged (the weaker is dropped). With
    ``include_edge`` the disc edge (outer end of the last ring, where CooRecorder users and CS-TRD put the last
    boundary) is appended as a boundary of kind ``"edge"`` when the transect reaches it.
+6. **Consistency across transects** (``link``). The transects cross the same years: every boundary is followed
+   along its ring's ridge in a polar edge map to the neighbouring transects
+   (:func:`~torch_appearance.rings.consistency.link_transects`), with ``helpers`` helper transects (default one)
+   between each pair of neighbours as further evidence. Where the curves from both neighbours arrive together and
+   the transect has no boundary within 0.3 of a ring, a boundary of kind ``"inferred"`` is added; where it has
+   one within that but more than 3 px away, that boundary is moved onto the curves (``info["moved_px"]``).
+   ``info["confirmed"]`` says which boundaries a neighbour's curve met. On the human-labelled TRAS discs (eight
+   transects) this raises the radial F1 at 5 px from 0.85 to 0.89 (human pith); every inferred or moved boundary
+   there lay on a human ring.
 
-The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass) instead
-of ``O(n_transects * H W (p + q))``.
+The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass, twice
+that again with one helper transect between neighbours) instead of ``O(n_transects * H W (p + q))``.
 """
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,12 +82,15 @@ class DiscBoundaries:
     Attributes:
         pith: ``(2,)`` float64 ``(x, y)`` pith position in pixels.
         transects: list of :class:`~torch_appearance.rings.dendro.RingBoundaries`, one per transect, points
-            ordered pith -> bark; ``info["kind"]`` is a list of ``"ring"`` / ``"edge"`` per point and
-            ``info["radius_px"]`` the distance of each point from the pith.
+            ordered pith -> bark; ``info["kind"]`` is a list of ``"ring"`` / ``"inferred"`` (from the neighbouring
+            transects) / ``"edge"`` per point, ``info["radius_px"]`` the distance of each point from the pith,
+            ``info["confirmed"]`` (per ring or inferred point: a neighbour's ring curve met it) and
+            ``info["moved_px"]`` (``(from, to)`` radii of boundaries moved onto their ring's curve).
         ends: ``(T, 2)`` end point ``(x, y)`` of each transect as analysed (cut at the disc edge or image border).
         angles_deg: ``(T,)`` transect directions in degrees (from +x towards +y, i.e. clockwise on screen).
         info: ``filtered_px`` (pixels passed to the Gabor filter, all transects), ``filter_calls``, background,
-            ``pith`` (``auto``, ``xy``, ``sigma_px``: the automatic pith's jackknife standard error, or None).
+            ``pith`` (``auto``, ``xy``, ``sigma_px``: the automatic pith's jackknife standard error, or None),
+            ``helpers_deg`` (the helper transects' angles), ``link_seconds`` (None when not linked).
     """
 
     pith: np.ndarray
@@ -349,8 +362,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            min_rel_rise: float = 0.1, edge_level: float = 1.0, tilt_sigma: float = 2.0,
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
-                           narrow_gap: float = 0.8, device="cpu", num_workers: int | None = None,
-                           progress=None) -> DiscBoundaries:
+                           narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, device="cpu",
+                           num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
     Args:
@@ -384,13 +397,19 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             step 5); None: one pass. Ignored when ``p`` or ``q`` is given.
         narrow_gap: the second pass's boundaries are taken only between first-pass boundaries less than
             ``narrow_gap P`` apart.
+        link: follow every boundary's ring curve to the neighbouring transects and infer the rings that two
+            neighbours' curves agree on (module docstring, step 6; :mod:`~torch_appearance.rings.consistency`).
+            Needs three transects or more, helpers included.
+        helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
+            spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
+            (``info["helpers_deg"]``). 0: the transects link only to each other.
         period_px: ring period ``P`` (px) for ``p`` / ``q``; default: the dominant period pooled over all strips
             (module docstring, step 3).
         tilt_sigma: smoothing of the local ring tilt along the radius, in ring periods.
         max_tilt_deg: largest ring tilt in the strip (degrees from the radial normal); the orientation field is
             clamped to it (cracks, rays and stains along the transect would otherwise turn the filter).
         device, num_workers: passed to the curved Gabor filter.
-        progress: optional callable ``progress(k, T)`` called after each transect.
+        progress: optional callable ``progress(k, T)`` called after each transect (helpers included in ``T``).
 
     Returns:
         :class:`DiscBoundaries`.
@@ -419,6 +438,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     if fine_scale is not None:
         _number(fine_scale, "fine_scale", 0.05, 0.95)
     _number(narrow_gap, "narrow_gap", 0.0, 10.0)
+    _number(helpers, "helpers", 0, 16, integer=True)
+    if not isinstance(link, bool):
+        raise TypeError(f"link must be a bool; got {type(link).__name__}")
     if not isinstance(include_edge, bool):
         raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
     a = np.asarray(image)
@@ -463,6 +485,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             dirs.append((math.degrees(math.atan2(y - c[1], x - c[0])) % 360.0, length))
     if not dirs:
         dirs = [(t, None) for t in transect_angles(4)]
+    n_req = len(dirs)
+    if link and helpers:  # helper transects, evenly spaced between neighbouring transects, as evidence only
+        srt = sorted({d for d, _ in dirs})
+        for i, a0 in enumerate(srt):
+            gap = (srt[(i + 1) % len(srt)] - a0) % 360.0 or 360.0
+            dirs += [((a0 + gap * (k + 1) / (helpers + 1)) % 360.0, None) for k in range(helpers)]
     if background is None:
         bg = _background_colour(rgb, background_tol)
     else:
@@ -522,19 +550,10 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     # the scale of heartwood / stain patterns); period_px overrides it
     period = period_px if period_px is not None else _pooled_period(
         [_detrend(v) for _, _, v, _, _, Lc in prepared if v is not None and Lc >= 16], f_max)
-    calls, out, ends_out = [], [], []
+    calls, found = [], []
     for k, (deg, u, v, wd, edge, Lc) in enumerate(prepared):  # pass 2: filter each strip once, find boundaries
-        if v is None:
-            out.append(RingBoundaries(points=np.zeros((0, 2)), widths_px=np.zeros(0), widths_mm=np.zeros(0),
-                                      pixel_size_mm=ps, info=dict(kind=[], radius_px=np.zeros(0), angle_deg=deg)))
-            ends_out.append(c.copy())
-            if progress is not None:
-                progress(k + 1, len(dirs))
-            continue
-        if Lc < 16:
-            pos = np.zeros(0)
-            sinfo = {}
-        else:
+        pos, sinfo = np.zeros(0), {}
+        if v is not None and Lc >= 16:
             common = dict(p_periods=p_periods, band=band, f_max=f_max, min_rel_rise=min_rel_rise,
                           edge_level=edge_level, tilt_sigma=tilt_sigma, max_tilt_deg=max_tilt_deg, device=device,
                           mag_weight=mag_weight, num_workers=num_workers, calls=calls, highpass=highpass_periods,
@@ -560,22 +579,51 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             # the wood -> background step at the disc edge is not a ring boundary, and the last ring boundary
             # coincides with the edge when it lies within 2 px of it
             pos = pos[pos < edge - 2.0]
-        kinds = ["ring"] * len(pos)
+        found.append((pos, sinfo))
+        if progress is not None:
+            progress(k + 1, len(dirs))
+    inferred = [np.zeros(len(f[0]), bool) for f in found]
+    confirmed = [np.zeros(len(f[0]), bool) for f in found]
+    moved = [[] for _ in found]
+    link_s = None
+    usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
+    if link and len(usable) >= 3:
+        from .consistency import link_transects
+        t0 = time.perf_counter()
+        value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
+        lengths = [prepared[k][4] if prepared[k][4] is not None else prepared[k][5] - 1 for k in usable]
+        linked = link_transects(value, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable], lengths,
+                                period_px=found[usable[0]][1]["period_px"])
+        for k, lk in zip(usable, linked):
+            found[k] = (lk["radius_px"], found[k][1])
+            inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
+        link_s = time.perf_counter() - t0
+    out, ends_out = [], []
+    for k in range(n_req):
+        deg, u, v, wd, edge, Lc = prepared[k]
+        pos, sinfo = found[k]
+        sinfo = dict(sinfo)
+        if v is None:
+            out.append(RingBoundaries(points=np.zeros((0, 2)), widths_px=np.zeros(0), widths_mm=np.zeros(0),
+                                      pixel_size_mm=ps, info=dict(kind=[], radius_px=np.zeros(0), angle_deg=deg)))
+            ends_out.append(c.copy())
+            continue
+        kinds = ["inferred" if f else "ring" for f in inferred[k]]
         if include_edge and edge is not None:
-            kinds = ["ring"] * len(pos) + ["edge"]
+            kinds = kinds + ["edge"]
             pos = np.r_[pos, edge]
         pts = c[None, :] + pos[:, None] * u[None, :]
         wpx, wmm = ring_widths_mm(pts, ps)
-        sinfo.update(kind=kinds, radius_px=pos.copy(), angle_deg=deg, edge_px=edge, length_px=float(Lc - 1))
+        sinfo.update(kind=kinds, radius_px=pos.copy(), angle_deg=deg, edge_px=edge, length_px=float(Lc - 1),
+                     confirmed=confirmed[k].tolist(), moved_px=list(moved[k]))
         out.append(RingBoundaries(points=pts.reshape(-1, 2), widths_px=wpx, widths_mm=wmm, pixel_size_mm=ps,
                                   info=sinfo))
         ends_out.append(c + (Lc - 1) * u)
-        if progress is not None:
-            progress(k + 1, len(dirs))
     info = dict(filtered_px=int(sum(s[0] * s[1] for s in calls)), filter_calls=len(calls), background=bg,
-                image_px=H * W, pith=pith_info or dict(auto=False, xy=c.copy(), sigma_px=None))
+                image_px=H * W, pith=pith_info or dict(auto=False, xy=c.copy(), sigma_px=None),
+                helpers_deg=np.array([d for d, _ in dirs[n_req:]]), link_seconds=link_s)
     return DiscBoundaries(pith=c, transects=out, ends=np.array(ends_out).reshape(-1, 2),
-                          angles_deg=np.array([d for d, _ in dirs]), info=info)
+                          angles_deg=np.array([d for d, _ in dirs[:n_req]]), info=info)
 
 
 def synthetic_disc(size=(320, 300), pith=(150.0, 160.0), widths=None, *, ecc=0.06, ecc_angle=0.7, noise=0.02,

@@ -1,0 +1,132 @@
+"""Consistency across the transects of a disc (torch_appearance.rings.consistency and detect_disc_boundaries(link=
+True)): ring curves traced between neighbouring transects against the analytic rings of synthetic discs; a missing
+ring is inferred and an off-ring boundary moved, from both neighbours only; nothing is invented on a clean disc."""
+import math
+
+import numpy as np
+import pytest
+
+from torch_appearance.rings.consistency import link_transects, sector_edges, trace_curves
+from torch_appearance.rings.dendro import hsv_value, match_boundaries
+from torch_appearance.rings.disc import detect_disc_boundaries, synthetic_disc
+
+PITH = (150.0, 160.0)
+WIDE = np.linspace(20.0, 12.0, 8)  # 8 rings, 20 -> 12 px: the last boundary (about 128 px out) is the disc edge
+
+
+@pytest.fixture(scope="module")
+def wide_disc():
+    return synthetic_disc(size=(320, 300), pith=PITH, widths=WIDE, ecc=0.08, seed=3)
+
+
+def test_trace_follows_its_own_ring_across_a_gap():
+    # two sinusoidal rings 12 px apart, all ridge pixels worth the same (as sector_edges makes them); the first
+    # fades out for 15 rays (19 px of arc): a curve started on it bridges the gap and stays on it rather than
+    # moving to the other ring (12 px cost 3 x 12 / 1.26 = 29 > the 15 that ring would gain it), and a curve started
+    # on the second stays there
+    J, R = 120, 400
+    th = np.linspace(0.0, 0.5, J)  # arc step at r = 300 px: 1.26 px
+    E = np.zeros((J, R))
+    j = np.arange(J)
+    r1 = np.round(300 + 4 * np.sin(2 * np.pi * j / J)).astype(int)
+    E[j, r1] = 1.0
+    E[j[50:65], r1[50:65]] = 0.0
+    E[j, r1 + 12] = 1.0
+    arrive, score, paths = trace_curves(E, th, [r1[0], r1[0] + 12])
+    assert arrive.tolist() == [float(r1[-1]), float(r1[-1] + 12)]
+    assert np.array_equal(paths[0][:50], r1[:50])
+    assert np.abs(paths[0] - r1).max() <= 2  # inside the gap it runs straight, back on the ridge soon after
+    assert np.abs(paths[0][72:] - r1[72:]).max() <= 1
+    assert np.abs(paths[1] - (r1 + 12)).max() <= 1  # on its ridge (cutting a corner where following costs more)
+    assert 0 < score[0] < score[1] <= 1.0
+
+
+def test_sector_edges_are_ridges_on_the_ring_boundaries(wide_disc):
+    rgb, radius = wide_disc
+    E, th = sector_edges(hsv_value(rgb).astype(np.float64), PITH, 0.0, math.pi / 3, 125.0, period_px=16.0)
+    assert E.shape[1] == 126 and math.isclose(th[0], 0.0) and math.isclose(th[-1], math.pi / 3)
+    for j in (0, len(th) // 2, len(th) - 1):
+        truth = radius(th[j])[:-1]
+        ridge = np.nonzero(E[j] > 0)[0]
+        # every true boundary (20 px or more from the pith) has a ridge within 2 px, and ridges are nowhere else
+        for b in truth[truth > 20]:
+            assert np.abs(ridge - b).min() <= 2.0, (j, b, ridge)
+        assert all(np.abs(truth - r).min() <= 3.0 for r in ridge if r > 20), (j, ridge, truth)
+
+
+def test_link_infers_a_missing_ring_and_moves_an_off_ring_boundary(wide_disc):
+    rgb, radius = wide_disc
+    angles = np.arange(0.0, 360.0, 60.0)
+    truth = [radius(math.radians(a))[:-1] for a in angles]
+    radii = [t.copy() for t in truth]
+    radii[0] = np.delete(radii[0], 4)              # transect 0 missed ring 4
+    radii[2] = radii[2].copy()
+    radii[2][2] += 4.5                              # transect 2 put ring 2 on the earlywood beside it
+    spurious = 0.5 * (truth[4][2] + truth[4][3])
+    radii[4] = np.sort(np.r_[radii[4], spurious])  # transect 4 has a false ring mid-ring
+    lengths = [radius(math.radians(a))[-1] - 3.0 for a in angles]
+    out = link_transects(hsv_value(rgb), PITH, angles, radii, lengths, period_px=16.0)
+    assert len(out) == 6
+    # transect 0: ring 4 inferred where it is, marked; nothing else inferred anywhere
+    r0 = out[0]["radius_px"]
+    assert out[0]["inferred"].sum() == 1
+    assert abs(r0[out[0]["inferred"]][0] - truth[0][4]) <= 1.5
+    assert sum(o["inferred"].sum() for o in out[1:]) == 0
+    # transect 2: ring 2 moved back onto its ring (4.5 px is more than min_tol_px = 3 and less than 0.3 of the
+    # rings about it, 18 px)
+    assert len(out[2]["moved"]) == 1 and abs(out[2]["moved"][0][1] - truth[2][2]) <= 1.5
+    assert np.abs(out[2]["radius_px"] - truth[2]).max() <= 1.5
+    # transect 4: the false ring is kept (dropping cost more true rings than false ones on real discs) but no
+    # neighbour's curve met it; every true boundary was met
+    k = int(np.argmin(np.abs(out[4]["radius_px"] - spurious)))
+    assert not out[4]["confirmed"][k]
+    assert out[4]["confirmed"].sum() == len(truth[4])
+    # the untouched transects come back unchanged
+    for t in (1, 3, 5):
+        assert np.array_equal(out[t]["radius_px"], truth[t]) and out[t]["moved"] == []
+
+
+def test_link_needs_three_transects(wide_disc):
+    rgb, radius = wide_disc
+    radii = [radius(0.0)[:-1][1:], radius(math.pi)[:-1]]
+    out = link_transects(hsv_value(rgb), PITH, [0.0, 180.0], radii, [120.0, 120.0], period_px=16.0)
+    assert [o["radius_px"].tolist() for o in out] == [r.tolist() for r in radii]
+    assert not any(o["inferred"].any() for o in out)
+
+
+def test_disc_mode_infers_a_ring_hidden_on_one_transect(wide_disc):
+    rgb, radius = wide_disc
+    rgb = rgb.copy()
+    # a stain over ring boundary 3 around the transect at 0 degrees: +-30 px of arc, +-6 px of radius, filled with
+    # the colour of the middle of a ring (no latewood -> earlywood step left there)
+    b = radius(0.0)[3]
+    y, x = np.mgrid[:rgb.shape[0], :rgb.shape[1]]
+    r = np.hypot(x - PITH[0], y - PITH[1])
+    arc = r * np.abs((np.arctan2(y - PITH[1], x - PITH[0]) + math.pi) % (2 * math.pi) - math.pi)
+    stain = (np.abs(r - b) <= 6.0) & (arc <= 30.0)
+    mid = rgb[(np.abs(r - (b - 0.5 * WIDE[3])) < 1.0) & (arc <= 30.0)].mean(0)
+    rgb[stain] = mid
+    angles = [0.0, 90.0, 180.0, 270.0]
+    plain = detect_disc_boundaries(rgb, PITH, angles_deg=angles, link=False)
+    linked = detect_disc_boundaries(rgb, PITH, angles_deg=angles)
+    assert np.abs(plain.transects[0].info["radius_px"] - b).min() > 5.0  # the 1D detector misses it
+    tr = linked.transects[0]
+    k = int(np.argmin(np.abs(tr.info["radius_px"] - b)))
+    # within 3 px (0.2 of the ring): inside the stain the curves run at a constant radius (their slope costs, the
+    # transect's own ray has no ridge to snap to) while this eccentric ring moves by about 1.5 px there
+    assert abs(tr.info["radius_px"][k] - b) <= 3.0 and tr.info["kind"][k] == "inferred"
+    assert len(tr.info["kind"]) == len(tr.points) == len(tr.info["confirmed"])
+    # every transect still finds all its rings, nothing false is added
+    for a, t in zip(angles, linked.transects):
+        truth = radius(math.radians(a))[:-1]
+        m = match_boundaries(t.info["radius_px"], truth[truth > 8], 3.0)
+        assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (a, t.info["radius_px"], truth)
+    assert linked.info["link_seconds"] is not None and len(linked.info["helpers_deg"]) == 4
+
+
+def test_bad_link_arguments(wide_disc):
+    rgb, _ = wide_disc
+    with pytest.raises(ValueError, match="helpers"):
+        detect_disc_boundaries(rgb, PITH, helpers=-1)
+    with pytest.raises(TypeError, match="link"):
+        detect_disc_boundaries(rgb, PITH, link="yes")
