@@ -437,6 +437,21 @@ def test_pith_auto_on_synthetic_discs(size, pith, widths, ecc):
     assert np.isfinite(est.sigma_px) and est.sigma_px < 0.05 * r
 
 
+def test_pith_auto_refines_up_to_the_photo_resolution():
+    # a 2048 px disc: the lines come from a 512 px copy, then twice at 2x in crops of 40 % and 20 % of the long side
+    # (the second at the photo's own resolution); each level brings the estimate closer
+    pith = np.array([1010.3, 1040.7])
+    rgb, radius = synthetic_disc(size=(2048, 2048), pith=tuple(pith), widths=np.linspace(60, 20, 30), ecc=0.05,
+                                 seed=5, ss=1, noise=0.03)
+    errs = [float(np.linalg.norm(detect_pith(rgb, refine_levels=k).xy - pith)) for k in (0, 1)]
+    est = detect_pith(rgb)
+    assert est.info["levels"] == 2 and est.info["final_scale"] == 1.0
+    err = float(np.linalg.norm(est.xy - pith))
+    assert err < errs[1] < errs[0] and err <= 0.002 * radius(0.0)[-1], (errs, err)
+    with pytest.raises(ValueError, match="refine_levels"):
+        detect_pith(rgb, refine_levels=-1)
+
+
 def test_pith_auto_in_disc_mode(disc, tmp_path):
     rgb, radius = disc
     res = detect_disc_boundaries(rgb, "auto", angles_deg=[0.0, 120.0, 240.0])

@@ -52,7 +52,7 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    the transect has no boundary within 0.3 of a ring, a boundary of kind ``"inferred"`` is added; where it has
    one within that but more than 3 px away, that boundary is moved onto the curves (``info["moved_px"]``).
    ``info["confirmed"]`` says which boundaries a neighbour's curve met. On the human-labelled TRAS discs (eight
-   transects) this raises the radial F1 at 5 px from 0.85 to 0.89 (human pith); every inferred or moved boundary
+   transects) this raises the radial F1 at 5 px from 0.85 to 0.90 (human pith); every inferred or moved boundary
    there lay on a human ring.
 
 The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass, twice
