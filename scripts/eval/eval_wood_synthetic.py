@@ -75,6 +75,7 @@ FIELDS = [  # (key, header, format)
     ("ring_width_fit_mm", "width fit", "{:.3f}"),
     ("ring_width_rel_error", "width err", "{:+.1%}"),
     ("phase_rms_vs_true", "phase RMS vs true", "{:.3f}"),
+    ("phase_rms_inner", "phase RMS, 2 innermost rings", "{:.3f}"),
     ("direction_correct", "growth dir ok", "{:.1%}"),
     ("boundary_fit_to_true_px", "bnd fit→true px", "{:.2f}"),
     ("boundary_true_to_fit_px", "bnd true→fit px", "{:.2f}"),
@@ -110,6 +111,17 @@ def phase_rms_vs_true(fit_phase, G_true):
     d = np.angle(np.exp(1j * (np.asarray(fit_phase, np.float64) - true_phase)))
     offset = np.angle(np.exp(1j * d).mean())
     return float(np.sqrt((np.angle(np.exp(1j * (d - offset))) ** 2).mean())), float(offset)
+
+
+def phase_rms_inner(fit_phase, G_true, offset, rings=2.0):
+    """The same RMS (rad, the whole board's offset removed) over the pixels of the ``rings`` innermost rings (true
+    G < rings): where the pith lies in the photo, the closed ovals around it; None when the board holds none."""
+    inner = np.asarray(G_true) < rings
+    if not inner.any():
+        return None
+    true_phase = 2 * math.pi * (G_true - np.floor(G_true))
+    d = np.angle(np.exp(1j * (np.asarray(fit_phase, np.float64) - true_phase - offset)))
+    return float(np.sqrt((d[inner] ** 2).mean()))
 
 
 def direction_correct(G_fit, G_true):
@@ -163,6 +175,7 @@ def evaluate_seed(seed, args, log):
                ring_scale_fit_mm=s_fit, ring_scale_rel_error=s_fit / prm["ring_scale"] - 1,
                ring_width_fit_mm=w_fit, ring_width_rel_error=w_fit / width_true - 1,
                phase_rms_vs_true=rms, phase_offset_rad=offset,
+               phase_rms_inner=phase_rms_inner(out["phase"].numpy(), board["G"].astype(np.float64), offset),
                direction_correct=direction_correct(out["G"].numpy(), board["G"]),
                boundary_fit_to_true_px=fit_to_true, boundary_true_to_fit_px=true_to_fit,
                boundary_lateness=summary["boundary_lateness"], fit_phase_rms_initial=summary["initial_phase_rms"],
