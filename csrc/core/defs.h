@@ -61,6 +61,8 @@ TA_HD inline float tabs(float x) { return fabsf(x); }
 TA_HD inline double tabs(double x) { return fabs(x); }
 TA_HD inline float tcopysign(float x, float y) { return copysignf(x, y); }
 TA_HD inline double tcopysign(double x, double y) { return copysign(x, y); }
+TA_HD inline float tnextafter(float x, float y) { return nextafterf(x, y); }
+TA_HD inline double tnextafter(double x, double y) { return nextafter(x, y); }
 TA_HD inline float tatan2(float y, float x) { return atan2f(y, x); }
 TA_HD inline double tatan2(double y, double x) { return atan2(y, x); }
 TA_HD inline float tacos(float x) { return acosf(x); }
