@@ -124,8 +124,23 @@ def test_disc_mode_infers_a_ring_hidden_on_one_transect(wide_disc):
     assert linked.info["link_seconds"] is not None and len(linked.info["helpers_deg"]) == 4
 
 
+def test_link_infers_on_a_transect_with_no_boundary_of_its_own(wide_disc):
+    # a transect whose detector found nothing gets the rings both neighbours' curves agree on
+    rgb, radius = wide_disc
+    angles = [0.0, 120.0, 240.0]
+    truth = [radius(math.radians(a))[:-1] for a in angles]
+    radii = [truth[0], np.zeros(0), truth[2]]
+    lengths = [radius(math.radians(a))[-1] - 3.0 for a in angles]
+    out = link_transects(hsv_value(rgb), PITH, angles, radii, lengths, period_px=16.0)
+    got = out[1]["radius_px"]
+    assert out[1]["inferred"].all() and len(got) >= len(truth[1]) - 2
+    assert all(np.abs(truth[1] - x).min() <= 3.0 for x in got), (got, truth[1])
+
+
 def test_bad_link_arguments(wide_disc):
     rgb, _ = wide_disc
+    with pytest.raises(ValueError, match="radii, lengths"):
+        link_transects(hsv_value(rgb), PITH, [0.0, 120.0, 240.0], [np.zeros(0)] * 2, [100.0] * 3, period_px=16.0)
     with pytest.raises(ValueError, match="helpers"):
         detect_disc_boundaries(rgb, PITH, helpers=-1)
     with pytest.raises(TypeError, match="link"):

@@ -174,6 +174,11 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
         coordinates (radians, px) for drawing.
     """
     T = len(angles_deg)
+    if len(radii) != T or len(lengths) != T:
+        raise ValueError(f"radii, lengths: expected one per transect ({T} angles), got {len(radii)} and "
+                         f"{len(lengths)}")
+    if np.ndim(value) != 2:
+        raise ValueError(f"value: expected an (H, W) image, got shape {np.shape(value)}")
     radii = [np.sort(np.asarray(r, dtype=np.float64).reshape(-1)) for r in radii]
     out = [dict(radius_px=r.copy(), inferred=np.zeros(len(r), bool), confirmed=np.zeros(len(r), bool), moved=[],
                 curves={}) for r in radii]
@@ -232,7 +237,7 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
                 continue
             # the boundary sits off its ring's curve: within tol_rings of the rings about the crossing, the
             # transect's other boundaries measuring them
-            if d <= _tolerance(np.delete(pos, k), x, tol_rings, min_tol_px):
+            if k >= 0 and d <= _tolerance(np.delete(pos, k), x, tol_rings, min_tol_px):
                 moved.append((float(pos[k]), x))
                 pos[k] = x
                 continue
