@@ -9,8 +9,8 @@ from scipy.spatial import cKDTree
 
 from torch_appearance import io as ta_io
 from torch_appearance.nn.wood import WoodModel
-from torch_appearance.pipelines.wood import (WoodFitConfig, effective_ring_width, fit_wood, load_photo,
-                                                 model_boundaries)
+from torch_appearance.pipelines.wood import (WoodFitConfig, boundary_lateness, effective_ring_width, fit_wood,
+                                             load_photo, model_boundaries)
 from torch_appearance.rings.synthetic import synthetic_board
 
 
@@ -184,3 +184,19 @@ def test_luminance_histogram_match_restores_washed_out_latewood():
     assert abs(after - 1.0) < 0.03, after
     err = (fixed.double().reshape(-1, 3) @ y - photo.double().reshape(-1, 3) @ y).abs()
     assert float(err.max()) < 0.01, float(err.max())
+
+
+def test_boundary_lateness_from_the_photo_is_shift_equivariant_and_finds_the_true_boundary():
+    # the synthetic board's sharp latewood -> earlywood step lies at integer G: read along the TRUE G the estimate is
+    # 0 (mod 1); along G shifted by a constant it moves by that constant (the colour map's 16-bin estimate does not)
+    board = synthetic_board(192, 192, 0.1, seed=3, noise=0.01)
+    G = board["G"].astype(np.float64)
+    rgb = board["image"]
+    est = boundary_lateness(board["model"], G, rgb)
+    assert min(est, 1.0 - est) <= 0.02, est
+    for shift in (0.13, 0.37, 0.71):
+        moved = boundary_lateness(board["model"], G - shift, rgb)
+        d = (moved - (est - shift)) % 1.0
+        assert min(d, 1.0 - d) <= 0.01, (shift, moved, est)
+    with pytest.raises(ValueError, match="same"):
+        boundary_lateness(board["model"], G[:-1], rgb)

@@ -174,7 +174,8 @@ def _outputs(cfg, model, rgb, photo_phase, rows, rings, info, pith_info, timings
     save_png(os.path.join(folder, "fit.png"), fit_rgb)
     np.save(os.path.join(folder, "fit_phase.npy"), fit_phase)
     model.cpu().save(os.path.join(folder, "model"))
-    ring_width, boundary = effective_ring_width(model, h, w, cfg.pixel_size_mm), boundary_lateness(model)
+    ring_width = effective_ring_width(model, h, w, cfg.pixel_size_mm)
+    boundary = boundary_lateness(model, g_fit, rgb)  # read from the photo along the fitted G
     params = {"rotation_axis_angle_rad": model.rotation.tolist(), "translation_mm": model.translation.tolist(),
               "ring_scale_mm": float(model.ring_scale),
               "mean_ring_width_mm": ring_width, "boundary_lateness": boundary, "distortion": cfg.distortion,

@@ -26,17 +26,47 @@ def effective_ring_width(model, h, w, pixel_size_mm):
         return float(1.0 / dgdr.mean())
 
 
-def boundary_lateness(model):
-    """Lateness at which the fitted colour profile changes fastest (the latewood → earlywood transition).
+def boundary_lateness(model, G=None, photo_rgb=None, bins=64):
+    """Lateness at which the ring colour changes fastest (the latewood → earlywood transition).
 
     The Gabor phase, and so the fitted G, is aligned with the intensity's fundamental, not with the sharp
-    boundary; the stage-2 colour map (mean over rings) puts the boundary where its luminance jumps most.
+    boundary. With ``G`` and ``photo_rgb`` the boundary is read from the photo itself: its luminance averaged over
+    the pixels of each of ``bins`` lateness bins of frac(G), lightly smoothed (cyclic), and the largest jump between
+    neighbouring bins, refined between bins by a parabola through the three largest |jumps| around it. A shift of
+    G by a constant moves this estimate by the same constant (to about a tenth of a bin). Without them, the stage-2
+    colour map (mean over rings) is read instead: the jump between its bins, on its 16-bin grid.
+
+    Args:
+        model: the fitted :class:`~torch_appearance.nn.WoodModel`.
+        G: optional ``(H, W)`` fitted growth field of the photo's pixels (tensor or array).
+        photo_rgb: optional ``(H, W, 3)`` the photo (linear RGB).
+        bins: lateness bins of the photo profile.
 
     Returns:
         lateness ℓ* in [0, 1): ring boundaries are where G = k + ℓ*.
     """
+    if G is not None and photo_rgb is not None:
+        g = np.asarray(G.detach().cpu().numpy() if torch.is_tensor(G) else G, np.float64)
+        y = np.asarray(photo_rgb, np.float64) @ np.array(_LUMA)
+        if g.shape != y.shape:
+            raise ValueError(f"G and photo_rgb: expected the same (H, W), got {g.shape} and {y.shape}")
+        lat = g - np.floor(g)
+        idx = np.minimum((lat * bins).astype(np.int64), bins - 1).ravel()
+        count = np.bincount(idx, minlength=bins)
+        prof = np.bincount(idx, weights=y.ravel(), minlength=bins) / np.maximum(count, 1)
+        full = count > 0
+        if full.sum() >= 3 and not full.all():  # empty bins: interpolated cyclically from their neighbours
+            x = np.nonzero(full)[0]
+            prof = np.interp(np.arange(bins), np.r_[x - bins, x, x + bins], np.r_[prof[x], prof[x], prof[x]])
+        prof = 0.25 * np.roll(prof, 1) + 0.5 * prof + 0.25 * np.roll(prof, -1)
+        jump = np.abs(np.roll(prof, -1) - prof)  # between bin i and i + 1, at lateness (i + 1) / bins
+        i = int(np.argmax(jump))
+        a, b, c = jump[(i - 1) % bins], jump[i], jump[(i + 1) % bins]
+        den = a - 2 * b + c
+        delta = 0.5 * (a - c) / den if den < 0 else 0.0
+        return float(((i + 1 + delta) / bins) % 1.0)
     with torch.no_grad():
-        lum = model.color_map.mean(0) @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=model.color_map.dtype)
+        lum = model.color_map.mean(0) @ torch.tensor(_LUMA, dtype=model.color_map.dtype)
         jump = (torch.roll(lum, -1) - lum).abs()  # jump between bin i and i+1 (cyclic: last → first)
         k = lum.numel()
         i = int(jump.argmax())
