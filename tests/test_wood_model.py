@@ -157,6 +157,34 @@ def test_fiber_is_stem_projected_onto_growth_surface(distortion, tangential):
     assert float((out["fiber"].detach() * grad).sum(-1).abs().max()) < 1e-10  # tangent to the growth surface
 
 
+def test_pith_taper_keeps_the_pith_at_zero_and_the_fibre_exact():
+    # a displacement texture that is large at r = 0: without the taper G is negative around the axis; with it G
+    # starts at 0 on the axis, rises like r / s_r there and keeps the untapered field beyond a few taper lengths;
+    # the analytic derivatives (the fibre) still match autograd
+    torch.manual_seed(2)
+    kw = dict(ring_scale_mm=1.5, n_rings=8, distortion="radial", distortion_shape=(5, 6), r_max_mm=30.0,
+              z_range_mm=(-15.0, 15.0), tangential=True, dtype=F64)
+    tex, tex_t = -1.0 + 0.3 * torch.randn(5, 6, dtype=F64), 0.2 * torch.randn(5, 6, dtype=F64)
+    plain, tapered = WoodModel(**kw), WoodModel(pith_taper_mm=1.5, **kw)
+    for m in (plain, tapered):
+        m.set_parameters(m_r=tex, m_t=tex_t)
+    r = torch.tensor([0.0, 0.05, 0.2, 12.0, 20.0], dtype=F64)
+    axis = torch.stack([r, torch.zeros_like(r), torch.zeros_like(r)], -1)
+    g_plain, g_tap = plain.evaluate(axis)["G"].detach(), tapered.evaluate(axis)["G"].detach()
+    assert float(g_plain[0]) > 0.5  # sqrt((r + m_r)² + m_t²) / s_r: a ring's worth at the pith itself
+    assert float(g_tap[0]) < 1e-12 and abs(float(g_tap[1]) - 0.05 / 1.5) < 1e-3
+    np.testing.assert_allclose(g_tap[3:].numpy(), g_plain[3:].numpy(), rtol=1e-12)  # exp(-64): no taper left
+    pts = torch.randn(200, 3, dtype=F64) * torch.tensor([3.0, 3.0, 8.0], dtype=F64)
+    pts = pts[torch.hypot(pts[:, 0], pts[:, 1]) > 0.3].requires_grad_(True)
+    out = tapered.evaluate(pts)
+    (grad,) = torch.autograd.grad(out["G"].sum(), pts)
+    n = grad / grad.norm(dim=-1, keepdim=True)
+    f = torch.tensor([0.0, 0.0, 1.0], dtype=F64) - n[:, 2:3] * n
+    np.testing.assert_allclose(out["fiber"].detach().numpy(), (f / f.norm(dim=-1, keepdim=True)).numpy(), atol=1e-10)
+    with pytest.raises(ValueError, match="pith_taper_mm"):
+        WoodModel(pith_taper_mm=-1.0)
+
+
 def test_colour_map_lookup_closed_form():
     n_rings, k = 5, 4
     model = WoodModel(ring_scale_mm=1.0, n_rings=n_rings, distortion=None, dtype=F64, color_bins=k)

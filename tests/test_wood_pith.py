@@ -58,6 +58,31 @@ def test_growth_direction_both_sides_of_pith(pith_inside):
     assert abs(x_at_row - true_x) < 2 * board["params"]["ring_scale"] / 0.1
 
 
+def test_initial_model_keeps_the_pith_at_g_zero():
+    """On a board whose pith lies in the photo, the initial model's constant displacement (the phase offset between
+    2π·frac(G) and the Gabor phase, a sizeable part of a ring) is moved into the target phase: what is left of the
+    displacement over the board is small, G is not negative at the pith (down to −0.4 rings with the constant in the
+    texture), and the model phase still matches the shifted target."""
+    board = synthetic_board(256, 256, 0.1, seed=0, pith_inside=True)
+    gray = board["image"] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    gab = curved_gabor(gray)
+    rings = trace_rings(gab.phase, gab.orientation, gab.magnitude)
+    est, _ = choose_pith_side(estimate_board(rings, gray.shape, 0.1), gab.phase, gray, magnitude=gab.magnitude,
+                              rings=rings)
+    model, info = initial_wood_model(est, gab.phase, magnitude=gab.magnitude, rings=rings, return_info=True)
+    assert model.pith_taper_mm == pytest.approx(est.ring_scale_mm)
+    with torch.no_grad():
+        out = model.render_board(256, 256, 0.1)
+    c = info["phase_offset"] * est.ring_scale_mm / (2 * math.pi)  # the constant moved out, mm
+    assert abs(c) > 0.1 * est.ring_scale_mm  # a real offset, not a zero
+    # what is left over the board is small next to it (not 0: the taper scales the texture near the pith)
+    assert abs(float(np.median(out["m_r"].numpy()))) < 0.1 * abs(c)
+    assert float(out["G"].min()) > -0.1, float(out["G"].min())
+    d = np.angle(np.exp(1j * (info["resolved_phase"] - out["phase"].numpy())))
+    far = board["G"] > 2.0  # beyond two rings from the pith, where the taper leaves the texture as it is
+    assert abs(float(np.angle(np.exp(1j * d[far]).mean()))) < 0.1  # no constant left between model and target
+
+
 def _ring_profile(lateness):
     """Asymmetric ring profile: light early wood, gradual darkening, dark late wood, sharp ring boundary."""
     return 0.7 - 0.5 / (1 + np.exp(-(lateness - 0.7) / 0.05))

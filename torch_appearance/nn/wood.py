@@ -8,6 +8,10 @@ tangential one, m_t), eq. 5:
 
     q' = q + m_r(q)·r̂ + m_t(q)·t̂,      r' = |q'_xy| = sqrt((r + m_r)² + m_t²)     (= r + m_r without m_t)
 
+With ``pith_taper_mm = t > 0`` both displacements fade at the pith, m ← m·(1 − exp(−(r/t)²)): a ring a fraction of
+a millimetre round cannot be displaced by a millimetre, so the pith stays at G = 0 and the innermost rings stay
+closed ovals (the wood fit uses one ring width).
+
 The *growth field* G = r' / s_r counts rings from the pith (s_r: mean ring width, mm). Its integer part is the ring
 index (the year), its fractional part the *lateness* ℓ ∈ [0, 1) (early wood → late wood) and φ = 2π·ℓ the phase
 that the phase loss of §3.6 compares against the curved-Gabor phase of a photograph. Colour comes from a per-ring
@@ -161,6 +165,8 @@ class WoodModel(nn.Module):
         tangential: also learn a tangential displacement field ``m_t`` (same sampling as ``m_r``).
         dtype: floating dtype of all parameters.
         color_bins: K, number of lateness samples per ring in ``color_map`` (>= 2), at ℓ = k/(K − 1).
+        pith_taper_mm: t (mm, >= 0): the displacements are multiplied by ``1 − exp(−(r/t)²)`` (0 at the pith,
+            above 0.98 beyond 2 t); 0 (the default, and the models saved before it existed): no taper.
 
     Parameters (``nn.Parameter``):
         rotation: ``(3,)`` axis-angle (rad) of the board→tree rotation R.
@@ -176,7 +182,7 @@ class WoodModel(nn.Module):
 
     def __init__(self, ring_scale_mm=2.0, n_rings=64, distortion="radial", distortion_shape=(32, 64),
                  r_max_mm=None, z_range_mm=(-50.0, 50.0), tangential=False, dtype=torch.float32, *,
-                 color_bins=16):
+                 color_bins=16, pith_taper_mm=0.0):
         super().__init__()
         ring_scale_mm = check_positive("ring_scale_mm", ring_scale_mm)
         n_rings = check_int("n_rings", n_rings, lo=1)
@@ -203,6 +209,9 @@ class WoodModel(nn.Module):
         if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
             raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
         color_bins = check_int("color_bins", color_bins, lo=2)
+        if (isinstance(pith_taper_mm, bool) or not isinstance(pith_taper_mm, numbers.Real)
+                or not math.isfinite(pith_taper_mm) or pith_taper_mm < 0):
+            raise ValueError(f"pith_taper_mm: expected a finite number >= 0, got {pith_taper_mm!r}")
 
         self.n_rings = n_rings
         self.distortion = distortion
@@ -211,6 +220,7 @@ class WoodModel(nn.Module):
         self.z_range_mm = (z0, z1)
         self.tangential = tangential
         self.color_bins = color_bins
+        self.pith_taper_mm = float(pith_taper_mm)
 
         self.rotation = nn.Parameter(torch.zeros(3, dtype=dtype))
         self.translation = nn.Parameter(torch.zeros(3, dtype=dtype))
@@ -253,12 +263,13 @@ class WoodModel(nn.Module):
         return {"ring_scale_mm": float(self.ring_scale.detach()), "n_rings": self.n_rings,
                 "distortion": self.distortion, "distortion_shape": list(self.distortion_shape),
                 "r_max_mm": self.r_max_mm, "z_range_mm": list(self.z_range_mm), "tangential": self.tangential,
-                "dtype": str(self.dtype).replace("torch.", ""), "color_bins": self.color_bins}
+                "dtype": str(self.dtype).replace("torch.", ""), "color_bins": self.color_bins,
+                "pith_taper_mm": self.pith_taper_mm}
 
     def extra_repr(self) -> str:
         return (f"n_rings={self.n_rings}, distortion={self.distortion!r}, distortion_shape={self.distortion_shape}, "
                 f"r_max_mm={self.r_max_mm:g}, z_range_mm={self.z_range_mm}, tangential={self.tangential}, "
-                f"color_bins={self.color_bins}")
+                f"color_bins={self.color_bins}, pith_taper_mm={self.pith_taper_mm:g}")
 
     def rotation_matrix(self) -> torch.Tensor:
         """``(3, 3)`` board→tree rotation R(rotation) (differentiable)."""
@@ -417,6 +428,14 @@ class WoodModel(nn.Module):
                 d_dx, d_dy = _bilinear_derivatives(tex[0], ix, iy)
                 dz, dy = d_dx[0] * dix_dz, d_dy[0] * diy
                 grads[name] = [dy, zero, dz] if self.distortion == "radial" else [zero, dy, dz]
+            if self.pith_taper_mm > 0:  # m <- tau(r) m: grad(tau m) = tau grad m + tau'(r) m r_hat
+                u = r / self.pith_taper_mm
+                e = torch.exp(-u * u)
+                tau, dtau = 1.0 - e, 2.0 * u / self.pith_taper_mm * e
+                for name in values:
+                    g0, g1, g2 = grads[name]
+                    grads[name] = [tau * g0 + dtau * values[name], tau * g1, tau * g2]
+                    values[name] = tau * values[name]
             m_r = values["m_r"]
             ga = [ga[0] + grads["m_r"][0], grads["m_r"][1], grads["m_r"][2]]
             if "m_t" in values:

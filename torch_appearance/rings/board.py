@@ -798,8 +798,8 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
 
 
 def _texture_weights(model, q):
-    """Sparse (N, Hd·Wd) bilinear weights of the model's m_r texture at tree points q (N, 3), matching its
-    grid_sample(align_corners=True, padding_mode='border') lookup."""
+    """Sparse (N, Hd·Wd) weights of the model's m_r texture at tree points q (N, 3): its bilinear
+    grid_sample(align_corners=True, padding_mode='border') lookup times its taper at the pith."""
     hd, wd = model.distortion_shape
     z0, z1 = model.z_range_mm
     ix = np.clip((q[:, 2] - z0) / (z1 - z0) * (wd - 1), 0, wd - 1)
@@ -824,7 +824,9 @@ def _texture_weights(model, q):
     n = len(q)
     rows = np.repeat(np.arange(n), 4)
     cols = np.stack([y0 * wd + x0, y0 * wd + x0 + 1, y1 * wd + x0, y1 * wd + x0 + 1], 1).ravel()
-    vals = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], 1).ravel()
+    # the model's taper at the pith (WoodModel pith_taper_mm): the displacement there is tau(r) times the lookup
+    tau = 1.0 - np.exp(-(r / model.pith_taper_mm) ** 2) if model.pith_taper_mm > 0 else np.ones(n)
+    vals = (np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], 1) * tau[:, None]).ravel()
     return sparse.csr_matrix((vals, (rows, cols)), shape=(n, hd * wd))
 
 
@@ -846,7 +848,7 @@ def _laplacian(hd, wd, periodic_rows):
 
 def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=None, distortion="radial",
                        distortion_shape=(32, 64), n_rings=64, smoothness=1e-3, dense_refine=True,
-                       dtype=None, return_info=False, color_bins=16):
+                       dtype=None, return_info=False, color_bins=16, pith_taper_rings=1.0):
     """Initial WoodModel (board transform, ring scale, radial distortion) from a board estimate (paper §3.5).
 
     The distortion starts from the paper's recipe, the difference between the observed traced rings and their
@@ -854,7 +856,10 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     the model phase 2π·frac(G) agree with the sign-resolved Gabor phase; with ``dense_refine`` the wrapped
     per-pixel phase residual is then added (it is small once the rings are in place). The texture is the
     least-squares fit (magnitude-weighted, with a small Laplacian smoothness prior) of these displacements at the
-    pixels' tree-space (z, r) — or (z, θ_t) for ``distortion="azimuthal"`` — positions.
+    pixels' tree-space (z, r) — or (z, θ_t) for ``distortion="azimuthal"`` — positions. The displacement fades
+    within ``pith_taper_rings`` ring widths of the pith (``WoodModel(pith_taper_mm=...)``), and its median over the
+    board, a constant that only shifts the phase, is moved into the target phase (``info["phase_offset"]``), so
+    that G = 0 stays at the pith.
 
     Args:
         estimate: :class:`BoardEstimate` from :func:`estimate_board`.
@@ -862,11 +867,14 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         magnitude: optional ``(H, W)`` Gabor magnitude (weights of the dense fit).
         rings: ring polylines; default ``estimate.rings`` (with ``estimate.ring_index``).
         distortion, distortion_shape, n_rings, color_bins: passed to ``WoodModel``.
+        pith_taper_rings: the model's ``pith_taper_mm`` in ring widths (0: no taper).
         smoothness: weight of the Laplacian prior relative to the mean data weight per texel.
         dense_refine: add the wrapped dense phase residual (recommended).
         dtype: torch dtype of the model (default float32).
-        return_info: also return a dict with ``resolved_phase`` (H, W), ``sign`` (H, W), ``phase_error`` (H, W)
-            wrapped (resolved − model phase, rad), ``fraction_below_half_pi`` and ``rms_phase_error``.
+        return_info: also return a dict with ``resolved_phase`` (H, W; the sign-resolved Gabor phase less
+            ``phase_offset``, in [0, 2π): the target for the model's phase), ``phase_offset`` (rad: the constant
+            displacement c taken out of the texture, 2π c / s_r), ``sign`` (H, W), ``phase_error`` (H, W) wrapped
+            (resolved − model phase, rad), ``fraction_below_half_pi`` and ``rms_phase_error``.
 
     Returns:
         :class:`~torch_appearance.nn.wood.WoodModel` (and the info dict with ``return_info``).
@@ -899,7 +907,8 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     z_range = (float(z.min() - 0.05 * zspan - 1e-3), float(z.max() + 0.05 * zspan + 1e-3))
     r_max = float(r.max() + 2 * s_r)
     model = WoodModel(ring_scale_mm=s_r, n_rings=n_rings, distortion=distortion, distortion_shape=distortion_shape,
-                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype, color_bins=color_bins)
+                      r_max_mm=r_max, z_range_mm=z_range, dtype=dtype, color_bins=color_bins,
+                      pith_taper_mm=pith_taper_rings * s_r)
     model.set_parameters(rotation=torch.as_tensor(estimate.rotation, dtype=torch.float64),
                          translation=torch.as_tensor(estimate.translation, dtype=torch.float64))
 
@@ -961,6 +970,13 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
         near = np.abs(resid) < math.pi / 2
         tex = solve(a_pix, m_pix + s_r * np.where(near, resid, 0.0) / _TWO_PI, weight * near + 1e-12)
+    # A constant displacement c only shifts the model phase by 2π c / s_r away from the pith, so it is carried as a
+    # shift of the target phase: left in the texture (about −0.35 ring on pith-inside boards) it made G negative at
+    # the pith, and the taper there would fight it
+    c = float(np.median(a_pix @ tex))
+    tex = tex - c
+    phase_offset = _TWO_PI * c / s_r
+    resolved = np.mod(resolved - phase_offset, _TWO_PI)
     model.set_parameters(m_r=torch.as_tensor(tex.reshape(hd, wd), dtype=torch.float64))
     if not return_info:
         return model
@@ -968,7 +984,7 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         out = model.render_board(h, w, ps)
     err = wrap_angle(resolved - out["phase"].double().cpu().numpy())
     wsum = weight.reshape(h, w)
-    info = {"resolved_phase": resolved, "sign": sign, "phase_error": err,
+    info = {"resolved_phase": resolved, "phase_offset": phase_offset, "sign": sign, "phase_error": err,
             "fraction_below_half_pi": float((wsum * (np.abs(err) < math.pi / 2)).sum() / wsum.sum()),
             "rms_phase_error": float(np.sqrt((wsum * err ** 2).sum() / wsum.sum()))}
     return model, info

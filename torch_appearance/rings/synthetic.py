@@ -114,7 +114,8 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
         pith_inside: draw a board cut close to the pith, whose pith itself lies in the photo: default distance
             uniform in [1.5, 4] mm and tilt ±[12, 20]°, so the axis pierces the board plane inside the image and
             the innermost rings are closed ovals along the projected axis (the "cathedral" figure with its
-            centre); the distortion is tapered to 0 at the pith (factor 1 − exp(−(r/s_r)²)) so that G >= 0.
+            centre); the distortion is tapered to 0 at the pith (the model's ``pith_taper_mm = s_r``: factor
+            1 − exp(−(r/s_r)²)) so that G >= 0.
             The random draws are the same as without it (same seed, same ring scale, colours and distortion
             shape).
 
@@ -175,7 +176,7 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
 
     model = WoodModel(ring_scale_mm=s_r, n_rings=n_rings, distortion="radial", distortion_shape=distortion_shape,
                       r_max_mm=r_max, z_range_mm=(z_lo, z_hi), tangential=False, dtype=torch.float32,
-                      color_bins=color_bins)
+                      color_bins=color_bins, pith_taper_mm=s_r if pith_inside else 0.0)
     rotvec = matrix_to_axis_angle(rot)
 
     # Smooth radial distortion: a few random plane waves over (z, r), rescaled so that ∂m/∂r > −0.5 (no fold-over).
@@ -193,9 +194,7 @@ def synthetic_board(height=256, width=256, pixel_size_mm=0.1, seed=0, noise=0.02
     scale = amp / max(np.abs(field).max(), 1e-12)
     if scale * max(-d_dr.min(), 0.0) > 0.5:
         scale = 0.5 / -d_dr.min()
-    m_r = field * scale
-    if pith_inside:  # no displacement at the pith itself (G = 0 there, never negative)
-        m_r = m_r * (1.0 - np.exp(-(rr / s_r) ** 2))
+    m_r = field * scale  # with pith_inside the model tapers it to 0 at the pith (G = 0 there, never negative)
 
     # Per-ring colours: early → late wood with a jittered transition position and colours.
     lat = np.linspace(0.0, 1.0, color_bins)

@@ -79,7 +79,8 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     """Fit a WoodModel to one board photo and write the run folder ``cfg.out``.
 
     Run folder (fixed names): ``fit.png`` (rendered fit at the photo's size), ``phase.npy`` (the photo's Gabor phase,
-    sign-resolved, rad), ``fit_phase.npy`` (the fitted model's phase), ``params.json`` (fitted parameters),
+    sign-resolved, less the constant ``phase_offset_rad`` of the summary, rad), ``fit_phase.npy`` (the fitted
+    model's phase), ``params.json`` (fitted parameters),
     ``log.csv`` (stage, epoch, wall_s, phase_loss, color_loss, phase_rms), ``convergence.png``; also
     ``orientation.png``, ``magnitude.png``, ``phase.png``, ``ring_overlay.png``, ``board_estimate.json``,
     ``model.json`` + ``model.pt`` (WoodModel.save), ``fit_vs_photo.png``, ``phase_error.png``, ``cube_preview.png``,
@@ -196,6 +197,7 @@ def _outputs(cfg, model, rgb, photo_phase, rows, rings, info, pith_info, timings
         "stage1_phase_rms": rows[cfg.epochs]["phase_rms"], "final_phase_rms": final_rms,
         "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),
         "fraction_initial_error_below_half_pi": info.get("fraction_below_half_pi"),
+        "phase_offset_rad": info.get("phase_offset"),
         "ssim_fit_vs_photo": ssim, "timings_s": timings, "epochs": cfg.epochs, "color_epochs": cfg.color_epochs,
         # a wrapped-phase RMS near π/√3 ≈ 1.8 rad is chance level; above ~0.8 rad the rings are not followed
         "fit_ok": bool(final_rms < POOR_FIT_PHASE_RMS),
