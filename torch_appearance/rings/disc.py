@@ -563,7 +563,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             # converge there, which makes the first samples unreliable)
             pos = pos[pos >= max(3.0, 0.25 * sinfo["period_px"])]
             end = edge if edge is not None else Lc - 1
-            if edge is not None:  # the edge is no boundary (below); a gap ending there is a ring's width
+            if edge is not None:
+                # the wood -> background step at the disc edge is not a ring boundary, and the last ring boundary
+                # coincides with the edge when it lies within 2 px of it (a gap ending there is a ring's width)
                 pos = pos[pos < edge - 2.0]
             if fine_scale is not None and p is None and q is None:
                 fine_period = fine_scale * sinfo["period_px"]
@@ -575,10 +577,6 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 sinfo.update(fine_period_px=fine_period, fine_p=finfo["p"], fine_q=finfo["q"],
                              narrow_added=len(pos) - n_coarse)
             pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
-        if edge is not None:
-            # the wood -> background step at the disc edge is not a ring boundary, and the last ring boundary
-            # coincides with the edge when it lies within 2 px of it
-            pos = pos[pos < edge - 2.0]
         found.append((pos, sinfo))
         if progress is not None:
             progress(k + 1, len(dirs))

@@ -62,6 +62,12 @@ def _lines(v, window):
     return np.stack([xs, ys], 1).astype(np.float64), normals, coh[keep].astype(np.float64)
 
 
+def _to_input(q, frame):
+    """Input-pixel ``(x, y)`` of a point ``q`` of a reduced (and cropped) image ``frame = (fx, fy, x0, y0)``."""
+    fx, fy, x0, y0 = frame
+    return np.array([(q[0] + 0.5) / fx - 0.5 + x0, (q[1] + 0.5) / fy - 0.5 + y0])
+
+
 def _meet(p, n, w, x0, radius, min_radius, iterations=12, scale_deg=5.0):
     """Robust meeting point of the lines ``(p, n)`` with weights ``w``, starting at ``x0`` (module docstring, 3)."""
     x = np.asarray(x0, np.float64)
@@ -136,15 +142,15 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
     # start at the coherence-weighted centroid of the wood, with a window of the whole image
     x0 = (w[:, None] * p).sum(0) / w.sum()
     x = _meet(p, n, w, x0, radius=long_side, min_radius=min_radius * long_side)
-    coarse = np.array([(x[0] + 0.5) / sx - 0.5, (x[1] + 0.5) / sy - 0.5])
+    frame = (sx, sy, 0, 0)  # (x scale, y scale, crop's x0, y0) of the image the current estimate lives in
+    coarse = _to_input(x, frame)
     est, lines_in = x, (p, n, w)
-    to_input = lambda q: np.array([(q[0] + 0.5) / sx - 0.5, (q[1] + 0.5) / sy - 0.5])  # noqa: E731
-    level, s_k, half = 0, scale, 0.2 * max(H, W)
+    level, used_scale, half = 0, scale, 0.2 * max(H, W)
     centre = coarse
-    while refine and s_k < 1 and level < refine_levels:
+    while refine and used_scale < 1 and level < refine_levels:
         # twice the resolution of the previous level, in a crop around its estimate (40 % of the long side, then
         # half of that at each further level)
-        s_k = min(1.0, 2 * s_k)
+        s_k = min(1.0, 2 * used_scale)
         x0i, y0i = int(max(0, centre[0] - half)), int(max(0, centre[1] - half))
         x1i, y1i = int(min(W, centre[0] + half + 1)), int(min(H, centre[1] + half + 1))
         crop = v[y0i:y1i, x0i:x1i].astype(np.float32)
@@ -158,13 +164,11 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
             break
         start = np.array([(centre[0] - x0i + 0.5) * fx - 0.5, (centre[1] - y0i + 0.5) * fy - 0.5])
         x2 = _meet(p2, n2, w2, start, radius=max(cs.shape), min_radius=min_radius * max(cs.shape))
-        est, lines_in = x2, (p2, n2, w2)
-        to_input = (lambda fx, fy, x0i, y0i: lambda q: np.array([(q[0] + 0.5) / fx - 0.5 + x0i,
-                                                                 (q[1] + 0.5) / fy - 0.5 + y0i]))(fx, fy, x0i, y0i)
-        centre = to_input(est)
+        est, lines_in, frame, used_scale = x2, (p2, n2, w2), (fx, fy, x0i, y0i), s_k
+        centre = _to_input(est, frame)
         level += 1
         half *= 0.5
-    xy = to_input(est)
+    xy = _to_input(est, frame)
     # jackknife over eight angular sectors around the estimate
     p, n, w = lines_in
     sector = (np.floor((np.arctan2(p[:, 1] - est[1], p[:, 0] - est[0]) + math.pi) / (math.pi / 4)).astype(int)) % 8
@@ -176,7 +180,7 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
             continue
         xk = _meet(p[keep], n[keep], w[keep], est, radius=radius_final * 2, min_radius=radius_final,
                       iterations=6)
-        leave_out.append(to_input(xk))
+        leave_out.append(_to_input(xk, frame))
     if len(leave_out) >= 3:
         lo = np.array(leave_out)
         m = len(lo)
@@ -184,4 +188,4 @@ def detect_pith(image, *, work_px: int = 512, window: int = 15, min_radius: floa
     else:
         lo, sigma = np.zeros((0, 2)), float("nan")
     return PithEstimate(xy=xy, sigma_px=sigma, info=dict(coarse=coarse, lines=len(p), sectors=lo, scale=scale,
-                                                                window=window, levels=level, final_scale=s_k))
+                                                                window=window, levels=level, final_scale=used_scale))
