@@ -6,7 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from torch_appearance.rings.consistency import link_transects, sector_edges, trace_curves
+from scipy import ndimage
+
+from torch_appearance.rings.consistency import closed_rings, link_transects, sector_edges, trace_curves
 from torch_appearance.rings.dendro import hsv_value, match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries, synthetic_disc
 
@@ -84,6 +86,67 @@ def test_link_infers_a_missing_ring_and_moves_an_off_ring_boundary(wide_disc):
     # the untouched transects come back unchanged
     for t in (1, 3, 5):
         assert np.array_equal(out[t]["radius_px"], truth[t]) and out[t]["moved"] == []
+
+
+def _blurred_value(rgb):
+    return ndimage.gaussian_filter(hsv_value(rgb).astype(np.float64), 1.0)
+
+
+def test_closed_rings_follow_every_ring_round_the_pith(wide_disc):
+    rgb, radius = wide_disc
+    th, rings, scores = closed_rings(_blurred_value(rgb), PITH, np.radians([0.0, 90.0, 180.0, 270.0]), 8.0, 100.0,
+                                     period_px=16.0)
+    assert th.shape == (rings.shape[1],) and th[0] == 0.0 and th[-1] < 2 * math.pi
+    truth = np.array([radius(t)[:-1] for t in th])  # (J, 7) true boundary radii on every ray
+    inside = [k for k in range(truth.shape[1]) if truth[:, k].max() < 97.0]
+    assert len(inside) == 5 and len(rings) == len(inside), [r.mean() for r in rings]
+    for ring, k in zip(rings, inside):  # on its ring all the way round (the eccentric rings move by 8 px)
+        assert np.abs(ring - truth[:, k]).max() <= 2.5, (k, np.abs(ring - truth[:, k]).max())
+    assert np.all(scores > 0.6)
+
+
+def test_closed_rings_refuse_an_edge_that_does_not_rise_all_round():
+    # plain wood (value 0.5, noise 0.02) with one ring boundary at 60 px (a rise of 0.15 all round) and a stain
+    # edge at 30 px that rises by 0.1 on two of every three 30-degree sectors and falls on the third. Along the
+    # ring the stain is still an edge with ridges on two thirds of the circle, and a closed curve follows it (score
+    # about 2/3); but the value falls across it on a third of its rays, which no ring boundary does
+    pith = (100.0, 100.0)
+    y, x = np.mgrid[:200, :200]
+    r = np.hypot(x - pith[0], y - pith[1])
+    sector = (np.degrees(np.arctan2(y - pith[1], x - pith[0])) % 360.0 // 30.0).astype(int)
+    sign = np.where(sector % 3 == 2, -1.0, 1.0)
+    v = 0.5 + 0.15 * (r > 60.0) + 0.1 * sign * (r > 30.0) + np.random.default_rng(0).normal(0.0, 0.02, r.shape)
+    v = ndimage.gaussian_filter(v, 1.0)
+    starts = np.radians([15.0, 105.0, 195.0, 285.0])  # on rising sectors
+    _, loose, sl = closed_rings(v, pith, starts, 8.0, 90.0, period_px=16.0, min_rise=0.0)
+    _, rings, sc = closed_rings(v, pith, starts, 8.0, 90.0, period_px=16.0)
+    assert [round(float(q.mean())) for q in loose] == [30, 60] and 0.6 <= sl[0] < 0.75
+    assert [round(float(q.mean())) for q in rings] == [60] and np.abs(rings[0] - 60.0).max() <= 1.0 and sc[0] > 0.95
+
+
+def test_link_infers_closed_rings_near_the_pith_and_drops_what_lies_between_them(wide_disc):
+    # ring 1 (about 41 px) missed on every transect: no curve starts on it, so only the closed rings find it; a
+    # false boundary halfway between rings 0 and 1 on transect 3 lies between closed rings and far from all of them
+    rgb, radius = wide_disc
+    angles = np.arange(0.0, 360.0, 60.0)
+    truth = [radius(math.radians(a))[:-1] for a in angles]
+    radii = [np.delete(t, 1) for t in truth]
+    spurious = 0.5 * (truth[3][0] + truth[3][1])    # 10 px from both, more than half a ring period (8 px)
+    radii[3] = np.sort(np.r_[radii[3], spurious])
+    lengths = [radius(math.radians(a))[-1] - 3.0 for a in angles]
+    out = link_transects(hsv_value(rgb), PITH, angles, radii, lengths, period_px=16.0)
+    for t, o in enumerate(out):
+        got = o["radius_px"][o["closed"]]
+        assert len(got) == 1 and abs(got[0] - truth[t][1]) <= 1.5, (t, got, truth[t][1])
+        assert o["inferred"][o["closed"]].all() and not o["confirmed"][o["closed"]].any()
+        assert len(o["closed_crossings"]) >= 4 and len(o["closed_rings"][1]) == len(o["closed_crossings"])
+    assert out[3]["dropped"] == [spurious]
+    assert all(o["dropped"] == [] for t, o in enumerate(out) if t != 3)
+    for t, o in enumerate(out):
+        assert np.abs(o["radius_px"] - truth[t]).max() <= 1.5
+    # closed_px=0: nothing traced round the pith, nothing inferred (no neighbour has ring 1) or dropped
+    off = link_transects(hsv_value(rgb), PITH, angles, radii, lengths, period_px=16.0, closed_px=0.0)
+    assert not any(o["closed"].any() or o["inferred"].any() or o["dropped"] for o in off)
 
 
 def test_link_needs_three_transects(wide_disc):

@@ -207,18 +207,23 @@ def main(argv=None):
               f"{a['f1']:5.2f}   {b['sensitivity']:5.2f} {b['precision']:5.2f} {b['f1']:5.2f}")
     inferred = sum(tr.info["kind"].count("inferred") for tr in res.transects)
     moved = sum(len(tr.info.get("moved_px", [])) for tr in res.transects)
+    closed = sum(sum(tr.info.get("closed", [])) for tr in res.transects)
+    dropped = sum(len(tr.info.get("dropped_px", [])) for tr in res.transects)
     print(f"pith ({args.pith}) {pith_info['xy'][0]:.1f},{pith_info['xy'][1]:.1f}; labels' pith "
           f"{pith_info['labels_xy'][0]:.1f},{pith_info['labels_xy'][1]:.1f}: {pith_info['error_px']:.1f} px apart = "
           f"{100 * pith_info['error_px'] / pith_info['radius_px']:.2f} % of the outermost polygon's mean radius")
     on = sum(r["tol5"]["inferred_on_label"] for r in rows)
-    print(f"linked: {'no' if args.no_link else f'{inferred} rings inferred ({on} on a label at 5 px), {moved} moved'}")
+    linked = (f"{inferred} rings inferred ({on} on a label at 5 px; {closed} from closed rings round the pith), "
+              f"{moved} moved, {dropped} dropped between closed rings")
+    print(f"linked: {'no' if args.no_link else linked}")
     print(f"detection time {seconds:.1f} s for {len(angles)} transects (pith included); filtered "
           f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
           f"image)")
     blob = dict(data=os.path.abspath(os.path.join(args.data, DISC[0])), label="CS-TRD automatic polygons (weak)",
                 angles_deg=angles, edge=args.edge, half_width=args.half_width, edge_level=args.edge_level,
                 keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset, pith=pith_info, link=not args.no_link,
-                helpers=args.helpers, inferred=inferred, moved=moved, seconds=seconds, transects=rows,
+                helpers=args.helpers, inferred=inferred, moved=moved, closed=closed, dropped=dropped, seconds=seconds,
+                transects=rows,
                 pooled=pooled, filtered_px=res.info["filtered_px"], image_px=res.info["image_px"])
     atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=float).encode())
     if args.overlay:

@@ -121,8 +121,13 @@ def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
             if tol == 5.0:  # the boundaries inferred from the neighbouring transects, and the human ring each is on
                 ring_of = {int(i): int(j) for i, j in pairs}
                 kinds = tr.info["kind"]
-                row["inferred"] = [dict(radius_px=float(tr.info["radius_px"][i]), human_ring=ring_of.get(i))
+                row["inferred"] = [dict(radius_px=float(tr.info["radius_px"][i]), human_ring=ring_of.get(i),
+                                        closed=bool(tr.info["closed"][i]))
                                    for i in range(len(kinds)) if kinds[i] == "inferred"]
+                rl = np.linalg.norm(lab - pith, axis=1)  # dropped between closed rings: the human ring within 5 px
+                row["dropped"] = [dict(radius_px=float(x), human_ring=int(np.argmin(np.abs(rl - x)))
+                                       if np.abs(rl - x).min() <= tol else None)
+                                  for x in tr.info.get("dropped_px", [])]
                 row["moved_px"] = [list(map(float, m)) for m in tr.info.get("moved_px", [])]
         rows.append(row)
     return dict(disc=disc, rgb=rgb, res=res, labels=labels, rows=rows, pith=pith, pith_sigma_px=sigma,
@@ -224,11 +229,17 @@ def main(argv=None):
         on = sum(x["human_ring"] is not None for _, x in linked)
         print(f"inferred from the neighbouring transects: {len(linked)}, {on} on a human ring at 5 px; moved onto "
               f"their ring's curve: {sum(len(r['moved_px']) for r in rows)}")
+        def ring(x):
+            return "no human ring" if x["human_ring"] is None else f"human ring {x['human_ring']}"
         for r in rows:
             if r["inferred"]:
                 print(f"  {r['disc']} {r['side']}: " + ", ".join(
-                    f"r {x['radius_px']:.0f} px ({'human ring ' + str(x['human_ring']) if x['human_ring'] is not None else 'no human ring'})"
+                    f"r {x['radius_px']:.0f} px ({ring(x)}{', closed ring' if x['closed'] else ''})"
                     for x in r["inferred"]))
+        dropped = [(r, x) for r in rows for x in r["dropped"]]
+        print(f"dropped between closed rings: {len(dropped)}, {sum(x['human_ring'] is not None for _, x in dropped)} "
+              f"within 5 px (radially) of a human ring" + "".join(
+                  f"\n  {r['disc']} {r['side']}: r {x['radius_px']:.0f} px ({ring(x)})" for r, x in dropped))
     offsets = np.array([o for r in rows for o in r["tol5"]["offset_px"]])
     if len(offsets):
         print(f"matched offset along the transect (+: bark side of the human point): median {np.median(offsets):+.2f} "
