@@ -179,6 +179,34 @@ def test_disc_edge_without_a_uniform_background():
         assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(tr.info["radius_px"]), truth)
 
 
+def test_disc_edge_at_a_light_bark_against_a_tinted_ruler():
+    """Like C13C east of the human-labelled discs: a thin light bark and, right against it, a light blue ruler,
+    brighter than the wood and not grey (so neither dark nor grey says it is not wood). Its hue, far from the
+    wood's, ends the wood at the bark: no boundary on the ruler's edge, every ring found."""
+    widths = np.linspace(30, 14, 12)
+    size = 760
+    pith = (372.0, 385.0)
+    rgb, radius = synthetic_disc(size=(size, size), pith=pith, widths=widths, ecc=0.03, seed=2,
+                                 background=(0.08, 0.08, 0.08))
+    yy, xx = np.mgrid[0:size, 0:size]
+    phi = np.arctan2(yy - pith[1], xx - pith[0])
+    rho = np.hypot(xx - pith[0], yy - pith[1])
+    edge = widths.sum() * (1 + 0.03 * np.cos(phi - 0.7))
+    rgb[(rho >= edge) & (rho < edge + 8)] = (0.55, 0.42, 0.30)   # a light bark, 8 px
+    rgb[:90] = np.where(rho[:90, :, None] >= edge[:90, :, None] + 8, (0.85, 0.62, 0.35), rgb[:90])  # a table
+    ruler = (rho >= edge + 8) & (xx > pith[0] + 150)
+    rgb[ruler] = (0.70, 0.86, 0.97)                              # light blue, saturation 0.28
+    res = detect_disc_boundaries(rgb, pith, angles_deg=[0.0, 20.0, 340.0])
+    assert res.info["background"] is None
+    for deg, tr in zip([0.0, 20.0, 340.0], res.transects):
+        truth = radius(math.radians(deg))
+        # within 5 px: the edge is put on the steepest fall of brightness near it, and the light bark falls less
+        # than the last latewood darkens (3.5 px inside at 0 degrees)
+        assert tr.info["edge_px"] is not None and abs(tr.info["edge_px"] - truth[-1]) < 5.0, (deg, tr.info["edge_px"])
+        m = match_boundaries(tr.info["radius_px"], truth[:-1], 3.0)
+        assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(tr.info["radius_px"]), truth)
+
+
 @pytest.mark.parametrize("mag_weight", [True, False])
 def test_crack_along_a_transect(disc, mag_weight):
     # an open crack (background colour) 25 px wide along the 0-degree transect hides 25 of the strip's 33 rows:

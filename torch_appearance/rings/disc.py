@@ -14,9 +14,10 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    disc and open cracks; a border that is not one uniform colour (the disc fills the frame, or it lies on a cloth
    beside a ruler and a label) gives no background. The disc edge along the transect is where the wood fraction of
    the strip's central rows last drops below one half; without a background, where the wood's colour ends beyond
-   60 % of the transect (the first 20 px of bark darker than 0.45 of the wood, or a rest that is mostly dark or grey:
-   :func:`_wood_colour_end`). The strip is cut there, and the edge is never a ring boundary. Non-wood pixels are replaced by the mean of the wood pixels of their column (i.e.
-   filled *along the ring*), so a crack along the transect does not hide the rings.
+   60 % of the transect (the first 20 px of bark darker than 0.45 of the wood, or a rest that is mostly dark, grey,
+   or bright and of another hue, like a tinted ruler against a light bark: :func:`_wood_colour_end`). The strip is
+   cut there, and the edge is never a ring boundary. Non-wood pixels are replaced by the mean of the wood pixels of
+   their column (i.e. filled *along the ring*), so a crack along the transect does not hide the rings.
 3. **Filter.** The strip's HSV value is filtered with the curved Gabor filter (normal oriented pith -> bark), as in
    core mode (:mod:`torch_appearance.rings.dendro`), with the orientation field clamped to ``max_tilt_deg`` from
    the radial normal. ``p = p_periods P`` (default 2) and ``q = P`` scale with one ring period ``P`` for the whole
@@ -186,13 +187,16 @@ def _background_colour(rgb, tol):
     return bg if np.median(np.linalg.norm(border - bg, axis=1)) <= tol / 2 else None
 
 
-def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, tail=0.8, min_tail=20, min_run=20, outer=0.6):
+def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, hue_deg=90.0, tail=0.8, min_tail=20, min_run=20,
+                     outer=0.6):
     """Where the wood ends along a transect whose photo has no uniform background (a cloth, a ruler, a label, a
     table around the disc): the last column of wood, or None.
 
     A column is *dark* when the central rows' smoothed brightness (HSV V) is below ``dark`` times the wood's (the
     median over the inner 60 % of the transect): bark, a dark cloth; it is *not wood* when dark or when its
-    saturation is below ``grey`` times the wood's (a white or grey ruler, paper). Beyond ``outer`` of the transect
+    saturation is below ``grey`` times the wood's (a white or grey ruler, paper), or when it is at least as bright
+    as the wood and its hue lies more than ``hue_deg`` from the wood's (a tinted ruler, a blue cloth or label; wood
+    runs from yellow to red-brown, and blue-stained sapwood is darker than the wood). Beyond ``outer`` of the transect
     (bark and background lie outside; knots, stains and cracks inside must not end it) the wood ends at the first
     run of ``min_run`` dark columns (the bark, even when a wooden table lies beyond it), or at the first column from
     which at least ``tail`` of the rest (and ``min_tail`` px) is not wood; the last wood column is then the one
@@ -210,7 +214,12 @@ def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, tail=0.8, min_tai
     if v_wood <= 0 or s_wood <= 0.05:                              # grey wood (or a grey photo): no colour to follow
         return None
     is_dark = v < dark * v_wood
-    nonwood = is_dark | (sat < grey * s_wood)
+    sm = ndimage.gaussian_filter1d(rgb, sigma, axis=0, mode="nearest")
+    hue = np.angle((2 * sm[:, 0] - sm[:, 1] - sm[:, 2]) + 1j * math.sqrt(3) * (sm[:, 1] - sm[:, 2]))  # radians
+    w = sat[inner]
+    hue_wood = np.angle((w * np.exp(1j * hue[inner])).sum())
+    off_hue = (np.abs(np.angle(np.exp(1j * (hue - hue_wood)))) > math.radians(hue_deg)) & (v >= v_wood)
+    nonwood = is_dark | (sat < grey * s_wood) | off_hue
     runs = np.convolve(is_dark.astype(int), np.ones(min_run, int), "valid") == min_run   # a dark run starts here
     suffix = np.cumsum(nonwood[::-1])[::-1] / np.arange(L, 0, -1)  # fraction of non-wood from each column on
     cols = np.arange(L)
