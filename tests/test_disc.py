@@ -152,10 +152,10 @@ def test_narrow_ring_boundaries_come_from_the_fine_pass_only_between_close_coars
                                                                    fine_period=40.0, end=400.0), coarse)
 
 
-def test_disc_edge_without_a_uniform_background():
-    """A photo like the human-labelled discs: dark bark around the disc, a black cloth, a wooden table and a white
-    ruler at the border (so the border is not one colour and nothing can be masked by colour). The wood ends where
-    the bark begins: nothing is detected in the bark, the cloth, the table or the ruler, and every ring is found."""
+def _disc_on_a_cloth(bark_rgb, bark_px):
+    """A 760² synthetic disc (12 rings, 30 -> 14 px) on a black cloth, with a bark of ``bark_px`` and a wooden table
+    along the top: ``(rgb, radius, pith, rho, edge, xx)`` with ``rho`` the distance from the pith and ``edge`` the
+    disc's edge radius at every pixel."""
     widths = np.linspace(30, 14, 12)
     size = 760
     pith = (372.0, 385.0)
@@ -165,9 +165,16 @@ def test_disc_edge_without_a_uniform_background():
     phi = np.arctan2(yy - pith[1], xx - pith[0])
     rho = np.hypot(xx - pith[0], yy - pith[1])
     edge = widths.sum() * (1 + 0.03 * np.cos(phi - 0.7))
-    bark = (rho >= edge) & (rho < edge + 14)
-    rgb[bark] = (0.22, 0.14, 0.09)
-    rgb[:90] = np.where(rho[:90, :, None] >= edge[:90, :, None] + 14, (0.85, 0.62, 0.35), rgb[:90])   # a table
+    rgb[(rho >= edge) & (rho < edge + bark_px)] = bark_rgb
+    rgb[:90] = np.where(rho[:90, :, None] >= edge[:90, :, None] + bark_px, (0.85, 0.62, 0.35), rgb[:90])  # a table
+    return rgb, radius, pith, rho, edge, xx
+
+
+def test_disc_edge_without_a_uniform_background():
+    """A photo like the human-labelled discs: dark bark around the disc, a black cloth, a wooden table and a white
+    ruler at the border (so the border is not one colour and nothing can be masked by colour). The wood ends where
+    the bark begins: nothing is detected in the bark, the cloth, the table or the ruler, and every ring is found."""
+    rgb, radius, pith, rho, edge, _ = _disc_on_a_cloth((0.22, 0.14, 0.09), 14)
     rgb[:, -60:] = np.where(rho[:, -60:, None] >= edge[:, -60:, None] + 14, (0.95, 0.95, 0.93), rgb[:, -60:])
     angles = [0.0, 90.0, 180.0, 270.0]
     res = detect_disc_boundaries(rgb, pith, angles_deg=angles)
@@ -183,17 +190,7 @@ def test_disc_edge_at_a_light_bark_against_a_tinted_ruler():
     """Like C13C east of the human-labelled discs: a thin light bark and, right against it, a light blue ruler,
     brighter than the wood and not grey (so neither dark nor grey says it is not wood). Its hue, far from the
     wood's, ends the wood at the bark: no boundary on the ruler's edge, every ring found."""
-    widths = np.linspace(30, 14, 12)
-    size = 760
-    pith = (372.0, 385.0)
-    rgb, radius = synthetic_disc(size=(size, size), pith=pith, widths=widths, ecc=0.03, seed=2,
-                                 background=(0.08, 0.08, 0.08))
-    yy, xx = np.mgrid[0:size, 0:size]
-    phi = np.arctan2(yy - pith[1], xx - pith[0])
-    rho = np.hypot(xx - pith[0], yy - pith[1])
-    edge = widths.sum() * (1 + 0.03 * np.cos(phi - 0.7))
-    rgb[(rho >= edge) & (rho < edge + 8)] = (0.55, 0.42, 0.30)   # a light bark, 8 px
-    rgb[:90] = np.where(rho[:90, :, None] >= edge[:90, :, None] + 8, (0.85, 0.62, 0.35), rgb[:90])  # a table
+    rgb, radius, pith, rho, edge, xx = _disc_on_a_cloth((0.55, 0.42, 0.30), 8)  # a light bark, 8 px
     ruler = (rho >= edge + 8) & (xx > pith[0] + 150)
     rgb[ruler] = (0.70, 0.86, 0.97)                              # light blue, saturation 0.28
     res = detect_disc_boundaries(rgb, pith, angles_deg=[0.0, 20.0, 340.0])
