@@ -364,7 +364,7 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
                     if hi > lo and e[lo:hi].max() > 0:
                         x = float(lo + np.argmax(e[lo:hi]))
                 cross.append(x)
-                if x <= lengths[t] and np.all(np.abs(np.r_[pos, new] - x) > closed_gap * period_px):
+                if inner <= x <= lengths[t] and np.all(np.abs(np.r_[pos, new] - x) > closed_gap * period_px):
                     new.append(x)
             # between the innermost and outermost closed ring every ring closed: a boundary there far from all
             # of them is a stain's or the earlywood's edge
