@@ -149,6 +149,33 @@ def test_link_infers_closed_rings_near_the_pith_and_drops_what_lies_between_them
     assert not any(o["closed"].any() or o["inferred"].any() or o["dropped"] for o in off)
 
 
+def test_link_keeps_a_confirmed_ring_that_did_not_close(wide_disc, monkeypatch):
+    # rings 1 and 2 do not close (as behind a wide crack or knot): only rings 0 and 3 come back from closed_rings.
+    # The transects' boundaries on rings 1 and 2 lie between closed rings and far from both, but the neighbours'
+    # curves confirm them: they are kept. A false boundary there that no neighbour confirms is dropped.
+    import torch_appearance.rings.consistency as consistency
+    rgb, radius = wide_disc
+    real = consistency.closed_rings
+
+    def only_rings_0_and_3(*args, **kwargs):
+        thetas, rings, scores = real(*args, **kwargs)
+        keep = [k for k, ring in enumerate(rings) if abs(ring.mean() - 20.4) < 3 or abs(ring.mean() - 73.6) < 3]
+        return thetas, rings[keep], scores[keep]
+
+    monkeypatch.setattr(consistency, "closed_rings", only_rings_0_and_3)
+    angles = np.arange(0.0, 360.0, 60.0)
+    truth = [radius(math.radians(a))[:-1] for a in angles]
+    radii = [t.copy() for t in truth]
+    spurious = truth[2][1] + 0.5 * (truth[2][2] - truth[2][1])
+    radii[2] = np.sort(np.r_[radii[2], spurious])
+    lengths = [radius(math.radians(a))[-1] - 3.0 for a in angles]
+    out = consistency.link_transects(hsv_value(rgb), PITH, angles, radii, lengths, period_px=16.0)
+    assert all(len(o["closed_crossings"]) == 2 for o in out)
+    assert out[2]["dropped"] == [spurious]
+    for t, o in enumerate(out):
+        assert np.abs(o["radius_px"] - truth[t]).max() <= 1.5 and len(o["radius_px"]) == len(truth[t]), t
+
+
 def test_link_needs_three_transects(wide_disc):
     rgb, radius = wide_disc
     radii = [radius(0.0)[:-1][1:], radius(math.pi)[:-1]]

@@ -34,8 +34,10 @@ transects (in angle order, the last one's neighbour the first) and uses where th
    ``closed_px``, default six ring periods) starts a curve traced once round the disc: it is a ring when it comes
    back to within ``agree_px`` of its start, scores at least 0.6 and the photo rises outwards across it on 90 % of
    its rays. A closed ring is inferred on every transect with no boundary within half a ring period of its
-   crossing; a boundary lying between the innermost and outermost closed rings and farther than that from all of
-   them is dropped (between them every ring closed; what does not is a stain's or heartwood's edge). On the TRAS
+   crossing; a boundary lying between the innermost and outermost closed rings, farther than that from all of
+   them and met by no neighbour's curve (step 3), is dropped (between them every ring closed; what does not, and
+   runs to no neighbour, is a stain's or heartwood's edge; a ring that a crack or knot kept from closing is still
+   met by its neighbours' curves). On the TRAS
    discs (automatic pith) this found the ring 90 - 100 px from the pith on the six transects where the 1D detector
    had skipped it, all on a human ring, and dropped four false boundaries in the wide inner rings, none of them on
    a human ring.
@@ -265,7 +267,7 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
             closed ring is inferred on a transect that has no boundary within ``closed_gap`` ring periods of
             its crossing (a wide ring near the pith that the 1D detector skipped); it never moves a boundary. A
             boundary between the transect's innermost and outermost closed crossings, farther than that from all
-            of them, is dropped.
+            of them, and not confirmed by a neighbour's curve, is dropped.
 
     The dicts also hold ``closed`` (bool per radius: inferred from a closed ring), ``closed_rings``: ``(thetas
     (J,), rings (K, J))`` the closed rings traced, ``closed_crossings`` ``(K,)`` where they cross the transect, and
@@ -367,12 +369,12 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
                 if inner <= x <= lengths[t] and np.all(np.abs(np.r_[pos, new] - x) > closed_gap * period_px):
                     new.append(x)
             # between the innermost and outermost closed ring every ring closed: a boundary there far from all
-            # of them is a stain's or the earlywood's edge
+            # of them, that no neighbour's curve met either, is a stain's or the earlywood's edge
             cx = np.sort(np.asarray(cross))
             drop = np.zeros(len(pos), bool)
             if len(cx) >= 2:
                 far = np.abs(pos[:, None] - cx[None, :]).min(1) > closed_gap * period_px
-                drop = far & (pos > cx[0]) & (pos < cx[-1])
+                drop = far & (pos > cx[0]) & (pos < cx[-1]) & ~out[t]["confirmed"]
             out[t]["dropped"] = pos[drop].tolist()
             k = np.ones(len(new), bool)
             allr = np.r_[pos[~drop], new]
