@@ -255,11 +255,17 @@ _SLOW_RENDER = textwrap.dedent("""
 """)
 
 
+def _sigint_default():
+    """For a child that must see SIGINT as a terminal's Ctrl-C: a suite started in the background of a
+    non-interactive shell has SIGINT ignored, and a child keeps that (then Python installs no handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_the_tracer_within_moments():
     """SIGINT while the C++ tracer runs (GIL released, a render of minutes): it stops between sensor elements and
     Python gets KeyboardInterrupt at once; the next render is unchanged."""
     done = subprocess.run([sys.executable, "-c", _SLOW_RENDER], capture_output=True, text=True, timeout=300,
-                          env=command_env())
+                          env=command_env(), preexec_fn=_sigint_default)
     assert done.returncode == 0, done.stderr
     lines = done.stdout.split("\n")
     assert lines[0].startswith("interrupted"), done.stdout
@@ -274,7 +280,8 @@ def test_ctrl_c_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     args = ["--target", "zebra", "--width-mm", "3", "--thickness-mm", "0.5", "--spp", "4", "--eval-spp", "4",
             "--iterations", "60", "--eval-every", "1", "--init", "white", "--no-naive-baseline", "--quiet",
             "--out", out]
-    proc = subprocess.Popen(cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=command_env())
+    proc = subprocess.Popen(cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=command_env(),
+                            preexec_fn=_sigint_default)
     deadline = time.monotonic() + 300
     while not (out / "checkpoint.pt").exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
