@@ -57,6 +57,26 @@ from scipy import ndimage
 __all__ = ["closed_rings", "link_transects", "sector_edges", "trace_curves"]
 
 
+def _radial_derivative(value, pith, thetas, R, sigma_px):
+    """``value`` on rays from ``pith`` at ``thetas`` (radius ``0 .. R - 1`` px), differentiated along each ray
+    (Gaussian, ``sigma_px``): ``(d (J, R), inside (J, R))`` with ``inside`` the samples within the image."""
+    r = np.arange(R, dtype=np.float64)
+    X = pith[0] + r[None, :] * np.cos(thetas)[:, None]
+    Y = pith[1] + r[None, :] * np.sin(thetas)[:, None]
+    H, W = value.shape
+    inside = (X >= 0) & (X <= W - 1) & (Y >= 0) & (Y <= H - 1)
+    v = ndimage.map_coordinates(value, [Y, X], order=1, mode="nearest")
+    return ndimage.gaussian_filter1d(v, sigma_px, axis=1, order=1, mode="nearest"), inside
+
+
+def _snap_to_ridge(e, x, px=2):
+    """``x`` moved to the largest edge response of ``e`` (a ray of :func:`sector_edges`) within ``px``, if any."""
+    if e is None:
+        return x
+    lo, hi = max(0, int(round(x)) - px), min(len(e), int(round(x)) + px + 1)
+    return float(lo + np.argmax(e[lo:hi])) if hi > lo and e[lo:hi].max() > 0 else x
+
+
 def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_sigma_px=1.5, along_px=18.0,
                  period_px=40.0, ridge_level=0.5, n_rays=None, periodic=False):
     """Edge response of the sector between two transect directions (module docstring, step 1).
@@ -83,13 +103,7 @@ def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_
         arc_step_px = (theta_b - theta_a) * r_max / (J if periodic else J - 1)
     thetas = np.linspace(theta_a, theta_b, J, endpoint=not periodic)
     along = "wrap" if periodic else "nearest"
-    r = np.arange(R, dtype=np.float64)
-    X = pith[0] + r[None, :] * np.cos(thetas)[:, None]
-    Y = pith[1] + r[None, :] * np.sin(thetas)[:, None]
-    H, W = value.shape
-    inside = (X >= 0) & (X <= W - 1) & (Y >= 0) & (Y <= H - 1)
-    v = ndimage.map_coordinates(value, [Y, X], order=1, mode="nearest")
-    d = ndimage.gaussian_filter1d(v, edge_sigma_px, axis=1, order=1, mode="nearest")
+    d, inside = _radial_derivative(value, pith, thetas, R, edge_sigma_px)
     d = ndimage.gaussian_filter1d(d, along_px / arc_step_px, axis=0, mode=along)
     e = np.where(inside, np.maximum(d, 0.0), 0.0)
     scale = ndimage.gaussian_filter(e, (2.0, period_px), mode=(along, "nearest"))
@@ -198,12 +212,7 @@ def closed_rings(value, pith, angles_rad, r_min, r_max, *, arc_step_px=4.0, smoo
     E, thetas = sector_edges(value, pith, 0.0, 2 * math.pi, r_max, n_rays=J, periodic=True,
                              edge_sigma_px=edge_sigma_px, along_px=along_px, period_px=period_px,
                              ridge_level=ridge_level)
-    R = E.shape[1]
-    r = np.arange(R, dtype=np.float64)
-    X = pith[0] + r[None, :] * np.cos(thetas)[:, None]
-    Y = pith[1] + r[None, :] * np.sin(thetas)[:, None]
-    rise = ndimage.gaussian_filter1d(ndimage.map_coordinates(value, [Y, X], order=1, mode="nearest"),
-                                     edge_sigma_px, axis=1, order=1, mode="nearest") > 0
+    rise = _radial_derivative(value, pith, thetas, E.shape[1], edge_sigma_px)[0] > 0
     found, scores = [], []
     for a in np.asarray(angles_rad, dtype=np.float64).reshape(-1):
         j0 = int(round((a % (2 * math.pi)) / (2 * math.pi) * J)) % J
@@ -329,10 +338,7 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
         pos = pos.copy()
         e = own.get(t)
         for x in cross:
-            if e is not None:  # snapped to the transect's own ridge within 2 px
-                lo, hi = max(0, int(round(x)) - 2), min(len(e), int(round(x)) + 3)
-                if hi > lo and e[lo:hi].max() > 0:
-                    x = float(lo + np.argmax(e[lo:hi]))
+            x = _snap_to_ridge(e, x)  # to the transect's own ridge
             k = int(np.argmin(np.abs(pos - x))) if len(pos) else -1
             d = abs(pos[k] - x) if k >= 0 else np.inf
             if d <= min_tol_px:
@@ -360,11 +366,7 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
             pos, e = out[t]["radius_px"], own.get(t)
             new, cross = [], []
             for ring in rings:
-                x = float(np.interp(ang[t], thetas, ring, period=2 * math.pi))
-                if e is not None:  # snapped to the transect's own ridge within 2 px
-                    lo, hi = max(0, int(round(x)) - 2), min(len(e), int(round(x)) + 3)
-                    if hi > lo and e[lo:hi].max() > 0:
-                        x = float(lo + np.argmax(e[lo:hi]))
+                x = _snap_to_ridge(e, float(np.interp(ang[t], thetas, ring, period=2 * math.pi)))
                 cross.append(x)
                 if inner <= x <= lengths[t] and np.all(np.abs(np.r_[pos, new] - x) > closed_gap * period_px):
                     new.append(x)
