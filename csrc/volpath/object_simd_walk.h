@@ -338,10 +338,15 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
         while (mp) {
           const int l = __builtin_ctz(unsigned(mp));
           mp &= mp - 1;
-          if (pal) __builtin_prefetch(S.index + na[l]);
-          else __builtin_prefetch(S.ref_sigma_t + ca[l]);
+          if (pal) {
+            __builtin_prefetch(S.index + na[l]);
+          } else {
+            __builtin_prefetch(S.ref_sigma_t + ca[l]);
+            __builtin_prefetch(S.ref_albedo + ca[l]);  // a collision's albedo (every second voxel step or so)
+          }
           __builtin_prefetch(S.cell + na[l]);
           if (RATIO && !same_sig) __builtin_prefetch(S.sigma_t + ca[l]);
+          if (RATIO && !same_alb) __builtin_prefetch(S.albedo + ca[l]);
         }
       }
       M hit_here = mnone();
@@ -349,7 +354,25 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
         const I ck = gather_u8(S.cell, v, vox);
         const M mixed = mand(vox, mnot(ieq(ck, iset(kObjCellInside))));
         int mb = bits(mixed);
-        if (mb && S.sdf != nullptr) mb = may_cross(S, mixed, idx, p, d, t, tend);  // (most flights pass no surface)
+        if (mb && S.sdf != nullptr) {
+          // a lane in a mixed cell asks for the next cell's corner values too (its next cell is often mixed)
+          const int32_t W1 = S.W + 1, HW1 = (S.H + 1) * W1;
+          const I nidx0 = iadd(idx[0], seli(is0, step[0], iset(0)));
+          const I nidx1 = iadd(idx[1], seli(is1, step[1], iset(0)));
+          const I nidx2 = iadd(idx[2], seli(is2, step[2], iset(0)));
+          alignas(64) int32_t nb[kLanes];
+          storei(nb, iadd(iadd(imul(nidx2, iset(HW1)), imul(nidx1, iset(W1))), nidx0));
+          for (int m = mb; m;) {
+            const int l = __builtin_ctz(unsigned(m));
+            m &= m - 1;
+            const float* c = S.sdf + nb[l];
+            __builtin_prefetch(c);
+            __builtin_prefetch(c + W1);
+            __builtin_prefetch(c + HW1);
+            __builtin_prefetch(c + HW1 + W1);
+          }
+          mb = may_cross(S, mixed, idx, p, d, t, tend);  // (most flights pass no surface)
+        }
         if (mb) {  // the surface in a mixed cell: the scalar step, lane by lane
           alignas(64) float pa[3][kLanes], da[3][kLanes], ta[kLanes], th[kLanes];
           alignas(64) int32_t ia[3][kLanes], hf[kLanes];
