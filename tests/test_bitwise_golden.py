@@ -93,6 +93,34 @@ def _object_hero():
                           sigma_t, albedo)
 
 
+def _object_shell(one_walk):
+    """A print's case: a sphere whose gradients are asked for in a shell only (grad_support) round a homogeneous core
+    (crossed in bricks) and with mixed surface cells outside the shell (their deposits are dropped); with
+    ``one_walk`` the render and its gradient in one walk (the adjoint known first). A zero's sign outside the shell
+    is not part of the result (+0 and −0 are hashed alike)."""
+    shape, h, origin = (24, 24, 24), 0.1, (-1.2, -1.2, -1.2)
+    sdf = sphere_sdf(shape, h, origin, (0.0, 0.0, 0.0), 1.1)
+    k = torch.arange(60, dtype=torch.float64) + 0.5
+    z = 1 - 2 * k / 60
+    phi = k * math.pi * (3 - math.sqrt(5))
+    n = torch.stack([(1 - z ** 2).sqrt() * phi.cos(), (1 - z ** 2).sqrt() * phi.sin(), z], 1)
+    scene = Scene(voxel_size=h, origin=origin, boundary=SDFBoundary(sdf, ior=1.5),
+                  sensor=SurfaceTexels(n * 1.1, n, footprint_mm=0.05))
+    centre = (torch.arange(24, dtype=torch.float64) + 0.5) * h - 1.2
+    r = (centre.view(-1, 1, 1) ** 2 + centre.view(1, -1, 1) ** 2 + centre.view(1, 1, -1) ** 2).sqrt()
+    core, shell = r < 0.85, (r >= 0.85) & (r < 1.02)
+    sigma_t, albedo = _medium(shape, torch.float32)
+    sigma_t[:, core] = torch.tensor([6.0, 9.0, 12.0]).view(3, 1)
+    albedo[:, core] = torch.tensor([0.99, 0.98, 0.97]).view(3, 1)
+    weights = torch.linspace(-1.0, 2.0, 60 * 3, dtype=torch.float32).reshape(60, 3)
+    kw = dict(spp=4, seed=5, grad_support=shell)
+    s = sigma_t.clone().requires_grad_()
+    a = albedo.clone().requires_grad_()
+    image = ta.render_scene(scene, s, a, adjoint=weights, **kw) if one_walk else ta.render_scene(scene, s, a, **kw)
+    (image * weights).sum().backward()
+    return image, s.grad + 0.0, a.grad + 0.0
+
+
 def _perspective_map():
     shape, h, origin = (10, 10, 10), 0.1, (-0.5, -0.5, -0.5)
     sdf = sphere_sdf(shape, h, origin, (0.0, 0.0, 0.0), 0.45)
@@ -165,6 +193,8 @@ CASES = {
     "object_f32_surface_texels": lambda: _object(torch.float32),
     "object_f64_surface_texels": lambda: _object(torch.float64),
     "object_f32_hero": _object_hero,
+    "object_f32_shell_two_walks": lambda: _object_shell(False),
+    "object_f32_shell_one_walk": lambda: _object_shell(True),
     "camera_perspective_map_f64": _perspective_map,
     "camera_orthographic_disc_f32": _orthographic_disc,
     "wood_veneer_f64": _wood_veneer,

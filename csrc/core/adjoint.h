@@ -19,9 +19,21 @@ template <typename T, typename Deposit = PlainAdd>
 struct Adjoint {
   T* grad_sigma_t = nullptr;
   T* grad_albedo = nullptr;
-  // Adds x to ∂/∂σ_t (∂/∂α) of the flat grid index i (channel · voxels + voxel).
-  TA_HD inline void sigma_t(int64_t i, T x) const { Deposit::add(grad_sigma_t, i, x); }
-  TA_HD inline void albedo(int64_t i, T x) const { Deposit::add(grad_albedo, i, x); }
+  int64_t plane = 0;              // values per channel in the buffers: the grid's voxels, or the asked ones (rank)
+  const int32_t* rank = nullptr;  // or null; else voxel v's place among the asked voxels (grad_support), −1: not asked
+  // Adds x to ∂/∂σ_t (∂/∂α) of channel c of voxel v (the buffers channel-planar: c · plane + v, or c · plane +
+  // rank[v] in compact buffers, where a voxel that was not asked for gets nothing).
+  TA_HD inline void sigma_t(int c, int64_t v, T x) const { add(grad_sigma_t, c, v, x); }
+  TA_HD inline void albedo(int c, int64_t v, T x) const { add(grad_albedo, c, v, x); }
+
+ private:
+  TA_HD inline void add(T* buffer, int c, int64_t v, T x) const {
+    if (rank != nullptr) {
+      v = rank[v];
+      if (v < 0) return;
+    }
+    Deposit::add(buffer, c * plane + v, x);
+  }
 };
 
 }  // namespace core

@@ -430,7 +430,7 @@ TA_HD TA_INLINE Flight fly(const Scene<T>& S, PathState<T, LANES>& st, PathResul
     if (ADJOINT && A.grad_sigma_t && len > T(0)) {
       for (int l = 0; l < LANES; ++l) {
         const int c = LANES == 1 ? chan : l;
-        A.sigma_t(c * N + v, -(adj[l] * pass1->value[l] * len));
+        A.sigma_t(c, v, -(adj[l] * pass1->value[l] * len));
       }
     }
     if (collided) {
@@ -540,10 +540,10 @@ TA_HD TA_INLINE bool collide(const Scene<T>& S, PathState<T, LANES>& st, PathRes
     }
     if (ADJOINT && !core) {
       if (A.grad_sigma_t)
-        A.sigma_t(c * N + v, adj[l] * weight_without(fs, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) /
+        A.sigma_t(c, v, adj[l] * weight_without(fs, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) /
                                  sh);
       if (A.grad_albedo)
-        A.albedo(c * N + v,
+        A.albedo(c, v,
                  adj[l] * weight_without(fa, pass1->value[l], pass1->prod_nonzero[l], pass1->zeros[l]) * inv_psq);
     }
     if constexpr (HERO) {

@@ -69,10 +69,10 @@ TA_HD inline T weight_without(T factor, T value, T prod_nonzero, int zeros) {
 
 // Deposits ∂V/∂θ of a recorded walk (see integrator.h for the formulas), each through A's deposit policy. `value`,
 // `prod_nonzero`, `zeros` are the walk's final PathResult fields, `adj[l]` = grad_out·L_e/spp, `chan` the channel of
-// a one-lane walk, N the voxels per channel plane.
+// a one-lane walk.
 template <typename T, int LANES, typename Deposit>
 TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const T* prod_nonzero, const int* zeros,
-                               int chan, const T* adj, const Adjoint<T, Deposit>& A, int64_t N) {
+                               int chan, const T* adj, const Adjoint<T, Deposit>& A) {
   int64_t s = 0;
   auto segments_until = [&](int64_t end) {
     if (!A.grad_sigma_t) return;  // (nothing was recorded then)
@@ -81,7 +81,7 @@ TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const
       const T len = tape.segs[s].len;
       for (int l = 0; l < LANES; ++l) {
         const int c = LANES == 1 ? chan : l;
-        A.sigma_t(c * N + v, -(adj[l] * value[l] * len));
+        A.sigma_t(c, v, -(adj[l] * value[l] * len));
       }
     }
   };
@@ -91,9 +91,9 @@ TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const
     for (int l = 0; l < LANES; ++l) {
       const int c = LANES == 1 ? chan : l;
       if (A.grad_sigma_t)
-        A.sigma_t(c * N + col.v, adj[l] * weight_without(col.fs[l], value[l], prod_nonzero[l], zeros[l]) / col.sref);
+        A.sigma_t(c, col.v, adj[l] * weight_without(col.fs[l], value[l], prod_nonzero[l], zeros[l]) / col.sref);
       if (A.grad_albedo)
-        A.albedo(c * N + col.v, adj[l] * weight_without(col.fa[l], value[l], prod_nonzero[l], zeros[l]) *
+        A.albedo(c, col.v, adj[l] * weight_without(col.fa[l], value[l], prod_nonzero[l], zeros[l]) *
                                     col.inv_psq);
     }
   }

@@ -5,6 +5,8 @@
 #include <ATen/Parallel.h>
 
 #include <atomic>
+#include <cstdlib>
+#include <memory>
 #include <type_traits>
 #include <vector>
 
@@ -35,16 +37,26 @@ using namespace detail;
 // With `image` (not null): forward and backward share the walk (scene_forward_backward). Every channel of every
 // element is walked (not only those with a non-zero grad_output) and each walk's term goes into the element's image,
 // summed in sample order and scaled as in the forward kernel; `cut` takes the truncated walks.
+// With `asked` (grad_support) every chunk deposits into compact buffers of the asked voxels only (AskedVoxels), which
+// are summed in chunk order and written into the outputs' asked voxels (whose other values stay 0, untouched).
 template <typename T, int LANES, int B, bool DIEL, bool HERO>
 int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, const Share& share, T* image = nullptr,
-                        int64_t* cut = nullptr) {
+                        int64_t* cut = nullptr, const AskedVoxels* asked = nullptr) {
   const int64_t nchunks = num_chunks(share.count);
-  const int64_t n = 3 * S.medium.voxels();
-  // chunk 0 accumulates into the outputs; the others into their own buffers, summed in chunk order below
+  const int64_t N = S.medium.voxels();
+  const int64_t plane = asked != nullptr ? asked->count : N;  // the buffers' values per channel
+  // chunk 0 accumulates into the outputs (or, asked, its own compact buffers); the others into their own buffers,
+  // summed in chunk order below
   std::vector<ZeroedBuffer<T>> bufs_s, bufs_a;
-  for (int64_t c = 1; c < nchunks; ++c) {
-    if (gs) bufs_s.emplace_back(n);
-    if (ga) bufs_a.emplace_back(n);
+  std::vector<HugeArray<T>> compact_s, compact_a;
+  for (int64_t c = asked != nullptr ? 0 : 1; c < nchunks; ++c) {
+    if (asked != nullptr) {
+      if (gs) compact_s.emplace_back(3 * plane).fill(T(0));
+      if (ga) compact_a.emplace_back(3 * plane).fill(T(0));
+    } else {
+      if (gs) bufs_s.emplace_back(3 * plane);
+      if (ga) bufs_a.emplace_back(3 * plane);
+    }
   }
   std::vector<int64_t> events(nchunks, 0), truncated(nchunks, 0);
   const bool constant = S.emitter.kind == core::kConstant;
@@ -55,13 +67,14 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     if (simd) ref_pair = pack_reference(S);
   for_each_chunk(nchunks, [&](int64_t c) {
     Adjoint<T> A;
-    if (gs) {
-      if (c == 0) A.grad_sigma_t = gs;
-      else A.grad_sigma_t = bufs_s[c - 1].data();
-    }
-    if (ga) {
-      if (c == 0) A.grad_albedo = ga;
-      else A.grad_albedo = bufs_a[c - 1].data();
+    A.plane = plane;
+    if (asked != nullptr) {
+      A.rank = asked->rank.data();
+      if (gs) A.grad_sigma_t = compact_s[c].data();
+      if (ga) A.grad_albedo = compact_a[c].data();
+    } else {
+      if (gs) A.grad_sigma_t = c == 0 ? gs : bufs_s[c - 1].data();
+      if (ga) A.grad_albedo = c == 0 ? ga : bufs_a[c - 1].data();
     }
     int64_t ev = 0;
     TapeStore<T, LANES> store;
@@ -105,8 +118,13 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
     events[c] = ev;
     truncated[c] = terms.truncated;
   });
-  reduce_in_chunk_order(gs, bufs_s, n);
-  reduce_in_chunk_order(ga, bufs_a, n);
+  if (asked != nullptr) {
+    if (gs) asked->scatter(sum_in_chunk_order(compact_s), gs);
+    if (ga) asked->scatter(sum_in_chunk_order(compact_a), ga);
+  } else {
+    reduce_in_chunk_order(gs, bufs_s, 3 * N);
+    reduce_in_chunk_order(ga, bufs_a, 3 * N);
+  }
   int64_t total = 0;
   for (int64_t e : events) total += e;
   if (cut != nullptr)
@@ -123,6 +141,16 @@ int64_t set_tape_capacity(int64_t segments) {
 
 namespace {
 
+// A tensor of zeros like x in fresh memory from calloc: a large block comes from the kernel as pages that are zero
+// until written, so the pages that nothing writes are never resident (the asked voxels of a print's shell are written
+// once, each page first by a write, which allocates it without copying the shared zero page).
+torch::Tensor untouched_zeros_like(const torch::Tensor& x) {
+  void* p = std::calloc(size_t(x.numel()), x.element_size());
+  TORCH_CHECK(p != nullptr, "volpath backward: could not allocate a gradient of ", x.numel() * x.element_size(),
+              " bytes");
+  return torch::from_blob(p, x.sizes(), [](void* q) { std::free(q); }, x.options());
+}
+
 // The replay of scene_backward_cpu, and `with_image` also the image of the same walks (scene_forward_backward_cpu).
 // Returns (image or undefined, grad_sigma_t, grad_albedo, scatter events, truncated walks).
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t, int64_t> backward_impl(
@@ -135,9 +163,15 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t, int64_t> backwa
   for (int64_t s : image_shape(opt, sigma_t.size(2), sigma_t.size(3))) expected *= s;
   check_grad_output(grad_output, sigma_t, expected);
   const auto go = grad_output.contiguous();
+  // with grad_support (a print's shell): compact gradient buffers of the asked voxels (AskedVoxels), written into
+  // fresh zero grids whose other pages are never touched
+  std::unique_ptr<AskedVoxels> asked;
+  const int64_t N = sigma_t.numel() / 3;
+  if (opt.grad_support.defined() && (need_sigma_t || need_albedo) && N < (int64_t(1) << 31))
+    asked = std::make_unique<AskedVoxels>(opt.grad_support.data_ptr<bool>(), N);
   torch::Tensor gs, ga;
-  if (need_sigma_t) gs = torch::zeros_like(sigma_t);
-  if (need_albedo) ga = torch::zeros_like(albedo);
+  if (need_sigma_t) gs = asked ? untouched_zeros_like(sigma_t) : torch::zeros_like(sigma_t);
+  if (need_albedo) ga = asked ? untouched_zeros_like(albedo) : torch::zeros_like(albedo);
   int64_t events = 0, cut = 0;
   torch::Tensor image;
   if (with_image)
@@ -161,11 +195,12 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t, int64_t> backwa
     T* pim = image.defined() ? image.data_ptr<T>() : nullptr;
     dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       events = backward_kernel<T, L, B, DIEL, HERO>(S, g, pgs, pga, Share(S.elements(), opt.part_rank,
-                                                                         opt.part_world), pim, &cut);
+                                                                         opt.part_world), pim, &cut,
+                                                    asked.get());
     });
   });
   interrupt.throw_if_interrupted();
-  if (opt.grad_support.defined()) {  // only the asked voxels' gradients are complete: the others are 0
+  if (opt.grad_support.defined() && !asked) {  // only the asked voxels' gradients are complete: the others are 0
     const auto keep = opt.grad_support.unsqueeze(0);
     if (need_sigma_t) gs.mul_(keep);
     if (need_albedo) ga.mul_(keep);

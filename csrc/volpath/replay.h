@@ -80,7 +80,7 @@ inline int64_t replay(const core::Scene<T>& S, int64_t t, int64_t s, int ch, con
   }
   if (!any) return r1.scatter_events;
   if (!tape.overflow) {
-    core::deposit_tape<T, LANES>(tape, r1.value, r1.prod_nonzero, r1.zeros, ch, adj, A, S.medium.voxels());
+    core::deposit_tape<T, LANES>(tape, r1.value, r1.prod_nonzero, r1.zeros, ch, adj, A);
     return r1.scatter_events;
   }
   store.grow();

@@ -92,8 +92,7 @@ simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
 // core::deposit_tape<float, 1> for the SIMD walk's compact tape (slab_simd.h), through the same deposit policy
 // (Adjoint::sigma_t, Adjoint::albedo), with the σ_t deposits of one voxel in a row summed before they are added (a
 // flight that ends by a collision and the next flight's first segment there).
-void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A, int64_t N) {
-  const int64_t plane = ch * N;  // the channel's plane of the gradient buffers
+void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A) {
   const float av = adj * o.value;
   int64_t cur = -1;  // the voxel of the pending σ_t deposit
   float run = 0.0f;
@@ -102,7 +101,7 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
       run += d;
       return;
     }
-    if (cur >= 0) A.sigma_t(plane + cur, run);
+    if (cur >= 0) A.sigma_t(ch, cur, run);
     cur = v;
     run = d;
   };
@@ -114,11 +113,11 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
       add_s(col.v, adj * core::weight_without(col.fs, o.value, o.prod_nonzero, int(o.zeros)) / col.sref);
     }
     if (A.grad_albedo)
-      A.albedo(plane + col.v, adj * core::weight_without(col.fa, o.value, o.prod_nonzero, int(o.zeros)) * col.inv_psq);
+      A.albedo(ch, col.v, adj * core::weight_without(col.fa, o.value, o.prod_nonzero, int(o.zeros)) * col.inv_psq);
   }
   if (A.grad_sigma_t) {
     for (; s < o.nseg; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
-    if (cur >= 0) A.sigma_t(plane + cur, run);
+    if (cur >= 0) A.sigma_t(ch, cur, run);
   }
 }
 

@@ -48,7 +48,7 @@ static_assert(kSimdSegments <= simd::kMaxTapeCap, "the SIMD walks' tape offsets 
 int simd_ended_lanes();
 
 // core::deposit_tape<float, 1> for a SIMD walk's compact tape: the deposits of the path `o` of channel ch.
-void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const core::Adjoint<float>& A, int64_t N);
+void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const core::Adjoint<float>& A);
 
 // The image of a batch of n elements from each path's term by item ((k·spp + sample)·3 + channel), summed in sample
 // order as the scalar kernel adds them.
@@ -156,7 +156,7 @@ int64_t simd_replay_chunk(const core::Scene<float>& S, const float* grad_out, co
     if (S.emitter.kind != core::kConstant) S.emitter.eval(o.direction, Le);
     const float adj = g[ch] * Le[ch] / float(spp);
     if (adj == 0.0f) return;
-    deposit_simd_tape(o, ch, adj, *x->A, S.medium.voxels());
+    deposit_simd_tape(o, ch, adj, *x->A);
   };
   std::vector<int64_t> elems;
   std::vector<uint8_t> live;

@@ -6,6 +6,8 @@
 #include <ATen/Parallel.h>
 #include <c10/util/Exception.h>
 
+#include <sys/mman.h>
+
 #include <algorithm>
 #include <cstdint>
 #include <cstdlib>
@@ -112,6 +114,106 @@ void reduce_in_chunk_order(T* out, const std::vector<ZeroedBuffer<T>>& bufs, int
     }
   });
 }
+
+// n values of T in fresh anonymous memory asked for in transparent huge pages (where the kernel has them: Linux with
+// /sys/kernel/mm/transparent_hugepage/enabled at "always" or "madvise"), each written once by `fill` before use.
+// For arrays that are read and written at random all through a walk (the compact gradient buffers and the voxels'
+// ranks of AskedVoxels): in 4 KiB pages their TLB misses cost more than the arithmetic around them.
+template <typename T>
+class HugeArray {
+ public:
+  explicit HugeArray(int64_t n) : n_(n) {
+    constexpr size_t kHuge = size_t(2) << 20;
+    const size_t bytes = std::max<size_t>(1, size_t(n) * sizeof(T));
+    len_ = bytes + kHuge;  // room to start on a huge-page boundary
+    base_ = mmap(nullptr, len_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    TORCH_CHECK(base_ != MAP_FAILED, "volpath: could not allocate ", bytes, " bytes");
+    const uintptr_t a = (reinterpret_cast<uintptr_t>(base_) + kHuge - 1) & ~uintptr_t(kHuge - 1);
+    data_ = reinterpret_cast<T*>(a);
+#ifdef MADV_HUGEPAGE
+    madvise(data_, bytes, MADV_HUGEPAGE);  // (a hint: without huge pages the array is in small pages)
+#endif
+  }
+  HugeArray(HugeArray&& o) noexcept : base_(o.base_), len_(o.len_), n_(o.n_), data_(o.data_) {
+    o.base_ = nullptr;
+    o.data_ = nullptr;
+  }
+  HugeArray(const HugeArray&) = delete;
+  HugeArray& operator=(const HugeArray&) = delete;
+  HugeArray& operator=(HugeArray&&) = delete;
+  ~HugeArray() {
+    if (base_ != nullptr) munmap(base_, len_);
+  }
+  // Writes x everywhere, in parallel (each page first by a write: no copy of the shared zero page).
+  void fill(T x) {
+    at::parallel_for(0, n_, int64_t(1) << 18, [&](int64_t b, int64_t e) { std::fill(data_ + b, data_ + e, x); });
+  }
+  T* data() const { return data_; }
+  int64_t size() const { return n_; }
+  T& operator[](int64_t i) const { return data_[i]; }
+
+ private:
+  void* base_ = nullptr;
+  size_t len_ = 0;
+  int64_t n_ = 0;
+  T* data_ = nullptr;
+};
+
+// The chunks' compact buffers summed in chunk order into the first (deterministic); returns it.
+template <typename T>
+const HugeArray<T>& sum_in_chunk_order(std::vector<HugeArray<T>>& bufs) {
+  HugeArray<T>& out = bufs.front();
+  at::parallel_for(0, out.size(), 1 << 14, [&](int64_t b, int64_t e) {
+    for (size_t k = 1; k < bufs.size(); ++k) {
+      const T* x = bufs[k].data();
+      for (int64_t i = b; i < e; ++i) out[i] += x[i];
+    }
+  });
+  return out;
+}
+
+// The voxels whose gradients are asked for (grad_support), numbered in grid order: rank[v] is voxel v's place among
+// them, −1 for the others. The backward's chunks deposit into compact buffers (3 × count values, channel-planar)
+// through it, so the gradient work and memory follow a print's shell, not its bounding box.
+struct AskedVoxels {
+  HugeArray<int32_t> rank;
+  int64_t count = 0, N = 0;
+
+  AskedVoxels(const bool* keep, int64_t n) : rank(n), N(n) {
+    constexpr int64_t kBlock = int64_t(1) << 16;
+    const int64_t blocks = (n + kBlock - 1) / kBlock;
+    std::vector<int64_t> start(size_t(blocks) + 1, 0);
+    at::parallel_for(0, blocks, 1, [&](int64_t b0, int64_t b1) {
+      for (int64_t b = b0; b < b1; ++b) {
+        int64_t k = 0;
+        for (int64_t v = b * kBlock, e = std::min(n, v + kBlock); v < e; ++v) k += keep[v];
+        start[size_t(b) + 1] = k;
+      }
+    });
+    for (int64_t b = 0; b < blocks; ++b) start[size_t(b) + 1] += start[size_t(b)];
+    count = start[size_t(blocks)];
+    at::parallel_for(0, blocks, 1, [&](int64_t b0, int64_t b1) {
+      for (int64_t b = b0; b < b1; ++b) {
+        int64_t k = start[size_t(b)];
+        for (int64_t v = b * kBlock, e = std::min(n, v + kBlock); v < e; ++v)
+          rank[v] = keep[v] ? int32_t(k++) : -1;
+      }
+    });
+  }
+
+  // Writes the compact values (3 × count) into the asked voxels of the channel-planar grid `out` (3 × N), and
+  // nothing else (a fresh zero grid keeps its other pages untouched).
+  template <typename T>
+  void scatter(const HugeArray<T>& compact, T* out) const {
+    at::parallel_for(0, N, 1 << 16, [&](int64_t b, int64_t e) {
+      for (int64_t v = b; v < e; ++v) {
+        const int32_t r = rank[v];
+        if (r < 0) continue;
+        for (int c = 0; c < 3; ++c) out[c * N + v] = compact[c * count + r];
+      }
+    });
+  }
+};
 
 }  // namespace detail
 }  // namespace volpath
