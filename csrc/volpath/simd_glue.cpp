@@ -93,6 +93,18 @@ simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
 // (Adjoint::sigma_t, Adjoint::albedo), with the σ_t deposits of one voxel in a row summed before they are added (a
 // flight that ends by a collision and the next flight's first segment there).
 void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A) {
+  // Compact buffers (AskedVoxels): ask for every voxel's rank first, then for the lines of its deposits, so that
+  // their cache misses overlap instead of following one another in the adds below (an object's shell: 1.5 s of a
+  // 40 mm iteration at 8 spp; on a slab's dense buffers, which the caches hold better, the same was 4 % slower).
+  if (A.rank != nullptr) {
+    for (int64_t s = 0; s < o.nseg; ++s) __builtin_prefetch(A.rank + o.segs[s].v);
+    for (int64_t s = 0; s < o.nseg; ++s) {
+      const int32_t r = A.rank[o.segs[s].v];
+      if (r < 0) continue;
+      if (A.grad_sigma_t) __builtin_prefetch(A.grad_sigma_t + ch * A.plane + r, 1);
+      if (A.grad_albedo) __builtin_prefetch(A.grad_albedo + ch * A.plane + r, 1);
+    }
+  }
   const float av = adj * o.value;
   int64_t cur = -1;  // the voxel of the pending σ_t deposit
   float run = 0.0f;
