@@ -217,6 +217,24 @@ def test_mix_inks_zero_extinction_is_guarded():
     assert torch.isfinite(leaf.grad).all()
 
 
+def test_mix_inks_without_a_zero_extinction_is_the_guarded_mix():
+    """Where every voxel has σ_t > 0, the mix skips the guard's fallback: the same values and gradients, to the bit, as
+    the guarded mix of the same voxels beside one voxel without ink."""
+    inks = InkSet.from_names()
+    gen = torch.Generator().manual_seed(4)
+    w = torch.rand((len(inks), 1, 3, 4), generator=gen, dtype=torch.float64)
+    padded = torch.cat([w, torch.zeros((len(inks), 1, 3, 1), dtype=torch.float64)], dim=3)  # σ_t = 0 there
+    outs = []
+    for weights, keep in ((w, 4), (padded, 4)):
+        leaf = weights.clone().requires_grad_()
+        sigma_t, albedo = mix_inks(leaf, inks)
+        g = torch.linspace(-1.0, 1.0, sigma_t[..., :keep].numel(), dtype=torch.float64).view(sigma_t[..., :keep].shape)
+        ((sigma_t[..., :keep] * g).sum() + (albedo[..., :keep] * g.flip(0)).sum()).backward()
+        outs.append((sigma_t[..., :keep].detach(), albedo[..., :keep].detach(), leaf.grad[..., :keep]))
+    for a, b in zip(*outs):
+        assert torch.equal(a, b)
+
+
 def test_mix_inks_refusals():
     inks = InkSet.from_names()
     with pytest.raises(ValueError, match=r"weights: expected shape \(N=5, D, H, W\).*got \(4, 2, 2, 2\)"):

@@ -64,6 +64,8 @@ def _mix(weights, sigma_s_n, sigma_a_n, albedo_n):
     sigma_a = torch.einsum("nc,n...->c...", sigma_a_n, weights)
     sigma_t = sigma_s + sigma_a
     positive = sigma_t > 0
+    if bool(positive.all()):  # (the usual case: the same numbers as below, without the fallback's temporaries)
+        return sigma_t.contiguous(), (sigma_s / sigma_t).clamp(0.0, 1.0).contiguous()
     # Safe division: the unselected branch of torch.where must not produce NaN (its gradient would be NaN too).
     ratio = sigma_s / torch.where(positive, sigma_t, torch.ones_like(sigma_t))
     # σ_t = 0 only if every ink present has μ_t = 0 in that channel (built-in inks have μ_t >= 1e-4): no
