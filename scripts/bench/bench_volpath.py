@@ -46,7 +46,10 @@ With ``--baseline REV`` the slab scenes are also timed on the extension built fr
 into build/baseline-<sha>/): old and new are loaded in separate worker processes that call the same raw entry
 points (``_C.scene_forward``/``scene_backward``, the forward on the parameters, the backward on the floored
 reference as render_texels does), alternating old and new for every repetition, and a JSON line per scene gives
-``ratio_forward`` and ``ratio_backward`` = new / old (medians, and of the fastest repetitions).
+``ratio_forward`` and ``ratio_backward`` = new / old (medians, and of the fastest repetitions). With
+``--one-walk`` too, the new worker also times ``_C.scene_forward_backward`` (the render and its gradient in one walk,
+as the print loop's ``ema`` estimator runs each iteration after its first), and the line adds
+``ratio_iteration_one_walk`` = that walk / the old build's forward + backward (medians).
 
 One JSON line per scene and thread count is printed (and all of them written atomically to ``--out``),
 with the fields
@@ -410,9 +413,15 @@ image, counts = C.scene_forward(s, a, s, a, False, o)
 t1 = time.perf_counter()
 gs, ga, _ = C.scene_backward(w, s, a, rs, ra, True, True, o)
 t2 = time.perf_counter()
+one = None
+if d.get("one_walk") and hasattr(C, "scene_forward_backward"):  # the render and its gradient in one walk
+    C.scene_forward_backward(w, s, a, rs, ra, True, True, o)
+    t3 = time.perf_counter()
+    C.scene_forward_backward(w, s, a, rs, ra, True, True, o)
+    one = time.perf_counter() - t3
 with open(f"/proc/self/status") as f:
     peak = [int(l.split()[1]) / 1024 for l in f if l.startswith("VmHWM:")]
-print(json.dumps({"forward_s": t1 - t0, "backward_s": t2 - t1, "checksum": float(image.double().sum()),
+print(json.dumps({"forward_s": t1 - t0, "backward_s": t2 - t1, "one_walk_s": one, "checksum": float(image.double().sum()),
                   "grad_checksum": [float(gs.double().sum()), float(ga.double().sum()), float(gs.double().abs().sum()),
                                     float(ga.double().abs().sum())], "peak_rss_mb": peak[0] if peak else None}))
 """
@@ -462,7 +471,7 @@ def compare_baseline(name, threads, args, old_so, sha):
     with tempfile.TemporaryDirectory() as tmp:
         data = os.path.join(tmp, "scene.pt")
         torch.save(dict(sigma_t=sigma_t, albedo=albedo, ref_sigma_t=ref_s, ref_albedo=ref_a, weights=weights,
-                        options=options), data)
+                        options=options, one_walk=args.one_walk), data)
         runs = {"old": [], "new": []}
         for _ in range(args.reps):
             for which, so in (("old", old_so), ("new", new_so)):
@@ -471,8 +480,15 @@ def compare_baseline(name, threads, args, old_so, sha):
                 runs[which].append(json.loads(out.strip().splitlines()[-1]))
     med = {w: {k: statistics.median(r[k] for r in runs[w]) for k in ("forward_s", "backward_s")} for w in runs}
     low = {w: {k: min(r[k] for r in runs[w]) for k in ("forward_s", "backward_s")} for w in runs}
+    one_walk = {}
+    if args.one_walk and all(r.get("one_walk_s") is not None for r in runs["new"]):
+        # the ema print loop's iteration (one walk) against the old build's forward + backward
+        new_one = statistics.median(r["one_walk_s"] for r in runs["new"])
+        old_two = statistics.median(r["forward_s"] + r["backward_s"] for r in runs["old"])
+        one_walk = {"new_one_walk_s": round(new_one, 6), "old_iteration_s": round(old_two, 6),
+                    "ratio_iteration_one_walk": round(new_one / old_two, 4)}
     return {
-        "scene": name, "compare": "new/old", "baseline": sha[:12], "threads": threads, "spp": spp,
+        "scene": name, "compare": "new/old", "baseline": sha[:12], "threads": threads, "spp": spp, **one_walk,
         "old_forward_s": round(med["old"]["forward_s"], 6), "new_forward_s": round(med["new"]["forward_s"], 6),
         "old_backward_s": round(med["old"]["backward_s"], 6), "new_backward_s": round(med["new"]["backward_s"], 6),
         "ratio_forward": round(med["new"]["forward_s"] / med["old"]["forward_s"], 4),
@@ -578,7 +594,8 @@ def parse_args(argv=None):
                              "ratios against it (default: auto)")
     parser.add_argument("--one-walk", action="store_true",
                         help="also time the render and its gradient as one walk, the adjoint (the weights) known "
-                             "first (one_walk_s, two_walks_over_one)")
+                             "first (one_walk_s, two_walks_over_one); with --baseline, that walk against the old "
+                             "build's forward + backward (ratio_iteration_one_walk)")
     parser.add_argument("--baseline", metavar="REV", default=None,
                         help="also time the slab scenes on the extension of git revision REV and print new/old ratios")
     args = parser.parse_args(argv)
