@@ -61,7 +61,18 @@ TA_HD inline float tabs(float x) { return fabsf(x); }
 TA_HD inline double tabs(double x) { return fabs(x); }
 TA_HD inline float tcopysign(float x, float y) { return copysignf(x, y); }
 TA_HD inline double tcopysign(double x, double y) { return copysign(x, y); }
-TA_HD inline float tnextafter(float x, float y) { return nextafterf(x, y); }
+// nextafterf without the call into libm (the root search of boundary.h steps by it): the same result for any x, y
+TA_HD inline float tnextafter(float x, float y) {
+  if (x != x || y != y) return x + y;  // NaN
+  if (x == y) return y;
+  uint32_t b;
+  __builtin_memcpy(&b, &x, 4);
+  if (x == 0.0f) b = (y > 0.0f ? 0u : 0x80000000u) | 1u;  // the smallest subnormal toward y
+  else b += ((x < y) == (x > 0.0f)) ? 1u : 0xffffffffu;   // |x| one unit in the last place up or down
+  float r;
+  __builtin_memcpy(&r, &b, 4);
+  return r;
+}
 TA_HD inline double tnextafter(double x, double y) { return nextafter(x, y); }
 TA_HD inline float tatan2(float y, float x) { return atan2f(y, x); }
 TA_HD inline double tatan2(double y, double x) { return atan2(y, x); }

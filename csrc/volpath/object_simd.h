@@ -3,13 +3,12 @@
 // independent walks, one per SIMD lane, as the slab walk (slab_simd.h) runs slabs.
 //
 // The lanes share what every path does at every step: the free flights through the voxels inside the object (the
-// DDA, the homogeneous core's boxes of bricks crossed or collided in one move), the flights' ratio weights and
-// recorded segments, and the collisions (roulette, factors, recorded collisions, the new direction). What only some
-// paths do, and rarely, each lane hands to the scalar steps of core::trace_path (compiled for the baseline
-// instruction set by the glue, object_simd_glue.cpp), through the callbacks below:
+// DDA, the homogeneous core's boxes of bricks crossed or collided in one move, where a flight crosses the surface in
+// a mixed cell: SDFGrid::crossing in lanes), the flights' ratio weights and recorded segments, and the collisions
+// (roulette, factors, recorded collisions, the new direction). What only some paths do, and rarely, each lane hands
+// to the scalar steps of core::trace_path (compiled for the baseline instruction set by the glue,
+// object_simd_glue.cpp), through the callbacks below:
 //   start     begin_path and start_at_sensor, then outside the object up to its surface and into it (or escape);
-//   crossing  the exact crossing of the surface in a mixed cell (SDFGrid::crossing: the cubic along the ray), for
-//             the lanes whose ray crosses it there (the lanes take that decision themselves, in its arithmetic);
 //   surface   the surface (or the grid's box) reached from inside: Fresnel, reflection or refraction, and outside
 //             the object up to its next surface point and into it, or escape (cross_from_inside, enter_from_outside).
 // So each lane follows core::trace_path<float, 1, kSDFBoundary, DIELECTRIC, RATIO, false, RECORD> step by step, on
@@ -51,8 +50,6 @@ struct ObjectLane {
 // The scalar steps (the glue's): `ctx` is ObjectWalkScene::steps.
 typedef void (*LaneStep)(void* ctx, ObjectLane& lane);
 typedef void (*LaneSurface)(void* ctx, ObjectLane& lane, int32_t end, int32_t axis);  // end: core::FlightEnd
-typedef bool (*LaneCrossing)(void* ctx, const int32_t idx[3], const float p[3], const float d[3], float t0, float t1,
-                             float* t_hit);
 
 struct ObjectWalkScene {
   // channel-planar (3, D, H, W) float32 grids; the reference is read as max(ref, floor)
@@ -82,7 +79,6 @@ struct ObjectWalkScene {
   bool exact_math = false;
   void* steps = nullptr;
   LaneStep start = nullptr;
-  LaneCrossing crossing = nullptr;
   LaneSurface surface = nullptr;
 };
 

@@ -101,13 +101,6 @@ void lane_surface(void* ctx, simd::ObjectLane& o, int32_t end, int32_t axis) {
   store_lane(st, res, alive, o);
 }
 
-bool lane_crossing(void* ctx, const int32_t idx[3], const float p[3], const float d[3], float t0, float t1,
-                   float* t_hit) {
-  const Scene<float>& S = *static_cast<const Scene<float>*>(ctx);
-  const int64_t cell[3] = {idx[0], idx[1], idx[2]};
-  return S.sdf.crossing(S.medium, cell, p, d, t0, t1, 1.0f, t_hit);
-}
-
 template <bool DIEL>
 simd::ObjectWalkScene object_scene(const Scene<float>& S) {
   simd::ObjectWalkScene W;
@@ -144,7 +137,6 @@ simd::ObjectWalkScene object_scene(const Scene<float>& S) {
   W.exact_math = g_simd_exact_math.load();
   W.steps = const_cast<Scene<float>*>(&S);
   W.start = &lane_start<DIEL>;
-  W.crossing = &lane_crossing;
   W.surface = &lane_surface<DIEL>;
   return W;
 }

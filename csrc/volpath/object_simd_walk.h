@@ -9,8 +9,8 @@
 //   start    (begin_path, start_at_sensor, enter_from_outside) the scalar step `start`;
 //   flight   (fly) one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 for what ends
 //            the flight, u2 u3 the new direction; per iteration of the wavefront loop each lane in flight either
-//            steps through one voxel (VoxelDDA; in a mixed cell the lanes decide whether the ray crosses the
-//            surface there, may_cross, and the scalar step `crossing` finds where) or, in a brick of the
+//            steps through one voxel (VoxelDDA; in a mixed cell the lanes find whether and where the ray crosses
+//            the surface there, `crossings`: SDFGrid::crossing in lanes) or, in a brick of the
 //            homogeneous core, crosses or collides in the box of core bricks around it in one move
 //            (VoxelDDA::brick_box, voxel_in, leave), with the core's values and no ratio weight or tape entry;
 //            a palette medium (a quantised print) reads each voxel's entry and the tables;
@@ -65,11 +65,23 @@ inline void orotate(F d[3], F cos_t, F u) {
   rotate_sc(d, cos_t, sp, cp);
 }
 
-// The lanes of `m` (mixed cells idx, the ray p + t·d over [t0, t1]) where SDFGrid::crossing(..., side = +1) finds a
-// crossing, as lane bits: its expressions in its order up to its decision (the cubic's coefficients, the roots of its
-// derivative, and whether a monotone piece rises to h >= 0), so a lane it leaves out is one where the scalar step
-// would find none; for the others the scalar step finds the crossing itself (the bisection).
-inline int may_cross(const ObjectWalkScene& S, M m, const I idx[3], const F p[3], const F d[3], F t0, F t1) {
+// nextafter(x, y) per lane for finite x and y (the scalar walk's tnextafter): the neighbouring float of x toward y
+inline F onextafter(F x, F y) {
+  const F zero = fzero();
+  const M up = lt(x, y);
+  const M grow = mor(mand(up, gt(x, zero)), mandnot(up, lt(x, zero)));  // |x| grows: one more unit in the last place
+  const I bx = asi(x);
+  I r = seli(grow, iadd(bx, iset(1)), isub(bx, iset(1)));
+  r = seli(eq(x, zero), seli(up, iset(1), iset(int32_t(0x80000001u))), r);  // ±0: the smallest subnormal toward y
+  return sel(eq(x, y), y, asf(r));
+}
+
+// SDFGrid::crossing(..., side = +1) in the lanes of `m` (mixed cells idx, the ray p + t·d over [t0, t1]): its
+// expressions in its order (the cubic's coefficients, the roots of its derivative, the first monotone piece that rises
+// to h >= 0, and the safeguarded Newton steps down to adjacent numbers, lanes stepping together until the last one is
+// done), so each lane's crossing is the scalar step's to the bit. Returns the lanes that cross, with their t_hit
+// (t1 in the others).
+inline M crossings(const ObjectWalkScene& S, M m, const I idx[3], const F p[3], const F d[3], F t0, F t1, F* t_hit) {
   const int32_t W1 = S.W + 1, HW1 = (S.H + 1) * W1;
   const int32_t off[8] = {0, 1, W1, W1 + 1, HW1, HW1 + 1, HW1 + W1, HW1 + W1 + 1};
   alignas(64) int32_t base[kLanes];
@@ -88,8 +100,8 @@ inline int may_cross(const ObjectWalkScene& S, M m, const I idx[3], const F p[3]
     a[k] = sub(div(add(p[k], mul(d[k], t0)), fset(S.voxel[k])), cvtif(idx[k]));
     b[k] = div(d[k], fset(S.voxel[k]));
   }
-  const F one = fset(1.0f);
-  F k0 = fzero(), k1 = fzero(), k2 = fzero(), k3 = fzero();
+  const F one = fset(1.0f), zero = fzero();
+  F k0 = zero, k1 = zero, k2 = zero, k3 = zero;
   for (int corner = 0; corner < 8; ++corner) {
     const int ix = corner & 1, iy = (corner >> 1) & 1, iz = (corner >> 2) & 1;
     const F p0 = ix ? a[0] : sub(one, a[0]), p1 = ix ? b[0] : neg(b[0]);
@@ -102,30 +114,67 @@ inline int may_cross(const ObjectWalkScene& S, M m, const I idx[3], const F p[3]
     k3 = add(k3, mul(mul(mul(w, p1), q1), r1));
   }
   const F L = sub(t1, t0);
-  const M ok = mand(m, gt(L, fzero()));
+  const M ok = mand(m, gt(L, zero));
   // roots of h' = 3k3 τ² + 2k2 τ + k1 (the numerically stable form), sorted
   const F A = mul(fset(3.0f), k3), B = mul(fset(2.0f), k2), C = k1;
-  const M quad = mnot(eq(A, fzero()));
+  const M quad = mnot(eq(A, zero));
   const F disc = sub(mul(B, B), mul(mul(fset(4.0f), A), C));
-  const M two_roots = mand(quad, gt(disc, fzero()));
-  const F sq = sqrt_(sel(two_roots, disc, fzero()));
+  const M two_roots = mand(quad, gt(disc, zero));
+  const F sq = sqrt_(sel(two_roots, disc, zero));
   const F q = mul(fset(-0.5f), add(B, asf(ior_(asi(fabs_(sq)), iand(asi(B), asi(fset(-0.0f)))))));
   F ra = div(q, sel(two_roots, A, one));
-  F rb = div(C, sel(eq(q, fzero()), one, q));
-  M va = two_roots, vb = mandnot(eq(q, fzero()), two_roots);
-  const M lin = mandnot(quad, mnot(eq(B, fzero())));  // A == 0, B != 0: one root −C/B
+  F rb = div(C, sel(eq(q, zero), one, q));
+  M va = two_roots, vb = mandnot(eq(q, zero), two_roots);
+  const M lin = mandnot(quad, mnot(eq(B, zero)));  // A == 0, B != 0: one root −C/B
   ra = sel(lin, div(neg(C), sel(lin, B, one)), ra);
   va = mor(va, lin);
   const M swap = mand(vb, lt(rb, ra));
-  const F lo = sel(swap, rb, ra), hi = sel(swap, ra, rb);
-  const M v0 = mand(va, mand(gt(lo, fzero()), lt(lo, L)));
-  const M v1 = mand(vb, mand(gt(hi, fzero()), lt(hi, L)));
+  const F lo0 = sel(swap, rb, ra), hi0 = sel(swap, ra, rb);
+  const M v0 = mand(va, mand(gt(lo0, zero), lt(lo0, L)));
+  const M v1 = mand(vb, mand(gt(hi0, zero), lt(hi0, L)));
   // the pieces [0, P1], [P1, P2], [P2, L] (degenerate [L, L] where there are fewer split points)
-  const F P1 = sel(v0, lo, sel(v1, hi, L)), P2 = sel(mand(v0, v1), hi, L);
+  const F P1 = sel(v0, lo0, sel(v1, hi0, L)), P2 = sel(mand(v0, v1), hi0, L);
   auto h = [&](F x) { return add(mul(add(mul(add(mul(k3, x), k2), x), k1), x), k0); };
-  const F h0 = h(fzero()), h1 = h(P1), h2 = h(P2), h3 = h(L);
-  auto rises = [&](F ha, F hb) { return mandnot(lt(hb, fzero()), gt(hb, ha)); };
-  return bits(mand(ok, mor(mor(rises(h0, h1), rises(h1, h2)), rises(h2, h3))));
+  const F h0 = h(zero), h1 = h(P1), h2 = h(P2), h3 = h(L);
+  auto rises = [&](F ha, F hb) { return mandnot(lt(hb, zero), gt(hb, ha)); };
+  const M e1 = rises(h0, h1), e2 = rises(h1, h2), e3 = rises(h2, h3);
+  const M hit = mand(ok, mor(mor(e1, e2), e3));
+  *t_hit = t1;
+  if (!bits(hit)) return hit;
+  // the first piece that rises to h >= 0: the crossing at its start, or inside it (Newton, as the scalar step)
+  F lo = sel(e1, zero, sel(e2, P1, P2)), hi = sel(e1, P1, sel(e2, P2, L));
+  F hl = sel(e1, h0, sel(e2, h1, h2)), hh = sel(e1, h1, sel(e2, h2, h3));
+  const M at_start = mand(hit, ge(hl, zero));
+  const F start = lo;
+  M run = mandnot(at_start, hit);
+  I same = iset(0), last = iset(0);
+  const F half = fset(0.5f), three_k3 = mul(fset(3.0f), k3), two_k2 = mul(fset(2.0f), k2);
+  for (int it = 0; it < 160 && bits(run); ++it) {
+    const F mid = mul(half, add(lo, hi));
+    const M bis = igt(same, iset(2));
+    const M from_lo = lt(neg(hl), hh);
+    const F s = sel(from_lo, lo, hi), hs = sel(from_lo, hl, hh);
+    F mn = sub(s, div(hs, add(mul(add(mul(three_k3, s), two_k2), s), k1)));
+    const F nb = onextafter(s, sel(from_lo, hi, lo));
+    const M snap = mor(mand(from_lo, mand(lt(mn, nb), ge(mn, s))), mandnot(from_lo, mand(gt(mn, nb), ge(s, mn))));
+    mn = sel(snap, nb, mn);
+    mn = sel(mand(gt(mn, lo), lt(mn, hi)), mn, mid);
+    const F mm = sel(bis, mid, mn);
+    same = seli(bis, iset(0), same);
+    run = mand(run, mand(gt(mm, lo), lt(mm, hi)));  // a lane whose lo and hi are adjacent numbers is done
+    const F hm = h(mm);
+    const M far = ge(hm, zero);
+    const M up = mand(run, far), down = mandnot(far, run);
+    hi = sel(up, mm, hi);
+    hh = sel(up, hm, hh);
+    lo = sel(down, mm, lo);
+    hl = sel(down, hm, hl);
+    const I side = seli(far, iset(1), iset(-1));
+    same = seli(run, seli(ieq(side, last), iadd(same, iset(1)), iset(0)), same);
+    last = seli(run, side, last);
+  }
+  *t_hit = add(t0, sel(at_start, start, hi));
+  return hit;
 }
 
 // Per-lane state between the phases of the wavefront loop.
@@ -371,32 +420,9 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
             __builtin_prefetch(c + HW1);
             __builtin_prefetch(c + HW1 + W1);
           }
-          mb = may_cross(S, mixed, idx, p, d, t, tend);  // (most flights pass no surface)
-        }
-        if (mb) {  // the surface in a mixed cell: the scalar step, lane by lane
-          alignas(64) float pa[3][kLanes], da[3][kLanes], ta[kLanes], th[kLanes];
-          alignas(64) int32_t ia[3][kLanes], hf[kLanes];
-          for (int a = 0; a < 3; ++a) {
-            storef(pa[a], p[a]);
-            storef(da[a], d[a]);
-            storei(ia[a], idx[a]);
-          }
-          storef(ta, t);
-          storef(th, tend);
-          storei(hf, iset(0));
-          while (mb) {
-            const int l = __builtin_ctz(unsigned(mb));
-            mb &= mb - 1;
-            const int32_t cell[3] = {ia[0][l], ia[1][l], ia[2][l]};
-            const float pl[3] = {pa[0][l], pa[1][l], pa[2][l]}, dl[3] = {da[0][l], da[1][l], da[2][l]};
-            float x;
-            if (S.crossing(S.steps, cell, pl, dl, ta[l], th[l], &x)) {
-              th[l] = x;
-              hf[l] = -1;
-            }
-          }
-          tend = loadf(th);
-          hit_here = ieq(loadi(hf), iset(-1));
+          F th;
+          hit_here = crossings(S, mixed, idx, p, d, t, tend, &th);  // (most flights pass no surface)
+          tend = sel(hit_here, th, tend);
         }
       }
       const F seg = tmax(fzero(), sub(tend, t));
