@@ -85,9 +85,10 @@ int64_t backward_kernel(const Scene<T>& S, const T* grad_out, T* gs, T* ga, cons
         return;
       }
     }
-    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kSDFBoundary && !HERO) {
+    if constexpr (std::is_same_v<T, float> && B == core::kSDFBoundary && !HERO) {
       if (simd_object) {
-        events[c] = simd_object_backward_chunk<DIEL>(S, grad_out, A, store, c, nchunks, share, image, &truncated[c]);
+        events[c] = simd_object_backward_chunk<DIEL, LANES>(S, grad_out, A, store, c, nchunks, share, image,
+                                                            &truncated[c]);
         return;
       }
     }

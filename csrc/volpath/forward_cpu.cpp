@@ -60,9 +60,9 @@ ForwardCounts forward_kernel(const Scene<T>& S0, T* out, const Share& share) {
         return;
       }
     }
-    if constexpr (std::is_same_v<T, float> && LANES == 1 && B == core::kSDFBoundary && !HERO) {
+    if constexpr (std::is_same_v<T, float> && B == core::kSDFBoundary && !HERO) {
       if (simd_object) {
-        counts[c] = simd_object_forward_chunk<DIEL, RATIO>(S0, out, c, nchunks, share);
+        counts[c] = simd_object_forward_chunk<DIEL, RATIO, LANES>(S0, out, c, nchunks, share);
         return;
       }
     }

@@ -25,8 +25,10 @@ using core::PathResult;
 using core::PathState;
 using core::Scene;
 
-// A lane's state as the scalar walk's (one channel, not hero).
-void load_lane(const Scene<float>& S, const simd::ObjectLane& o, PathState<float, 1>& st, PathResult<float, 1>& res) {
+// A lane's state as the scalar walk's (one channel, or three in one walk; not hero).
+template <int LANES>
+void load_lane(const Scene<float>& S, const simd::ObjectLane& o, PathState<float, LANES>& st,
+               PathResult<float, LANES>& res) {
   for (int a = 0; a < 3; ++a) {
     st.p[a] = o.p[a];
     st.d[a] = o.d[a];
@@ -34,7 +36,7 @@ void load_lane(const Scene<float>& S, const simd::ObjectLane& o, PathState<float
     res.direction[a] = 0.0f;
   }
   st.inside = true;
-  st.ch0 = o.chan;
+  st.ch0 = LANES == 1 ? o.chan : 0;
   st.depth = o.depth;
   st.rng = core::PathRng<float>{S.seed, uint32_t(o.elem), uint32_t(o.sample), uint32_t(o.chan)};
   st.event = o.event;
@@ -42,14 +44,18 @@ void load_lane(const Scene<float>& S, const simd::ObjectLane& o, PathState<float
   st.u[1] = o.u1;
   st.u_fresnel = o.u_fresnel;
   st.fresh = o.fresh != 0;
-  st.w[0] = o.w;
-  st.wref[0] = o.wref;
-  res.value[0] = 0.0f;
-  res.prod_nonzero[0] = o.prod;
-  res.zeros[0] = o.zeros;
+  for (int l = 0; l < LANES; ++l) {
+    st.w[l] = o.w[l];
+    st.wref[l] = o.wref[l];
+    res.value[l] = 0.0f;
+    res.prod_nonzero[l] = o.prod[l];
+    res.zeros[l] = o.zeros[l];
+  }
 }
 
-void store_lane(const PathState<float, 1>& st, const PathResult<float, 1>& res, bool alive, simd::ObjectLane& o) {
+template <int LANES>
+void store_lane(const PathState<float, LANES>& st, const PathResult<float, LANES>& res, bool alive,
+                simd::ObjectLane& o) {
   for (int a = 0; a < 3; ++a) {
     o.p[a] = st.p[a];
     o.d[a] = st.d[a];
@@ -60,48 +66,50 @@ void store_lane(const PathState<float, 1>& st, const PathResult<float, 1>& res, 
   o.event = st.event;
   o.u_fresnel = st.u_fresnel;
   o.fresh = st.fresh;
-  o.w = st.w[0];
-  o.wref = st.wref[0];
-  o.prod = res.prod_nonzero[0];
-  o.zeros = res.zeros[0];
+  for (int l = 0; l < LANES; ++l) {
+    o.w[l] = st.w[l];
+    o.wref[l] = st.wref[l];
+    o.prod[l] = res.prod_nonzero[l];
+    o.zeros[l] = res.zeros[l];
+  }
   o.outside_steps += res.outside_steps;
   o.status = alive ? simd::kLaneInside : (res.escaped ? simd::kLaneEscaped : simd::kLaneTruncated);
 }
 
 // Outside the object until the walk is inside it again (true) or has ended.
-template <bool DIEL>
-bool into_object(const Scene<float>& S, PathState<float, 1>& st, PathResult<float, 1>& res) {
+template <bool DIEL, int LANES>
+bool into_object(const Scene<float>& S, PathState<float, LANES>& st, PathResult<float, LANES>& res) {
   while (!st.inside)
-    if (!core::enter_from_outside<float, 1, core::kSDFBoundary, DIEL, false>(S, st, res)) return false;
+    if (!core::enter_from_outside<float, LANES, core::kSDFBoundary, DIEL, false>(S, st, res)) return false;
   return true;
 }
 
-template <bool DIEL>
+template <bool DIEL, int LANES>
 void lane_start(void* ctx, simd::ObjectLane& o) {
   const Scene<float>& S = *static_cast<const Scene<float>*>(ctx);
-  PathState<float, 1> st;
-  PathResult<float, 1> res;
-  core::begin_path<float, 1, false>(S, o.elem, o.sample, o.chan, st, res);
-  const bool alive = core::start_at_sensor<float, 1, core::kSDFBoundary, DIEL, false>(S, o.elem, st, res) &&
+  PathState<float, LANES> st;
+  PathResult<float, LANES> res;
+  core::begin_path<float, LANES, false>(S, o.elem, o.sample, o.chan, st, res);
+  const bool alive = core::start_at_sensor<float, LANES, core::kSDFBoundary, DIEL, false>(S, o.elem, st, res) &&
                      into_object<DIEL>(S, st, res);
   store_lane(st, res, alive, o);
 }
 
-template <bool DIEL>
+template <bool DIEL, int LANES>
 void lane_surface(void* ctx, simd::ObjectLane& o, int32_t end, int32_t axis) {
   const Scene<float>& S = *static_cast<const Scene<float>*>(ctx);
-  PathState<float, 1> st;
-  PathResult<float, 1> res;
+  PathState<float, LANES> st;
+  PathResult<float, LANES> res;
   load_lane(S, o, st, res);
   core::Flight f;
   f.end = end;
   f.axis = axis;
-  const bool alive = core::cross_from_inside<float, 1, core::kSDFBoundary, DIEL, false>(S, st, res, f) &&
+  const bool alive = core::cross_from_inside<float, LANES, core::kSDFBoundary, DIEL, false>(S, st, res, f) &&
                      into_object<DIEL>(S, st, res);
   store_lane(st, res, alive, o);
 }
 
-template <bool DIEL>
+template <bool DIEL, int LANES>
 simd::ObjectWalkScene object_scene(const Scene<float>& S) {
   simd::ObjectWalkScene W;
   const auto& M = S.medium;
@@ -130,14 +138,15 @@ simd::ObjectWalkScene object_scene(const Scene<float>& S) {
   W.H = int32_t(M.H);
   W.W = int32_t(M.W);
   W.g = S.g;
+  W.channels = LANES;
   W.seed = S.seed;
   W.max_depth = S.max_depth;
   W.rr_depth = S.rr_depth;
   W.spp = S.spp;
   W.exact_math = g_simd_exact_math.load();
   W.steps = const_cast<Scene<float>*>(&S);
-  W.start = &lane_start<DIEL>;
-  W.surface = &lane_surface<DIEL>;
+  W.start = &lane_start<DIEL, LANES>;
+  W.surface = &lane_surface<DIEL, LANES>;
   return W;
 }
 
@@ -149,10 +158,10 @@ void object_walks(const simd::ObjectWalkScene& W, const int64_t* elems, const ui
 
 }  // namespace
 
-template <bool DIEL, bool RATIO>
+template <bool DIEL, bool RATIO, int LANES>
 ForwardCounts simd_object_forward_chunk(const Scene<float>& S, float* out, int64_t c, int64_t nchunks,
                                         const Share& share) {
-  const simd::ObjectWalkScene W = object_scene<DIEL>(S);
+  const simd::ObjectWalkScene W = object_scene<DIEL, LANES>(S);
   return simd_forward_batches(
       S, out, [&](const auto& body) { for_elements_of_chunk(c, nchunks, share, body); },
       [&](const int64_t* elems, int64_t n, simd::WalkDone done, void* ctx) {
@@ -160,20 +169,11 @@ ForwardCounts simd_object_forward_chunk(const Scene<float>& S, float* out, int64
       });
 }
 
-template ForwardCounts simd_object_forward_chunk<false, false>(const Scene<float>&, float*, int64_t, int64_t,
-                                                               const Share&);
-template ForwardCounts simd_object_forward_chunk<false, true>(const Scene<float>&, float*, int64_t, int64_t,
-                                                              const Share&);
-template ForwardCounts simd_object_forward_chunk<true, false>(const Scene<float>&, float*, int64_t, int64_t,
-                                                              const Share&);
-template ForwardCounts simd_object_forward_chunk<true, true>(const Scene<float>&, float*, int64_t, int64_t,
-                                                             const Share&);
-
-template <bool DIEL>
+template <bool DIEL, int LANES>
 int64_t simd_object_backward_chunk(const Scene<float>& S, const float* grad_out, const Adjoint<float>& A,
-                                   TapeStore<float, 1>& store, int64_t c, int64_t nchunks, const Share& share,
+                                   TapeStore<float, LANES>& store, int64_t c, int64_t nchunks, const Share& share,
                                    float* image, int64_t* cut) {
-  const simd::ObjectWalkScene W = object_scene<DIEL>(S);
+  const simd::ObjectWalkScene W = object_scene<DIEL, LANES>(S);
   return simd_replay_chunk<core::kSDFBoundary, DIEL>(
       S, grad_out, A, store, image, cut,
       [&](const auto& body) { for_elements_of_chunk(c, nchunks, share, body); },
@@ -181,12 +181,19 @@ int64_t simd_object_backward_chunk(const Scene<float>& S, const float* grad_out,
           void* ctx) { object_walks(W, elems, live, n, true, tapes, done, ctx); });
 }
 
-template int64_t simd_object_backward_chunk<false>(const Scene<float>&, const float*, const Adjoint<float>&,
-                                                   TapeStore<float, 1>&, int64_t, int64_t, const Share&, float*,
-                                                   int64_t*);
-template int64_t simd_object_backward_chunk<true>(const Scene<float>&, const float*, const Adjoint<float>&,
-                                                  TapeStore<float, 1>&, int64_t, int64_t, const Share&, float*,
-                                                  int64_t*);
+#define TA_OBJECT_CHUNKS(DIEL, LANES)                                                                                \
+  template ForwardCounts simd_object_forward_chunk<DIEL, false, LANES>(const Scene<float>&, float*, int64_t, int64_t, \
+                                                                       const Share&);                                 \
+  template ForwardCounts simd_object_forward_chunk<DIEL, true, LANES>(const Scene<float>&, float*, int64_t, int64_t,  \
+                                                                      const Share&);                                  \
+  template int64_t simd_object_backward_chunk<DIEL, LANES>(const Scene<float>&, const float*, const Adjoint<float>&,   \
+                                                           TapeStore<float, LANES>&, int64_t, int64_t, const Share&,  \
+                                                           float*, int64_t*);
+TA_OBJECT_CHUNKS(false, 1)
+TA_OBJECT_CHUNKS(true, 1)
+TA_OBJECT_CHUNKS(false, 3)
+TA_OBJECT_CHUNKS(true, 3)
+#undef TA_OBJECT_CHUNKS
 
 }  // namespace detail
 

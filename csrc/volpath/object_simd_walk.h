@@ -4,8 +4,10 @@
 //   cvttfi                    float → int32, truncated
 //   gather_u8(base, idx, M)   base[idx] of a byte grid (0 outside M)
 //
-// Each lane follows core::trace_path<float, 1, kSDFBoundary, DIELECTRIC, RATIO, false, RECORD> step by step
-// (integrator.h is the reference; its steps are named here):
+// Each lane follows core::trace_path<float, CH, kSDFBoundary, DIELECTRIC, RATIO, false, RECORD> step by step
+// (integrator.h is the reference; its steps are named here), CH = 1 (the lane's channel) or 3 (one path for the three
+// channels: flights sampled with channel 0's reference σ̂, a weight, a reference weight and a flight excess per
+// channel, p_s the largest reference albedo of the three):
 //   start    (begin_path, start_at_sensor, enter_from_outside) the scalar step `start`;
 //   flight   (fly) one event per free flight: u0 the optical depth −log u0 in the reference medium, u1 for what ends
 //            the flight, u2 u3 the new direction; per iteration of the wavefront loop each lane in flight either
@@ -181,25 +183,26 @@ inline M crossings(const ObjectWalkScene& S, M m, const I idx[3], const F p[3], 
 struct alignas(64) ObjLanes {
   float p[3][kLanes], d[3][kLanes], tn[3][kLanes], td[3][kLanes], dir[3][kLanes];
   int32_t idx[3][kLanes], step[3][kLanes];
-  float tau[kLanes], acc[kLanes], t[kLanes], u1[kLanes], u2[kLanes], u3[kLanes], excess[kLanes];
-  float w[kLanes], wref[kLanes], prod[kLanes], u_fresnel[kLanes];
-  int32_t zeros[kLanes], event[kLanes], depth[kLanes], chan[kLanes], elem[kLanes], sample[kLanes], state[kLanes];
+  float tau[kLanes], acc[kLanes], t[kLanes], u1[kLanes], u2[kLanes], u3[kLanes];
+  float excess[3][kLanes], w[3][kLanes], wref[3][kLanes], prod[3][kLanes], u_fresnel[kLanes];  // [0] for one channel
+  int32_t zeros[3][kLanes], event[kLanes], depth[kLanes], chan[kLanes], elem[kLanes], sample[kLanes], state[kLanes];
   int32_t fresh[kLanes], nseg[kLanes], ncol[kLanes], vsteps[kLanes], exit_axis[kLanes];
   int64_t item[kLanes], scatter[kLanes], osteps[kLanes], cevents[kLanes];
 };
 enum : int32_t { kObjIdle = 0, kObjNeedFlight = 1, kObjFlying = 2 };
 enum : int32_t { kObjCellInside = 1, kObjReachedSurface = 1, kObjLeftGrid = 2 };  // core::kCellInside, FlightEnd
 
-template <bool RATIO, bool RECORD, bool EXACT>
+template <bool RATIO, bool RECORD, bool EXACT, int CH>
 void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n,
                   const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
   static_assert(!RECORD || RATIO, "the recording walk carries ratio weights");
+  static_assert(CH == 1 || CH == 3, "one channel per lane, or three");
   const int32_t N = S.D * S.H * S.W;
   const float vs[3] = {S.voxel[0], S.voxel[1], S.voxel[2]};
   const int32_t dims[3] = {S.W, S.H, S.D};
   const bool plain_s = !(S.ref_sigma_t_floor > 0), plain_a = !(S.ref_albedo_floor > 0);
   const bool same_sig = S.sigma_t == S.ref_sigma_t, same_alb = S.albedo == S.ref_albedo;
-  const bool pal = S.index != nullptr;  // a palette medium (forward only: the reference is the medium)
+  const bool pal = CH == 1 && S.index != nullptr;  // a palette medium (forward only: the reference is the medium)
   const I entries = iset(S.entries);
 
   ObjLanes L;
@@ -207,13 +210,18 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
   const TapeSlots ts(RECORD ? tapes : nullptr);
   TapeSegmentF* const segs = ts.segs;
   TapeCollisionF* const cols = ts.cols;
-  BatchOrder order(n, S.spp, live);  // the next path of the batch (the slab walk's order): order.next()
-  auto finish = [&](int l, float value, bool escaped, bool truncated) {
+  TapeCollision3F* const cols3 = ts.cols3;
+  BatchOrder order(n, S.spp, live, CH == 3);  // the next path of the batch (the slab walk's order): order.next()
+  // a path's end: escaped (its weights are its values) or not (0)
+  auto finish = [&](int l, bool escaped, bool truncated) {
     WalkOut o;
     o.item = L.item[l];
-    o.value = value;
-    o.prod_nonzero = L.prod[l];
-    o.zeros = L.zeros[l];
+    o.channels = CH;
+    for (int c = 0; c < CH; ++c) {
+      o.value[c] = escaped ? L.w[c][l] : 0.0f;
+      o.prod_nonzero[c] = L.prod[c][l];
+      o.zeros[c] = L.zeros[c][l];
+    }
     o.escaped = escaped;
     o.truncated = truncated;
     o.scatter_events = L.scatter[l];
@@ -240,10 +248,12 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     o.u1 = L.u1[l];
     o.u_fresnel = L.u_fresnel[l];
     o.fresh = L.fresh[l];
-    o.w = L.w[l];
-    o.wref = L.wref[l];
-    o.prod = L.prod[l];
-    o.zeros = L.zeros[l];
+    for (int c = 0; c < CH; ++c) {
+      o.w[c] = L.w[c][l];
+      o.wref[c] = L.wref[c][l];
+      o.prod[c] = L.prod[c][l];
+      o.zeros[c] = L.zeros[c][l];
+    }
     o.status = kLaneInside;
     o.outside_steps = 0;
   };
@@ -259,13 +269,15 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     L.event[l] = int32_t(o.event);
     L.u_fresnel[l] = o.u_fresnel;
     L.fresh[l] = o.fresh;
-    L.w[l] = o.w;
-    L.wref[l] = o.wref;
-    L.prod[l] = o.prod;
-    L.zeros[l] = o.zeros;
+    for (int c = 0; c < CH; ++c) {
+      L.w[c][l] = o.w[c];
+      L.wref[c][l] = o.wref[c];
+      L.prod[c][l] = o.prod[c];
+      L.zeros[c][l] = o.zeros[c];
+    }
     L.osteps[l] += o.outside_steps;
     if (o.status == kLaneInside) L.state[l] = kObjNeedFlight;
-    else finish(l, o.status == kLaneEscaped ? o.w : 0.0f, o.status == kLaneEscaped, o.status == kLaneTruncated);
+    else finish(l, o.status == kLaneEscaped, o.status == kLaneTruncated);
   };
   // Starts paths in idle lanes until they are all busy or the batch is empty (a path may end at its start).
   bool more = true;
@@ -276,14 +288,14 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       L.item[l] = order.item();
       L.elem[l] = int32_t(uint32_t(elems[order.k]));
       L.sample[l] = int32_t(order.s);
-      L.chan[l] = order.c;
+      L.chan[l] = CH == 3 ? 3 : order.c;  // (the random stream of a walk of three channels)
       L.scatter[l] = L.osteps[l] = L.cevents[l] = 0;
       L.vsteps[l] = L.nseg[l] = L.ncol[l] = 0;
       ObjectLane o;
       memset(&o, 0, sizeof(o));
       o.elem = L.elem[l];
       o.sample = L.sample[l];
-      o.chan = order.c;
+      o.chan = L.chan[l];
       S.start(S.steps, o);
       settle(l, o);
     }
@@ -298,6 +310,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
   auto by_chan = [&](const float x[3], I chan) {
     return sel(ieq(chan, iset(0)), fset(x[0]), sel(ieq(chan, iset(1)), fset(x[1]), fset(x[2])));
   };
+  // channel c's value of the core (c < CH): the lane's channel, or channel c of a walk of three
+  auto core_of = [&](const float x[3], I chan, int c) { return CH == 1 ? by_chan(x, chan) : fset(x[c]); };
   // the voxel of p + t·d in the box [lo, hi), clamped to it (VoxelDDA::voxel_in)
   auto voxel_in = [&](const I lo[3], const I hi[3], const F p[3], const F d[3], F t, I cell[3]) {
     for (int a = 0; a < 3; ++a) {
@@ -324,9 +338,12 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     }
     F tau = loadf(L.tau), acc = loadf(L.acc), t = loadf(L.t);
     F u1 = loadf(L.u1), u2 = loadf(L.u2), u3 = loadf(L.u3);
-    F excess = loadf(L.excess);
+    F excess[CH];
+    for (int c = 0; c < CH; ++c) excess[c] = loadf(L.excess[c]);
     const I chan = loadi(L.chan);
-    const I chN = imul(chan, Nv);
+    const I chN = CH == 1 ? imul(chan, Nv) : iset(0);  // the sampling density's plane
+    // channel c's plane (c < CH): the lane's channel, or channel c of a walk of three
+    auto plane = [&](int c) { return CH == 1 ? chN : iset(c * N); };
 
     // ---- lanes starting a free flight: one event, the optical depth and the DDA's set-up (VoxelDDA's expressions)
     const M nf = ieq(state, iset(kObjNeedFlight));
@@ -341,7 +358,7 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       u3 = sel(nf, u[3], u3);
       acc = sel(nf, fzero(), acc);
       t = sel(nf, fzero(), t);
-      excess = sel(nf, fzero(), excess);
+      for (int c = 0; c < CH; ++c) excess[c] = sel(nf, fzero(), excess[c]);
       for (int a = 0; a < 3; ++a) {
         const M pos = gt(d[a], fzero()), negd = lt(d[a], fzero());
         const F v = fset(vs[a]);
@@ -358,7 +375,8 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     // ---- the flights: one voxel, or one box of core bricks, per iteration for every lane in flight, until enough
     // flights have ended
     M collided = mnone(), surf = mnone(), out = mnone(), flying = active, col_core = mnone();
-    F col_sref = fset(1.0f), col_sig = fzero();
+    F col_sref = fset(1.0f), col_sig[CH];
+    for (int c = 0; c < CH; ++c) col_sig[c] = fzero();
     I col_v = iset(0), exit_axis = iset(-1);
     I hit_idx[3] = {idx[0], idx[1], idx[2]};
     I nseg = RECORD ? loadi(L.nseg) : iset(0);
@@ -447,16 +465,21 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
           baxis = seli(better, iset(a), baxis);
         }
         tb = tmax(tbox, t);
-        sref_c = by_chan(S.core_sigma_t, chan);
+        sref_c = core_of(S.core_sigma_t, chan, 0);
       }
       const F od = sel(incore, mul(sref_c, sub(tb, t)), mul(sref, seg));
       const F sx = sel(incore, sref_c, sref);
       const M hit = mand(flying, ge(add(acc, od), tau));
       const F len = sel(hit, div(sub(tau, acc), sel(hit, sx, fset(1.0f))), sel(incore, sub(tb, t), seg));
-      F sig = fzero();
-      if (RATIO) {  // (a core box adds (σ − σ̂)·ℓ = 0)
-        sig = same_sig ? raw : gather(S.sigma_t, iadd(chN, v), vox);
-        excess = sel(vox, add(excess, mul(sub(sig, sref), len)), excess);
+      F sig[CH];
+      for (int c = 0; c < CH; ++c) sig[c] = fzero();
+      if (RATIO) {  // (a core box adds (σ − σ̂)·ℓ = 0 to the channel that samples; to the others in a walk of three)
+        for (int c = 0; c < CH; ++c) {
+          sig[c] = same_sig && c == 0 ? raw : gather(S.sigma_t, iadd(plane(c), v), vox);
+          excess[c] = sel(vox, add(excess[c], mul(sub(sig[c], sref), len)), excess[c]);
+          if (CH == 3 && bits(incore))
+            excess[c] = sel(incore, add(excess[c], mul(sub(fset(S.core_sigma_t[c]), sref_c), len)), excess[c]);
+        }
       }
       if (RECORD) {  // a full tape's lane writes its spare slot and counts up to the room (then overflow)
         const M rec = mand(vox, gt(len, fzero()));
@@ -476,7 +499,7 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
       col_v = seli(hit, vh, col_v);
       for (int a = 0; a < 3; ++a) hit_idx[a] = seli(hit, ih[a], hit_idx[a]);
       col_sref = sel(hit, sx, col_sref);
-      col_sig = sel(mandnot(incore, hit), sig, col_sig);
+      for (int c = 0; c < CH; ++c) col_sig[c] = sel(mandnot(incore, hit), sig[c], col_sig[c]);
       col_core = mor(col_core, hit_c);
       // the others move on: to the surface, the next voxel, past the core box, or out of the grid
       const M moving = mandnot(hit, flying);
@@ -529,13 +552,19 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     for (int a = 0; a < 3; ++a) idx[a] = seli(collided, hit_idx[a], idx[a]);
     // lanes whose flight ended: move along it, apply the flight's transmittance ratio
     const M ended = mor(mor(collided, surf), out);
-    F w = loadf(L.w), prod = loadf(L.prod);
+    F w[CH], prod[CH];
+    for (int c = 0; c < CH; ++c) {
+      w[c] = loadf(L.w[c]);
+      prod[c] = loadf(L.prod[c]);
+    }
     if (bits(ended)) {
       for (int a = 0; a < 3; ++a) p[a] = sel(ended, add(p[a], mul(d[a], t)), p[a]);
       if (RATIO) {
-        const F f = oexp<EXACT>(neg(excess));
-        w = sel(ended, mul(w, f), w);
-        prod = sel(ended, mul(prod, f), prod);
+        for (int c = 0; c < CH; ++c) {
+          const F f = oexp<EXACT>(neg(excess[c]));
+          w[c] = sel(ended, mul(w[c], f), w[c]);
+          prod[c] = sel(ended, mul(prod[c], f), prod[c]);
+        }
       }
     }
     I depth = loadi(L.depth);
@@ -562,41 +591,64 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
           L.cevents[l] += (mc >> l) & 1;
         }
       }
-      const I cv = iadd(chN, col_v);
+      // continuation p_s: the reference albedo (the largest of the three in a walk of three), times roulette q on
+      // the reference weight
       const M colv = mandnot(col_core, col);
-      const F araw = pal ? gather(S.albedo_table, iadd(imul(chan, entries), gather_u8(S.index, col_v, colv)), colv)
-                         : gather(S.ref_albedo, cv, colv);
-      const F aref = sel(col_core, by_chan(S.core_albedo, chan), plain_a ? araw : tmax(araw, fset(S.ref_albedo_floor)));
-      const F ps = aref;
-      F wref = loadf(L.wref);
+      F araw[CH], aref[CH];
+      F ps = fzero();
+      for (int c = 0; c < CH; ++c) {
+        araw[c] = pal ? gather(S.albedo_table, iadd(imul(chan, entries), gather_u8(S.index, col_v, colv)), colv)
+                      : gather(S.ref_albedo, iadd(plane(c), col_v), colv);
+        aref[c] = sel(col_core, core_of(S.core_albedo, chan, c),
+                      plain_a ? araw[c] : tmax(araw[c], fset(S.ref_albedo_floor)));
+        ps = CH == 1 ? aref[c] : tmax(ps, aref[c]);
+      }
+      F wref[CH];
+      for (int c = 0; c < CH; ++c) wref[c] = loadf(L.wref[c]);
       F q = fset(1.0f);
       const M rr = igt(depth, iset(rr_depth));
-      if (bits(mand(rr, col))) q = sel(rr, tmin(fset(1.0f), tmax(fzero(), div(mul(wref, aref), ps))), q);
+      if (bits(mand(rr, col))) {
+        F m = fzero();
+        for (int c = 0; c < CH; ++c) m = tmax(m, div(mul(wref[c], aref[c]), ps));
+        q = sel(rr, tmin(fset(1.0f), m), q);
+      }
       const F psq = mul(ps, q);
       const M survive = mand(col, lt(u1, psq));
       kill_absorb = bits(mandnot(survive, col));
       const F inv_psq = div(fset(1.0f), psq);
-      wref = sel(survive, mul(wref, mul(aref, inv_psq)), wref);
-      storef(L.wref, wref);
-      if (RATIO) {
-        const F alb0 = same_alb ? araw : gather(S.albedo, cv, mandnot(col_core, survive));
-        const F alb = sel(col_core, by_chan(S.core_albedo, chan), alb0);
-        const F fa = mul(alb, inv_psq);
-        const F fs = div(sel(col_core, by_chan(S.core_sigma_t, chan), col_sig), col_sref);
-        w = sel(survive, mul(w, mul(fs, fa)), w);
-        const M zs = eq(fs, fzero()), za = eq(fa, fzero());
-        prod = sel(survive, mul(mul(prod, sel(zs, fset(1.0f), fs)), sel(za, fset(1.0f), fa)), prod);
-        I zeros = loadi(L.zeros);
-        zeros = iadd1(zeros, mand(survive, zs));
-        zeros = iadd1(zeros, mand(survive, za));
-        storei(L.zeros, zeros);
-        if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa}; none in the core
+      for (int c = 0; c < CH; ++c) {
+        wref[c] = sel(survive, mul(wref[c], mul(aref[c], inv_psq)), wref[c]);
+        storef(L.wref[c], wref[c]);
+      }
+      if (RATIO || CH == 3) {  // the collision's factors σ/σ̂ (1 without ratio weights) and α/(p_s q)
+        F fs[CH], fa[CH];
+        for (int c = 0; c < CH; ++c) {
+          const F alb0 = same_alb ? araw[c] : gather(S.albedo, iadd(plane(c), col_v), mandnot(col_core, survive));
+          const F alb = sel(col_core, core_of(S.core_albedo, chan, c), alb0);
+          fa[c] = mul(alb, inv_psq);
+          fs[c] = RATIO ? div(sel(col_core, core_of(S.core_sigma_t, chan, c), col_sig[c]), col_sref) : fset(1.0f);
+          w[c] = sel(survive, mul(w[c], mul(fs[c], fa[c])), w[c]);
+          const M zs = eq(fs[c], fzero()), za = eq(fa[c], fzero());
+          prod[c] = sel(survive, mul(mul(prod[c], sel(zs, fset(1.0f), fs[c])), sel(za, fset(1.0f), fa[c])), prod[c]);
+          I zeros = loadi(L.zeros[c]);
+          zeros = iadd1(zeros, mand(survive, zs));
+          zeros = iadd1(zeros, mand(survive, za));
+          storei(L.zeros[c], zeros);
+        }
+        if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa} per channel; none in the core
           const M rec = mandnot(col_core, survive);
           const I ncol = loadi(L.ncol);
-          const I s3 = ts.col_slot3(ncol);
-          store_pairs(cols, s3, col_v, nseg, rec);
-          store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), rec);
-          store_pairs(cols, iadd(s3, iset(2)), asi(fs), asi(fa), rec);
+          if (CH == 1) {
+            const I s3 = ts.col_slot3(ncol);
+            store_pairs(cols, s3, col_v, nseg, rec);
+            store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), rec);
+            store_pairs(cols, iadd(s3, iset(2)), asi(fs[0]), asi(fa[0]), rec);
+          } else {
+            const I s5 = ts.col_slot<5>(ncol);
+            store_pairs(cols3, s5, col_v, nseg, rec);
+            store_pairs(cols3, iadd(s5, iset(1)), asi(col_sref), asi(inv_psq), rec);
+            for (int c = 0; c < CH; ++c) store_pairs(cols3, iadd(s5, iset(2 + c)), asi(fs[c]), asi(fa[c]), rec);
+          }
           storei(L.ncol, ts.col_count(ncol, rec));
         }
       }
@@ -622,9 +674,11 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     storef(L.u1, u1);
     storef(L.u2, u2);
     storef(L.u3, u3);
-    storef(L.excess, excess);
-    storef(L.w, w);
-    storef(L.prod, prod);
+    for (int c = 0; c < CH; ++c) {
+      storef(L.excess[c], excess[c]);
+      storef(L.w[c], w[c]);
+      storef(L.prod[c], prod[c]);
+    }
     storei(L.depth, depth);
     storei(L.state, newstate);
     storei(L.exit_axis, exit_axis);
@@ -634,7 +688,7 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
     for (int m = killed; m;) {
       const int l = __builtin_ctz(unsigned(m));
       m &= m - 1;
-      finish(l, 0.0f, false, (kill_trunc >> l) & 1);
+      finish(l, false, (kill_trunc >> l) & 1);
     }
     const int boundary = bits(mor(surf, out)), at_surface = bits(surf);
     for (int m = boundary; m;) {
@@ -651,19 +705,27 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
 }
 
 // The entry point's body: the template instance for the scene's flags.
+template <int CH>
+inline void object_walks_for(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n, bool ratio,
+                             const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
+  if (S.exact_math) {
+    if (tapes) object_walks<true, true, true, CH>(S, elems, live, n, tapes, ended_lanes, done, ctx);
+    else if (ratio) object_walks<true, false, true, CH>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+    else object_walks<false, false, true, CH>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+  } else {
+    if (tapes) object_walks<true, true, false, CH>(S, elems, live, n, tapes, ended_lanes, done, ctx);
+    else if (ratio) object_walks<true, false, false, CH>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+    else object_walks<false, false, false, CH>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
+  }
+}
+
 inline void object_walks_dispatch(const ObjectWalkScene& S, const int64_t* elems, const uint8_t* live, int64_t n,
                                   bool ratio, const LaneTapes* tapes, int ended_lanes, WalkDone done, void* ctx) {
   if (ended_lanes < 1 || ended_lanes > kLanes) ended_lanes = kLanes * 3 / 4;
   if (tapes && !(tapes->seg_cap >= 0 && tapes->seg_cap <= kMaxTapeCap && tapes->col_cap >= 0 &&
-                 tapes->col_cap <= kMaxTapeCap))
+                 tapes->col_cap <= kMaxTapeCap && (S.channels == 3 ? tapes->cols3 != nullptr : tapes->cols != nullptr)))
     __builtin_trap();  // (the caller checks first)
-  if (S.exact_math) {
-    if (tapes) object_walks<true, true, true>(S, elems, live, n, tapes, ended_lanes, done, ctx);
-    else if (ratio) object_walks<true, false, true>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
-    else object_walks<false, false, true>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
-  } else {
-    if (tapes) object_walks<true, true, false>(S, elems, live, n, tapes, ended_lanes, done, ctx);
-    else if (ratio) object_walks<true, false, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
-    else object_walks<false, false, false>(S, elems, live, n, nullptr, ended_lanes, done, ctx);
-  }
+  if (S.channels == 3 && S.index != nullptr) __builtin_trap();  // (dense grids only; the glue does not ask)
+  if (S.channels == 3) object_walks_for<3>(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
+  else object_walks_for<1>(S, elems, live, n, ratio, tapes, ended_lanes, done, ctx);
 }

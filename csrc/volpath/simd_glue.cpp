@@ -92,20 +92,30 @@ simd::SlabWalkScene simd_scene(const Scene<float>& S, const float* ref_pair) {
 // core::deposit_tape<float, 1> for the SIMD walk's compact tape (slab_simd.h), through the same deposit policy
 // (Adjoint::sigma_t, Adjoint::albedo), with the σ_t deposits of one voxel in a row summed before they are added (a
 // flight that ends by a collision and the next flight's first segment there).
-void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A) {
-  // Compact buffers (AskedVoxels): ask for every voxel's rank first, then for the lines of its deposits, so that
-  // their cache misses overlap instead of following one another in the adds below (an object's shell: 1.5 s of a
-  // 40 mm iteration at 8 spp; on a slab's dense buffers, which the caches hold better, the same was 4 % slower).
-  if (A.rank != nullptr) {
-    for (int64_t s = 0; s < o.nseg; ++s) __builtin_prefetch(A.rank + o.segs[s].v);
-    for (int64_t s = 0; s < o.nseg; ++s) {
-      const int32_t r = A.rank[o.segs[s].v];
-      if (r < 0) continue;
-      if (A.grad_sigma_t) __builtin_prefetch(A.grad_sigma_t + ch * A.plane + r, 1);
-      if (A.grad_albedo) __builtin_prefetch(A.grad_albedo + ch * A.plane + r, 1);
+namespace {
+
+// Compact buffers (AskedVoxels): ask for every voxel's rank first, then for the lines of its deposits (channels
+// [c0, c1)), so that their cache misses overlap instead of following one another in the adds (an object's shell:
+// 1.5 s of a 40 mm iteration at 8 spp; on a slab's dense buffers, which the caches hold better, the same was 4 %
+// slower).
+void prefetch_deposits(const simd::WalkOut& o, int c0, int c1, const Adjoint<float>& A) {
+  if (A.rank == nullptr) return;
+  for (int64_t s = 0; s < o.nseg; ++s) __builtin_prefetch(A.rank + o.segs[s].v);
+  for (int64_t s = 0; s < o.nseg; ++s) {
+    const int32_t r = A.rank[o.segs[s].v];
+    if (r < 0) continue;
+    for (int c = c0; c < c1; ++c) {
+      if (A.grad_sigma_t) __builtin_prefetch(A.grad_sigma_t + c * A.plane + r, 1);
+      if (A.grad_albedo) __builtin_prefetch(A.grad_albedo + c * A.plane + r, 1);
     }
   }
-  const float av = adj * o.value;
+}
+
+}  // namespace
+
+void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<float>& A) {
+  prefetch_deposits(o, ch, ch + 1, A);
+  const float av = adj * o.value[0];
   int64_t cur = -1;  // the voxel of the pending σ_t deposit
   float run = 0.0f;
   auto add_s = [&](int64_t v, float d) {
@@ -122,15 +132,45 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
     const simd::TapeCollisionF& col = o.cols[k];
     if (A.grad_sigma_t) {
       for (; s < col.seg_end; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
-      add_s(col.v, adj * core::weight_without(col.fs, o.value, o.prod_nonzero, int(o.zeros)) / col.sref);
+      add_s(col.v, adj * core::weight_without(col.fs, o.value[0], o.prod_nonzero[0], int(o.zeros[0])) / col.sref);
     }
     if (A.grad_albedo)
-      A.albedo(ch, col.v, adj * core::weight_without(col.fa, o.value, o.prod_nonzero, int(o.zeros)) * col.inv_psq);
+      A.albedo(ch, col.v,
+               adj * core::weight_without(col.fa, o.value[0], o.prod_nonzero[0], int(o.zeros[0])) * col.inv_psq);
   }
   if (A.grad_sigma_t) {
     for (; s < o.nseg; ++s) add_s(o.segs[s].v, -(av * o.segs[s].len));
     if (cur >= 0) A.sigma_t(ch, cur, run);
   }
+}
+
+// core::deposit_tape<float, 3> on the compact tape: the same expressions in the same order.
+void deposit_simd_tape3(const simd::WalkOut& o, const float adj[3], const Adjoint<float>& A) {
+  prefetch_deposits(o, 0, 3, A);
+  int64_t s = 0;
+  auto segments_until = [&](int64_t end) {
+    if (!A.grad_sigma_t) return;  // (nothing was recorded then)
+    for (; s < end; ++s) {
+      const int64_t v = o.segs[s].v;
+      const float len = o.segs[s].len;
+      for (int l = 0; l < 3; ++l) A.sigma_t(l, v, -(adj[l] * o.value[l] * len));
+    }
+  };
+  for (int64_t k = 0; k < o.ncol; ++k) {
+    const simd::TapeCollision3F& col = o.cols3[k];
+    segments_until(col.seg_end);
+    for (int l = 0; l < 3; ++l) {
+      if (A.grad_sigma_t)
+        A.sigma_t(l, col.v,
+                  adj[l] * core::weight_without(col.f[l].fs, o.value[l], o.prod_nonzero[l], int(o.zeros[l])) /
+                      col.sref);
+      if (A.grad_albedo)
+        A.albedo(l, col.v,
+                 adj[l] * core::weight_without(col.f[l].fa, o.value[l], o.prod_nonzero[l], int(o.zeros[l])) *
+                     col.inv_psq);
+    }
+  }
+  segments_until(o.nseg);
 }
 
 // The image of a batch of n elements from each path's value by item ((k·spp + sample)·3 + channel), summed in

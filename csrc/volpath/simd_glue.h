@@ -49,6 +49,8 @@ int simd_ended_lanes();
 
 // core::deposit_tape<float, 1> for a SIMD walk's compact tape: the deposits of the path `o` of channel ch.
 void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const core::Adjoint<float>& A);
+// core::deposit_tape<float, 3> for the compact tape of a path that serves the three channels (adj per channel).
+void deposit_simd_tape3(const simd::WalkOut& o, const float adj[3], const core::Adjoint<float>& A);
 
 // The image of a batch of n elements from each path's term by item ((k·spp + sample)·3 + channel), summed in sample
 // order as the scalar kernel adds them.
@@ -56,13 +58,23 @@ void write_batch_image(const core::Scene<float>& S, const int64_t* elems, int64_
                        float* out);
 
 // The term of a finished path in its element's image, in double as the scalar kernels add it: V for a constant
-// emitter (whose radiance element_radiance applies), V·L_e along the escape direction for the others.
-inline double image_term(const core::Scene<float>& S, const simd::WalkOut& o, int ch) {
-  if (S.emitter.kind == core::kConstant) return double(o.value);
+// emitter (whose radiance element_radiance applies), V·L_e along the escape direction for the others. `l` is the
+// path's value of channel ch ([0] for a path of one channel, [ch] for a path of three).
+inline double image_term(const core::Scene<float>& S, const simd::WalkOut& o, int l, int ch) {
+  if (S.emitter.kind == core::kConstant) return double(o.value[l]);
   if (!o.escaped) return 0.0;
   float Le[3];
   S.emitter.eval(o.direction, Le);
-  return double(o.value) * double(Le[ch]);
+  return double(o.value[l]) * double(Le[ch]);
+}
+
+// Each channel's term of a finished path into `values` by item (a path of three channels fills three items).
+inline void store_terms(const core::Scene<float>& S, const simd::WalkOut& o, std::vector<double>& values) {
+  if (o.channels == 3) {
+    for (int c = 0; c < 3; ++c) values[size_t(o.item + c)] = image_term(S, o, c, c);
+  } else {
+    values[size_t(o.item)] = image_term(S, o, 0, int(o.item % 3));
+  }
 }
 
 // The forward of one chunk by a SIMD walk (simd_forward_chunk, simd_object_forward_chunk): the elements that
@@ -78,7 +90,7 @@ ForwardCounts simd_forward_batches(const core::Scene<float>& S, float* out, cons
   } ctx{&S, {}, {}};
   const simd::WalkDone done = [](void* p, const simd::WalkOut& o) {
     auto* x = static_cast<Ctx*>(p);
-    x->values[size_t(o.item)] = image_term(*x->S, o, int(o.item % 3));
+    store_terms(*x->S, o, x->values);
     x->counts.scatter_events += o.scatter_events;
     x->counts.truncated_paths += o.truncated;
     x->counts.voxel_steps += o.voxel_steps;
@@ -105,13 +117,14 @@ ForwardCounts simd_forward_batches(const core::Scene<float>& S, float* out, cons
 
 // The gradient replay of one chunk by a SIMD walk (simd_backward_chunk, simd_object_backward_chunk): the elements
 // that for_elements(body) hands out, in batches of kSimdBatch, each walked by walk(elems, live, n, tapes, done, ctx)
-// with every lane recording its tape; each path is deposited when it ends (deposit_simd_tape), and a path longer than
-// its lane's tape is replayed by the scalar code from the start (walk and deposit), so every deposit belongs to the
-// walk that produced its weight. With `image` every channel is walked and the batch's image written
-// (write_batch_image); `cut` takes the truncated walks. Returns the scatter events.
-template <int B, bool DIEL, typename ForElements, typename Walk>
+// with every lane recording its tape; each path is deposited when it ends (deposit_simd_tape, or deposit_simd_tape3
+// for the paths of a walk that serves three channels, LANES = 3), and a path longer than its lane's tape is replayed
+// by the scalar code from the start (walk and deposit), so every deposit belongs to the walk that produced its
+// weight. With `image` every channel is walked and the batch's image written (write_batch_image); `cut` takes the
+// truncated walks. Returns the scatter events.
+template <int B, bool DIEL, int LANES, typename ForElements, typename Walk>
 int64_t simd_replay_chunk(const core::Scene<float>& S, const float* grad_out, const core::Adjoint<float>& A,
-                          TapeStore<float, 1>& store, float* image, int64_t* cut, const ForElements& for_elements,
+                          TapeStore<float, LANES>& store, float* image, int64_t* cut, const ForElements& for_elements,
                           const Walk& walk) {
   const int64_t seg_cap = std::min(kSimdSegments, g_initial_tape_segments.load());  // (tests set it to 0 or 4)
   // the lanes' tapes, for all the batches of this chunk (not zeroed: only the pages the paths reach are touched)
@@ -119,15 +132,18 @@ int64_t simd_replay_chunk(const core::Scene<float>& S, const float* grad_out, co
   tapes.seg_cap = seg_cap;
   tapes.col_cap = seg_cap / 2;
   std::unique_ptr<simd::TapeSegmentF[]> seg_buf(new simd::TapeSegmentF[size_t(simd::kMaxLanes * (seg_cap + 1))]);
-  std::unique_ptr<simd::TapeCollisionF[]> col_buf(
-      new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
+  std::unique_ptr<simd::TapeCollisionF[]> col_buf;
+  std::unique_ptr<simd::TapeCollision3F[]> col3_buf;
+  if (LANES == 3) col3_buf.reset(new simd::TapeCollision3F[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
+  else col_buf.reset(new simd::TapeCollisionF[size_t(simd::kMaxLanes * (tapes.col_cap + 1))]);
   tapes.segs = seg_buf.get();
   tapes.cols = col_buf.get();
+  tapes.cols3 = col3_buf.get();
   struct Ctx {
     const core::Scene<float>* S;
     const float* grad_out;
     const core::Adjoint<float>* A;
-    TapeStore<float, 1>* store;
+    TapeStore<float, LANES>* store;
     const int64_t* elems;
     bool image;
     std::vector<double> values;  // with an image: each path's term, by item
@@ -146,17 +162,28 @@ int64_t simd_replay_chunk(const core::Scene<float>& S, const float* grad_out, co
       double acc[3] = {0, 0, 0};
       ImageTerms terms;
       terms.acc = acc;
-      x->ev += replay<float, 1, B, DIEL, false>(S, t, s, ch, g, *x->A, *x->store, x->image ? &terms : nullptr);
-      if (x->image) x->values[size_t(o.item)] = acc[ch];  // the term of the walk that deposited
+      x->ev += replay<float, LANES, B, DIEL, false>(S, t, s, ch, g, *x->A, *x->store, x->image ? &terms : nullptr);
+      if (x->image)  // the terms of the walk that deposited
+        for (int l = 0; l < LANES; ++l) x->values[size_t(o.item + l)] = acc[LANES == 1 ? ch : l];
       return;
     }
-    if (x->image) x->values[size_t(o.item)] = image_term(S, o, ch);
+    if (x->image) store_terms(S, o, x->values);
     if (!o.escaped) return;
     float Le[3] = {S.emitter.radiance[0], S.emitter.radiance[1], S.emitter.radiance[2]};
     if (S.emitter.kind != core::kConstant) S.emitter.eval(o.direction, Le);
-    const float adj = g[ch] * Le[ch] / float(spp);
-    if (adj == 0.0f) return;
-    deposit_simd_tape(o, ch, adj, *x->A);
+    if constexpr (LANES == 3) {
+      float adj[3];
+      bool any = false;
+      for (int l = 0; l < 3; ++l) {
+        adj[l] = g[l] * Le[l] / float(spp);
+        any |= adj[l] != 0.0f;
+      }
+      if (any) deposit_simd_tape3(o, adj, *x->A);
+    } else {
+      const float adj = g[ch] * Le[ch] / float(spp);
+      if (adj == 0.0f) return;
+      deposit_simd_tape(o, ch, adj, *x->A);
+    }
   };
   std::vector<int64_t> elems;
   std::vector<uint8_t> live;
@@ -190,10 +217,11 @@ int64_t simd_replay_chunk(const core::Scene<float>& S, const float* grad_out, co
 }
 
 // Whether the SIMD object walk (object_simd.h) serves this scene: float32 dense grids (the reference may be floored)
-// or one palette medium (a quantised print's forward), an SDF boundary, one walk per channel (not hero), no tally.
+// or, with one walk per channel, one palette medium (a quantised print's forward); an SDF boundary, one walk per
+// channel or one for the three (not hero), no tally.
 template <typename T, int LANES, int B, bool HERO>
 bool simd_serves_object(const core::Scene<T>& S) {
-  if constexpr (!std::is_same_v<T, float> || LANES != 1 || B != core::kSDFBoundary || HERO) {
+  if constexpr (!std::is_same_v<T, float> || B != core::kSDFBoundary || HERO) {
     return false;
   } else {
     const auto& M = S.medium;
@@ -203,7 +231,7 @@ bool simd_serves_object(const core::Scene<T>& S) {
                          M.ref_sigma_t.index == M.sigma_t.index && M.ref_albedo.index == M.sigma_t.index &&
                          M.ref_sigma_t.palette == M.sigma_t.palette && M.ref_albedo.palette == M.albedo.palette &&
                          M.sigma_t.entries == M.albedo.entries && M.sigma_t.entries <= 256;
-    return simd_enabled() && S.tally == nullptr && S.sdf.cell != nullptr && (dense || palette) &&
+    return simd_enabled() && S.tally == nullptr && S.sdf.cell != nullptr && (dense || (palette && LANES == 1)) &&
            3 * M.voxels() < (int64_t(1) << 31) && S.elements() < (int64_t(1) << 31) &&
            (M.D + 1) * (M.H + 1) * (M.W + 1) < (int64_t(1) << 31);
   }
@@ -211,12 +239,13 @@ bool simd_serves_object(const core::Scene<T>& S) {
 
 // Forward and gradient replay of chunk c with the SIMD object walk, as simd_forward_chunk and simd_backward_chunk
 // (which they follow for an object: the sensor's elements in strided blocks, any emitter; ForwardCounts in full).
-template <bool DIEL, bool RATIO>
+// LANES: one walk per channel (1) or one for the three (3), as the scalar kernels' LANES.
+template <bool DIEL, bool RATIO, int LANES>
 ForwardCounts simd_object_forward_chunk(const core::Scene<float>& S, float* out, int64_t c, int64_t nchunks,
                                         const Share& share);
-template <bool DIEL>
+template <bool DIEL, int LANES>
 int64_t simd_object_backward_chunk(const core::Scene<float>& S, const float* grad_out, const core::Adjoint<float>& A,
-                                   TapeStore<float, 1>& store, int64_t c, int64_t nchunks, const Share& share,
+                                   TapeStore<float, LANES>& store, int64_t c, int64_t nchunks, const Share& share,
                                    float* image, int64_t* cut);
 
 // The reference σ_t and albedo side by side, voxel by voxel (SlabWalkScene::ref_pair), for the SIMD walk.

@@ -195,18 +195,21 @@ inline float fresnel1(float cos_i, float eta) {  // scalar twin (the entry face,
 // Each lane's slots in the recording walk's tapes (LaneTapes): lane l's tape starts at l·(cap + 1); the spare entry
 // takes the writes of a full tape (the path is then replayed by the caller: overflow when more than `cap` entries
 // were counted). Offsets are int32 (the caps are at most kMaxTapeCap, checked by the entry point); a collision is
-// three 8-byte slots.
+// three 8-byte slots (TapeCollisionF), or five for a walk of three channels per lane (TapeCollision3F, `cols3`).
 struct TapeSlots {
   TapeSegmentF* segs = nullptr;
   TapeCollisionF* cols = nullptr;
+  TapeCollision3F* cols3 = nullptr;
   int64_t seg_cap = 0, col_cap = 0, seg_room = 1, col_room = 1;
   I seg_base, seg_capv, seg_roomv, col_base, col_capv, col_roomv;
   explicit TapeSlots(const LaneTapes* tapes) {
     static_assert(kLanes <= kMaxLanes, "LaneTapes holds kMaxLanes tapes");
-    static_assert(sizeof(TapeSegmentF) == 8 && sizeof(TapeCollisionF) == 24, "tape entries of 8 and 3 × 8 bytes");
+    static_assert(sizeof(TapeSegmentF) == 8 && sizeof(TapeCollisionF) == 24 && sizeof(TapeCollision3F) == 40,
+                  "tape entries of 8, 3 × 8 and 5 × 8 bytes");
     if (tapes) {
       segs = tapes->segs;
       cols = tapes->cols;
+      cols3 = tapes->cols3;
       seg_cap = tapes->seg_cap;
       col_cap = tapes->col_cap;
     }
@@ -224,7 +227,13 @@ struct TapeSlots {
   // the slot of each lane's next segment (its spare one when full), and the count after recording in the lanes of m
   I seg_slot(I nseg) const { return iadd(seg_base, seli(igt(nseg, seg_capv), seg_capv, nseg)); }
   I seg_count(I nseg, M m) const { return iadd1(nseg, mand(m, igt(seg_roomv, nseg))); }
-  // the first 8-byte slot of each lane's next collision, and the count after recording in the lanes of m
+  // the first 8-byte slot of each lane's next collision of K slots (3, or 5 for three channels), and the count after
+  // recording in the lanes of m
+  template <int K>
+  I col_slot(I ncol) const {
+    const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
+    return imul(slot, iset(K));
+  }
   I col_slot3(I ncol) const {
     const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
     return iadd(iadd(slot, slot), slot);
@@ -234,6 +243,7 @@ struct TapeSlots {
   void report(int l, int32_t nseg, int32_t ncol, WalkOut& o) const {
     o.segs = segs ? segs + l * seg_room : nullptr;
     o.cols = cols ? cols + l * col_room : nullptr;
+    o.cols3 = cols3 ? cols3 + l * col_room : nullptr;
     o.nseg = nseg;
     o.ncol = ncol;
     o.overflow = segs != nullptr && (nseg > seg_cap || ncol > col_cap);
@@ -243,12 +253,15 @@ struct TapeSlots {
 // The order in which a batch's paths go to the lanes: channel by channel (c), then element (k) and sample (s), so
 // the lanes' paths read one channel plane of the grids at a time and the caches hold a third of what three
 // interleaved channels need (760² slab at 32 spp: 20.8 + 38.2 → 18.6 + 34.5 s); only the channels set in live[k].
+// With `shared` one path serves the three channels: element and sample only (c = 0), where live[k] has any bit.
 struct BatchOrder {
   int64_t n, spp;
   const uint8_t* live;
+  bool shared;
   int64_t k = 0, s = -1;
   int c = 0;
-  BatchOrder(int64_t n_, int64_t spp_, const uint8_t* live_) : n(n_), spp(spp_), live(live_) {}
+  BatchOrder(int64_t n_, int64_t spp_, const uint8_t* live_, bool shared_ = false)
+      : n(n_), spp(spp_), live(live_), shared(shared_) {}
   bool next() {
     if (n <= 0) return false;
     for (;;) {
@@ -259,8 +272,8 @@ struct BatchOrder {
           ++c;
         }
       }
-      if (c >= 3) return false;
-      if (!live || (live[k] >> c) & 1) return true;
+      if (c >= (shared ? 1 : 3)) return false;
+      if (!live || (shared ? live[k] != 0 : ((live[k] >> c) & 1))) return true;
     }
   }
   int64_t item() const { return (k * spp + s) * 3 + c; }  // WalkOut::item

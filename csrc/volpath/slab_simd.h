@@ -51,6 +51,16 @@ struct TapeCollisionF {
   int32_t seg_end;
   float sref, inv_psq, fs, fa;
 };
+// a collision of a walk that serves the three channels at once (the object walk with three channels per lane): the
+// factors of each channel side by side
+struct TapeCollision3F {
+  int32_t v;
+  int32_t seg_end;
+  float sref, inv_psq;
+  struct {
+    float fs, fa;
+  } f[3];
+};
 
 // Room for the tapes of every lane (kMaxLanes × (cap + 1) entries of each kind), owned by the caller and reused from
 // call to call: lane l's tape starts at l·(cap + 1); the extra entry per lane takes the writes of a full tape.
@@ -59,21 +69,25 @@ constexpr int kMaxLanes = 16;
 constexpr int64_t kMaxTapeCap = int64_t(1) << 20;
 struct LaneTapes {
   TapeSegmentF* segs = nullptr;
-  TapeCollisionF* cols = nullptr;
+  TapeCollisionF* cols = nullptr;    // one channel per lane
+  TapeCollision3F* cols3 = nullptr;  // three channels per lane (the object walk's ObjectWalkScene::channels == 3)
   int64_t seg_cap = 0, col_cap = 0;
 };
 
-// A finished path. `item` = (k·spp + sample)·3 + channel for the k-th element of the batch.
+// A finished path. `item` = (k·spp + sample)·3 + channel for the k-th element of the batch; a path that serves the
+// three channels (channels == 3) has channel 0 in its item and a value per channel.
 struct WalkOut {
   int64_t item;
-  float value;         // V / L_e (0 unless escaped)
-  float prod_nonzero;  // product of the non-zero factors (RATIO)
-  int32_t zeros;       // exactly-zero factors (RATIO)
+  int32_t channels = 1;   // 1: the channel of `item`, in [0]; 3: channels 0, 1, 2
+  float value[3];         // V / L_e (0 unless escaped)
+  float prod_nonzero[3];  // product of the non-zero factors (RATIO)
+  int32_t zeros[3];       // exactly-zero factors (RATIO)
   bool escaped, truncated;
   int64_t scatter_events;
-  // RECORD: the path's tape (valid during the callback), overflow when it did not fit
+  // RECORD: the path's tape (valid during the callback), overflow when it did not fit; cols3 for three channels
   const TapeSegmentF* segs;
   const TapeCollisionF* cols;
+  const TapeCollision3F* cols3 = nullptr;
   int64_t nseg, ncol;
   bool overflow;
   // the object walk's (object_simd.h) escape direction and counts; the slab walk leaves them as they are

@@ -69,9 +69,9 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
   auto finish = [&](int l, float value, bool escaped, bool truncated) {
     WalkOut o;
     o.item = L.item[l];
-    o.value = value;
-    o.prod_nonzero = L.prod[l];
-    o.zeros = L.zeros[l];
+    o.value[0] = value;
+    o.prod_nonzero[0] = L.prod[l];
+    o.zeros[0] = L.zeros[l];
     o.escaped = escaped;
     o.truncated = truncated;
     o.scatter_events = L.scatter[l];
