@@ -69,10 +69,11 @@ TA_HD inline T weight_without(T factor, T value, T prod_nonzero, int zeros) {
 
 // Deposits ∂V/∂θ of a recorded walk (see integrator.h for the formulas), each through A's deposit policy. `value`,
 // `prod_nonzero`, `zeros` are the walk's final PathResult fields, `adj[l]` = grad_out·L_e/spp, `chan` the channel of
-// a one-lane walk.
-template <typename T, int LANES, typename Deposit>
-TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const T* prod_nonzero, const int* zeros,
-                               int chan, const T* adj, const Adjoint<T, Deposit>& A) {
+// a one-lane walk. `tape` is a Tape<T, LANES> or any record of the same fields (segs[].v, .len; cols[].v, .seg_end,
+// .sref, .inv_psq, .fs[l], .fa[l]; nseg, ncol), as the SIMD walks' compact tapes (volpath/slab_simd.h).
+template <typename T, int LANES, typename TapeT, typename Deposit>
+TA_HD inline void deposit_tape(const TapeT& tape, const T* value, const T* prod_nonzero, const int* zeros, int chan,
+                               const T* adj, const Adjoint<T, Deposit>& A) {
   int64_t s = 0;
   auto segments_until = [&](int64_t end) {
     if (!A.grad_sigma_t) return;  // (nothing was recorded then)
@@ -86,7 +87,7 @@ TA_HD inline void deposit_tape(const Tape<T, LANES>& tape, const T* value, const
     }
   };
   for (int64_t k = 0; k < tape.ncol; ++k) {
-    const TapeCollision<T, LANES>& col = tape.cols[k];
+    const auto& col = tape.cols[k];
     segments_until(col.seg_end);
     for (int l = 0; l < LANES; ++l) {
       const int c = LANES == 1 ? chan : l;

@@ -639,15 +639,17 @@ void object_walks(const ObjectWalkScene& S, const int64_t* elems, const uint8_t*
           const M rec = mandnot(col_core, survive);
           const I ncol = loadi(L.ncol);
           if (CH == 1) {
-            const I s3 = ts.col_slot3(ncol);
+            const I s3 = ts.col_slot<3>(ncol);
             store_pairs(cols, s3, col_v, nseg, rec);
             store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), rec);
             store_pairs(cols, iadd(s3, iset(2)), asi(fs[0]), asi(fa[0]), rec);
           } else {
-            const I s5 = ts.col_slot<5>(ncol);
+            const I s5 = ts.col_slot<5>(ncol);  // {v, seg_end}, {sref, inv_psq}, {fs0, fs1}, {fs2, fa0}, {fa1, fa2}
             store_pairs(cols3, s5, col_v, nseg, rec);
             store_pairs(cols3, iadd(s5, iset(1)), asi(col_sref), asi(inv_psq), rec);
-            for (int c = 0; c < CH; ++c) store_pairs(cols3, iadd(s5, iset(2 + c)), asi(fs[c]), asi(fa[c]), rec);
+            store_pairs(cols3, iadd(s5, iset(2)), asi(fs[0]), asi(fs[1]), rec);
+            store_pairs(cols3, iadd(s5, iset(3)), asi(fs[2]), asi(fa[0]), rec);
+            store_pairs(cols3, iadd(s5, iset(4)), asi(fa[1]), asi(fa[2]), rec);
           }
           storei(L.ncol, ts.col_count(ncol, rec));
         }

@@ -134,7 +134,7 @@ void deposit_simd_tape(const simd::WalkOut& o, int ch, float adj, const Adjoint<
   }
 }
 
-// core::deposit_tape<float, 3> on the compact tape: the same expressions in the same order.
+// core::deposit_tape<float, 3> itself, on the compact tape.
 void deposit_simd_tape3(const simd::WalkOut& o, const float adj[3], const Adjoint<float>& A) {
   if (A.rank != nullptr) {  // (as deposit_simd_tape, for the three channels)
     for (int64_t s = 0; s < o.nseg; ++s) __builtin_prefetch(A.rank + o.segs[s].v);
@@ -147,30 +147,12 @@ void deposit_simd_tape3(const simd::WalkOut& o, const float adj[3], const Adjoin
       }
     }
   }
-  int64_t s = 0;
-  auto segments_until = [&](int64_t end) {
-    if (!A.grad_sigma_t) return;  // (nothing was recorded then)
-    for (; s < end; ++s) {
-      const int64_t v = o.segs[s].v;
-      const float len = o.segs[s].len;
-      for (int l = 0; l < 3; ++l) A.sigma_t(l, v, -(adj[l] * o.value[l] * len));
-    }
-  };
-  for (int64_t k = 0; k < o.ncol; ++k) {
-    const simd::TapeCollision3F& col = o.cols3[k];
-    segments_until(col.seg_end);
-    for (int l = 0; l < 3; ++l) {
-      if (A.grad_sigma_t)
-        A.sigma_t(l, col.v,
-                  adj[l] * core::weight_without(col.f[l].fs, o.value[l], o.prod_nonzero[l], int(o.zeros[l])) /
-                      col.sref);
-      if (A.grad_albedo)
-        A.albedo(l, col.v,
-                 adj[l] * core::weight_without(col.f[l].fa, o.value[l], o.prod_nonzero[l], int(o.zeros[l])) *
-                     col.inv_psq);
-    }
-  }
-  segments_until(o.nseg);
+  struct {
+    const simd::TapeSegmentF* segs;
+    const simd::TapeCollision3F* cols;
+    int64_t nseg, ncol;
+  } tape{o.segs, o.cols3, o.nseg, o.ncol};
+  core::deposit_tape<float, 3>(tape, o.value, o.prod_nonzero, o.zeros, 0, adj, A);
 }
 
 // The image of a batch of n elements from each path's value by item ((k·spp + sample)·3 + channel), summed in

@@ -231,12 +231,9 @@ struct TapeSlots {
   // recording in the lanes of m
   template <int K>
   I col_slot(I ncol) const {
+    static_assert(K == 3 || K == 5, "a collision is 3 or 5 slots");
     const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
-    return imul(slot, iset(K));
-  }
-  I col_slot3(I ncol) const {
-    const I slot = iadd(col_base, seli(igt(ncol, col_capv), col_capv, ncol));
-    return iadd(iadd(slot, slot), slot);
+    return K == 3 ? iadd(iadd(slot, slot), slot) : iadd(slli<2>(slot), slot);
   }
   I col_count(I ncol, M m) const { return iadd1(ncol, mand(m, igt(col_roomv, ncol))); }
   // lane l's finished tape into o

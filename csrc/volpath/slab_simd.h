@@ -51,15 +51,12 @@ struct TapeCollisionF {
   int32_t seg_end;
   float sref, inv_psq, fs, fa;
 };
-// a collision of a walk that serves the three channels at once (the object walk with three channels per lane): the
-// factors of each channel side by side
+// a collision of a walk that serves the three channels at once (the object walk with three channels per lane), the
+// fields of core::TapeCollision<float, 3>
 struct TapeCollision3F {
   int32_t v;
   int32_t seg_end;
-  float sref, inv_psq;
-  struct {
-    float fs, fa;
-  } f[3];
+  float sref, inv_psq, fs[3], fa[3];
 };
 
 // Room for the tapes of every lane (kMaxLanes × (cap + 1) entries of each kind), owned by the caller and reused from

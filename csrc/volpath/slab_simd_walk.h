@@ -295,7 +295,7 @@ void walks(const SlabWalkScene& S, const int64_t* elems, const uint8_t* live, in
         storei(L.zeros, zeros);
         if (RECORD) {  // {v, seg_end}, {sref, inv_psq}, {fs, fa}
           const I ncol = loadi(L.ncol);
-          const I s3 = ts.col_slot3(ncol);
+          const I s3 = ts.col_slot<3>(ncol);
           store_pairs(cols, s3, col_v, loadi(L.nseg), survive);
           store_pairs(cols, iadd(s3, iset(1)), asi(col_sref), asi(inv_psq), survive);
           store_pairs(cols, iadd(s3, iset(2)), asi(fs), asi(fa), survive);
