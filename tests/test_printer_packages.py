@@ -3,8 +3,10 @@ packages of a run folder (the run's volume, or its mixture quantised again for a
 bounded memory, the halftoning options, and the refusals of ta-export-print."""
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 import tracemalloc
 import xml.etree.ElementTree as ET
 import zipfile
@@ -252,10 +254,11 @@ def test_runs_recorded_before_the_halftone_option_were_random():
 
 
 # ------------------------------------------------------------------------------------------------ streaming
-def fake_run(folder, layers, h=24, w=32, n_inks=3):
+def fake_run(folder, layers, h=24, w=32, n_inks=3, iterations=10):
     """A finished slab run folder whose quantised volume is ``layers`` tall (a tall thin print) and ``h`` × ``w``
-    printer voxels wide, with the mixture's shape and the final texels that a 3MF export reads."""
-    from torch_appearance.pipelines.print.run_folder import npz_bytes
+    printer voxels wide, with the mixture's shape and the final texels that a 3MF export reads, and the log and summary
+    of a run of ``iterations`` iterations."""
+    from torch_appearance.pipelines.print.run_folder import LOG_FIELDS, npz_bytes
 
     os.makedirs(folder)
     inks = InkSet.from_names(["cyan", "yellow", "white"][:n_inks])
@@ -272,6 +275,9 @@ def fake_run(folder, layers, h=24, w=32, n_inks=3):
     ta_io.write_json(os.path.join(folder, "config.json"), {
         "kind": "slab", "inks": [ink.to_dict() for ink in inks], "voxel_size_mm": voxel,
         "printer_dpi": [600, 300, 940], "seed": 0, "halftone": "random"})
+    ta_io.write_csv(os.path.join(folder, "log.csv"), [{"iteration": i, "loss": 1.0 / (1 + i)}
+                                                      for i in range(iterations + 1)], LOG_FIELDS)
+    ta_io.write_json(os.path.join(folder, "summary.json"), {"kind": "slab", "iterations": iterations})
     return folder
 
 
@@ -424,7 +430,7 @@ def test_the_command_refuses_bad_input_in_one_line_and_leaves_no_file(tmp_path, 
     refused(["--printer", tmp_path / "p.json"], "no material for the ink 'yellow'")
     refused(["--format", "stl"], "--format")
     os.makedirs(tmp_path / "taken")
-    refused(["--out", tmp_path / "taken"], "exists; pass force")
+    refused(["--out", tmp_path / "taken"], f"--out: {str(tmp_path / 'taken')!r} exists; pass --force to replace it")
     assert os.listdir(tmp_path / "taken") == []
     result = cli(tmp_path, "--printer", "j750")
     assert result.returncode == 2 and "not a print run" in result.stderr
@@ -466,3 +472,171 @@ def test_the_command_writes_and_replaces_with_force(tmp_path, cli):
     assert sorted(os.listdir(package)) == ["export.json", "slices"]
     listing = cli("--list-printers")
     assert listing.returncode == 0 and "j750-hq" in listing.stdout and "14 um" in listing.stdout
+
+
+# ------------------------------------------------------------------------------------------------ the reader
+def test_the_export_reader_asks_no_run_its_kind():
+    """What differs between slab and object runs is a method of the run's reader (SlabRun, ObjectRun), chosen once
+    from config.json by the table RUN_TYPES: no ``.kind`` and no kind name anywhere else in the module (STYLE.md,
+    habit 23)."""
+    import ast
+    import inspect
+
+    from torch_appearance.pipelines.print import package
+
+    tree = ast.parse(inspect.getsource(package))
+    table = next(n for n in ast.walk(tree) if isinstance(n, ast.Assign)
+                 and any(isinstance(t, ast.Name) and t.id == "RUN_TYPES" for t in n.targets))
+    in_table = {id(n) for n in ast.walk(table)}
+    asked = [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr == "kind"]
+    asked += [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value in package.RUN_TYPES
+              and id(n) not in in_table]
+    assert not asked, f"package.py asks a run its kind at lines {sorted(asked)}"
+    assert set(package.RUN_TYPES) == {"slab", "object"}
+
+
+def test_open_run_gives_the_reader_of_the_target_type(slab_run, object_run):
+    from torch_appearance.pipelines.print.package import ObjectRun, SlabRun, open_run
+
+    slab, obj = open_run(slab_run), open_run(object_run)
+    assert type(slab) is SlabRun and type(obj) is ObjectRun
+    assert slab.final_texels().shape[-1] == 3 and slab.final_texels().ndim == 4   # (F, H, W, 3)
+    assert obj.final_texels().ndim == 2 and obj.outside((4, 6, 8)) is not None and slab.outside((4, 6, 8)) is None
+    assert slab.iteration() == 2 and obj.iteration() == 2
+    # the run's own export, at its end under its lock, records the iteration too
+    assert json.load(open(os.path.join(object_run, "package-j750", "export.json")))["iteration"] == 2
+
+
+# ------------------------------------------------------------------------------------------------ concurrent use
+def command_env():
+    return dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+
+
+def export_cli(*args):
+    return [sys.executable, "-m", "torch_appearance.cli.export_print", *[str(a) for a in args]]
+
+
+_PAUSED_EXPORT = """
+import os, sys, time
+import torch_appearance.fabrication.gcvf as gcvf
+from torch_appearance.cli.export_print import main
+
+write, flags = gcvf.write_gcvf, sys.argv[1]
+
+def paused(*args, **kwargs):  # mid-write: the package's temporary folder exists, OUT does not yet
+    open(flags + ".started", "w").close()
+    while not os.path.exists(flags + ".go"):
+        time.sleep(0.02)
+    return write(*args, **kwargs)
+
+gcvf.write_gcvf = paused
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _wait_for(path, proc, seconds=120):
+    deadline = time.monotonic() + seconds
+    while not os.path.exists(path):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.02)
+
+
+def test_a_second_export_to_one_out_is_refused_while_the_first_writes(tmp_path, cli):
+    """Two ta-export-print processes to one --out: the second, started while the first writes (its existence check
+    passes: OUT is not there yet), is refused with one line and exit 2, with or without --force; the first's package
+    is complete; a later one is refused without --force. No lock file or temporary folder is left."""
+    run = fake_run(str(tmp_path / "run"), 6)
+    out, flags = tmp_path / "p", str(tmp_path / "flag")
+    first = subprocess.Popen([sys.executable, "-c", _PAUSED_EXPORT, flags, run, "--format", "gcvf,slices",
+                              "--out", out], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env=command_env())
+    _wait_for(flags + ".started", first)
+    for extra in ([], ["--force"]):
+        second = subprocess.run(export_cli(run, "--format", "slices", "--out", out, *extra), capture_output=True,
+                                text=True, env=command_env(), timeout=300)
+        lines = second.stderr.strip().splitlines()
+        assert second.returncode == 2 and len(lines) == 1, second.stderr
+        assert f"--out: {str(out)!r} is being written by another process" in lines[0], second.stderr
+    open(flags + ".go", "w").close()
+    _, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    assert "\r" not in err    # its progress bars (stderr is a pipe): whole lines
+    assert sorted(os.listdir(out)) == ["export.json", "print.gcvf", "slices"]
+    assert json.load(open(out / "export.json"))["iteration"] == 10
+    assert sorted(p for p in os.listdir(tmp_path) if p.startswith(".")) == []
+    refused = cli(run, "--format", "slices", "--out", out)
+    assert refused.returncode == 2 and "exists; pass --force" in refused.stderr
+    assert cli(run, "--format", "slices", "--out", out, "--force", "--quiet").returncode == 0
+
+
+def test_an_export_is_refused_while_a_run_writes_its_folder_and_records_the_iteration(tmp_path, cli):
+    """ta-export-print of a run that ta-optimize-print --resume is extending: refused (exit 2, one line) while the
+    run holds its folder; after the run was interrupted, refused again (its volume is of an older iteration than its
+    log); once the run wrote its results, exported with that iteration in export.json."""
+    run = tmp_path / "run"
+    target = tiny_print_target(tmp_path / "t.exr", 6, 8)
+    optimize_print(PrintConfig(target=target, thickness_mm=0.34, spp=2, eval_spp=4, eval_every=1, iterations=2,
+                               naive_baseline=False, out=str(run), seed=5), progress=False, log=lambda *_: None)
+    assert cli(run, "--format", "slices", "--out", tmp_path / "p2", "--quiet").returncode == 0
+    assert json.load(open(tmp_path / "p2" / "export.json"))["iteration"] == 2
+    extending = subprocess.Popen([sys.executable, "-m", "torch_appearance.cli.optimize_print", "--out", str(run),
+                                  "--resume", "--iterations", "100000", "--quiet"], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True, env=command_env(),
+                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 300
+        while len(ta_io_rows(run)) <= 4:  # the resumed run has logged iterations: it holds the folder
+            assert extending.poll() is None and time.monotonic() < deadline, extending.communicate()
+            time.sleep(0.05)
+        during = subprocess.run(export_cli(run, "--format", "slices", "--out", tmp_path / "p3"),
+                                capture_output=True, text=True, env=command_env(), timeout=300)
+        lines = during.stderr.strip().splitlines()
+        assert during.returncode == 2 and len(lines) == 1, during.stderr
+        assert f"run: {str(run)!r} is in use by a run that is writing it" in lines[0]
+        assert not os.path.exists(tmp_path / "p3")
+    finally:
+        extending.send_signal(signal.SIGINT)
+        _, err = extending.communicate(timeout=120)
+    assert extending.returncode == 130, err
+    logged = int(ta_io_rows(run)[-1]["iteration"])
+    assert logged > 2
+    stale = cli(run, "--format", "slices", "--out", tmp_path / "p3")
+    assert stale.returncode == 2 and len(stale.stderr.strip().splitlines()) == 1, stale.stderr
+    assert f"was extended to iteration {logged} but its results are of iteration 2" in stale.stderr
+    assert not os.path.exists(tmp_path / "p3")
+    from torch_appearance.testing import run_command
+    rc, _, err = run_command("optimize_print", "--out", run, "--resume", "--iterations", logged, "--quiet")
+    assert rc == 0, err
+    assert cli(run, "--format", "slices", "--out", tmp_path / "p3", "--quiet").returncode == 0
+    assert json.load(open(tmp_path / "p3" / "export.json"))["iteration"] == logged
+
+
+def ta_io_rows(folder):
+    import csv
+    try:
+        with open(os.path.join(folder, "log.csv"), newline="") as handle:
+            return list(csv.DictReader(handle))
+    except FileNotFoundError:
+        return []
+
+
+def test_write_errors_name_out_not_the_temporary_folder(tmp_path, cli, monkeypatch):
+    run = fake_run(str(tmp_path / "run"), 4)
+    open(tmp_path / "afile", "w").close()
+    blocked = cli(run, "--format", "gcvf", "--out", tmp_path / "afile" / "p", "--quiet")
+    assert blocked.returncode == 2 and len(blocked.stderr.strip().splitlines()) == 1, blocked.stderr
+    assert f"--out: cannot write the package {str(tmp_path / 'afile' / 'p')!r}" in blocked.stderr
+    import errno
+
+    import torch_appearance.fabrication.gcvf as gcvf
+
+    def full(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), path)
+
+    monkeypatch.setattr(gcvf, "write_gcvf", full)
+    result = cli(run, "--format", "gcvf", "--out", tmp_path / "p", "--quiet")
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert result.stderr.strip().endswith(f"--out: cannot write the package {str(tmp_path / 'p')!r}: "
+                                          f"{os.strerror(errno.ENOSPC)}")
+    assert ".tmp" not in result.stderr and ".lock" not in result.stderr
+    assert sorted(os.listdir(tmp_path)) == ["afile", "run"]      # no package, no temporary folder, no lock file

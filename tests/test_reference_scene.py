@@ -1,4 +1,5 @@
-"""Checks of the general-scene numpy reference (``reference_render_scene`` in tests/reference_tracer.py).
+"""Checks of the general-scene numpy reference (``reference_render_scene`` in
+torch_appearance/testing/reference_tracer.py).
 
 The general-scene reference will judge the fast C++ tracer on SDF objects, cameras and emitters, so it is
 checked here against results obtained independently of its own code paths:
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from reference_tracer import (
+from torch_appearance.testing.reference_tracer import (
     _march_sign_change,
     _sdf_lipschitz,
     evaluate_emitter,

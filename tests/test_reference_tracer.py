@@ -1,4 +1,4 @@
-"""Checks of the numpy reference tracer (tests/reference_tracer.py) against closed forms.
+"""Checks of the numpy reference tracer (torch_appearance.testing.reference_tracer) against closed forms.
 
 The reference is what the fast C++ tracer is judged by, so it is itself checked here against results that
 follow from first principles: Fresnel identities, Henyey-Greenstein moments, Beer-Lambert per voxel column
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from reference_tracer import (
+from torch_appearance.testing.reference_tracer import (
     distance_to_box_exit,
     fresnel_dielectric,
     reference_render_texels,

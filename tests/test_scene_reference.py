@@ -1,6 +1,6 @@
-"""The fast tracer against the independent numpy reference (tests/reference_tracer.py: delta tracking, analog
-collisions and Fresnel, SDF crossings by marching + bisection) on tiny chromatic heterogeneous scenes: per-pixel and
-per-texel z-tests with a Bonferroni correction."""
+"""The fast tracer against the independent numpy reference (torch_appearance.testing.reference_tracer: delta
+tracking, analog collisions and Fresnel, SDF crossings by marching + bisection) on tiny chromatic heterogeneous
+scenes: per-pixel and per-texel z-tests with a Bonferroni correction."""
 import numpy as np
 import pytest
 import torch
@@ -11,7 +11,7 @@ from torch_appearance.render import (BoxBoundary, ConstantEnvironment, DiscLight
                                      PerspectiveCamera, Scene, SDFBoundary, SurfaceTexels)
 
 from torch_appearance.testing import assert_z
-from reference_tracer import reference_render_scene
+from torch_appearance.testing.reference_tracer import reference_render_scene
 
 N, H = 6, 0.1
 ORIGIN = (-0.3, -0.25, -0.3)

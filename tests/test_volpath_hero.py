@@ -4,10 +4,11 @@ The walk samples free flights with the reference density of a hero channel (unif
 channel c with the balance heuristic over the channels, f_c / ((1/3) Σ_k p_k) (csrc/core/integrator.h, HERO).
 Checked here:
 
-* unbiasedness of the image against the independent numpy reference (tests/reference_tracer.py: delta tracking,
-  analog absorption, one walk per channel) with Bonferroni z-tests as in test_volpath_reference.py, on a chromatic
-  scene (thin red, thick green, mixed blue), with a reference medium that differs from the parameters (ratio
-  weights under MIS), and on a stiff scene whose channels' σ_t differ by 10⁴ (optical depths up to ~10⁴);
+* unbiasedness of the image against the independent numpy reference (torch_appearance.testing.reference_tracer:
+  delta tracking, analog absorption, one walk per channel) with Bonferroni z-tests as in
+  test_volpath_reference.py, on a chromatic scene (thin red, thick green, mixed blue), with a reference medium that
+  differs from the parameters (ratio weights under MIS), and on a stiff scene whose channels' σ_t differ by 10⁴
+  (optical depths up to ~10⁴);
 * the gradient: exact derivative of the fixed-seed estimator (gradcheck, explicit reference), and the default
   floored replay's mean over seeds equal to that of the per-channel estimator (an independent estimator of the
   same expectation, itself checked against finite differences in test_volpath_gradients.py);
@@ -21,7 +22,7 @@ from scipy import stats as scipy_stats
 
 import torch_appearance as ta
 from torch_appearance.testing import assert_z, seed_stats
-from reference_tracer import reference_render_texels
+from torch_appearance.testing.reference_tracer import reference_render_texels
 from torch_appearance._ext import _C
 
 VOXEL = 0.1  # mm
@@ -237,7 +238,7 @@ def test_chromatic_option_is_validated():
 def test_hero_scene_matches_reference(case):
     """General scenes (SDF sphere, surface texels or a camera, direction-dependent emitters): the hero walk's
     escape direction and weights against the reference's per-channel delta tracking."""
-    from reference_tracer import reference_render_scene
+    from torch_appearance.testing.reference_tracer import reference_render_scene
     from test_scene_reference import CASES, H, ORIGIN, CENTRE, RADIUS, N, medium, ours, reference_dicts
     from torch_appearance.geometry import sphere_sdf
     from torch_appearance.render import Scene

@@ -1,4 +1,4 @@
-"""The fast C++ volume path tracer against the independent numpy reference (tests/reference_tracer.py).
+"""The fast C++ volume path tracer against the independent numpy reference (torch_appearance.testing.reference_tracer).
 
 The two estimators share nothing but the scene conventions: the fast tracer uses regular tracking through
 the voxels, the reference uses delta tracking against a per-channel majorant with analog absorption and an
@@ -26,7 +26,7 @@ import torch
 from scipy import stats
 
 import torch_appearance
-from reference_tracer import reference_render_texels
+from torch_appearance.testing.reference_tracer import reference_render_texels
 
 ALPHA = 1e-3  # family-wise false-alarm probability per configuration
 VOXEL_SIZE = 0.1  # mm

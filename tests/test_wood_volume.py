@@ -23,7 +23,7 @@ from torch_appearance.render.albedo_mapping import (ELEK_C, ELEK_CS, albedo_from
                                                     elek_albedo, slab_colour)
 
 from torch_appearance.testing import assert_z
-from reference_tracer import reference_render_scene
+from torch_appearance.testing.reference_tracer import reference_render_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -137,8 +137,8 @@ def test_elek_polynomial_is_too_bright_on_our_tracer_above_half():
 # ---- the scenes -----------------------------------------------------------------------------------------------
 def test_backlit_veneer_matches_reference_tracer():
     """A tiny veneer sheet (3 layers, 0.3 mm) of the inclined model lit from behind by a disc light, seen from
-    the front and from its edge: our tracer against tests/reference_tracer.py, z-tests (Bonferroni) per pixel and
-    on the image mean per channel."""
+    the front and from its edge: our tracer against torch_appearance.testing.reference_tracer, z-tests
+    (Bonferroni) per pixel and on the image mean per channel."""
     m = inclined_model(ring_scale=0.25)
     geometry = VeneerGeometry((0.4, 0.3), thickness_mm=0.3, voxel_mm=(0.1, 0.1))
     light = DiscLight((0.2, 0.1, 1.0), 30.0, radiance=(4.0, 3.0, 2.0), ambient=0.1)

@@ -27,9 +27,8 @@ import zlib
 
 import torch
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-from bench_volpath import SCENE_VOXEL, SCENES, VOXEL_SIZE, _int_list, _run_once, make_scene  # noqa: E402
+# this folder is on the path when the script runs
+from bench_volpath import SCENE_VOXEL, SCENES, VOXEL_SIZE, _int_list, _run_once, make_scene
 
 KEYS = ("image", "grad_sigma_t", "grad_albedo")
 
@@ -124,12 +123,12 @@ def plot(rows, path):
 
 def main(argv=None):
     args = parse_args(argv)
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
     from torch_appearance import io as ta_io
     torch.set_num_threads(args.threads)
     rows = []
     jobs = [(n, c, s) for n in args.scenes for c in args.chromatic for s in args.spp]
-    bar = tqdm(total=len(jobs) + len(args.scenes), desc="bench_chromatic_curve", unit="run")
+    bar = progress_bar(total=len(jobs) + len(args.scenes), desc="bench_chromatic_curve", unit="run")
     for name in args.scenes:
         setup = _setup(name, args)
         sigma_t, albedo, scene, weights, voxel = setup
@@ -156,7 +155,7 @@ def main(argv=None):
                 row[f"{k}_rmse"] = float(f"{rmse:.6g}")
                 row[f"efficiency_{k}"] = float(f"{1 / (rmse * rmse * (fwd + bwd)):.6g}") if rmse > 0 else None
             rows.append(row)
-            tqdm.write(str(row))
+            bar.write(str(row))
     bar.close()
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     ta_io.write_json(args.out, rows)

@@ -244,17 +244,13 @@ def main(argv=None):
         worker(args)
         return 0
     import torch
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
+    from torch_appearance.progress import progress_bar
     configs = args.configs if "1proc-1thr" in args.configs else ["1proc-1thr"] + args.configs
     rows, ref = [], None
     with tempfile.TemporaryDirectory(prefix="bench_distributed_") as folder:
-        bar = tqdm(configs, desc="bench_distributed", unit="config") if tqdm else configs
+        bar = progress_bar(configs, desc="bench_distributed", unit="config")
         for name in bar:
-            if tqdm:
-                bar.set_postfix_str(name)
+            bar.set_postfix_str(name)
             try:
                 r = run_config(name, args, folder)
             except RuntimeError as error:

@@ -8,7 +8,7 @@ per texel (our texel sensor). Prints JSON lines (and writes them to --out):
   agreement_grey      grey σ_t (the peer is reliable): per-texel primal z-test (Bonferroni) and per-voxel gradient
                       z-test of a linear objective Σ w·image with fixed random weights, both over independent seeds
   chromatic_bias      chromatic σ_t (the peer's RGB volume sampling is known to be biased here): both renderers
-                      against the independent numpy reference tracer (tests/reference_tracer.py)
+                      against the independent numpy reference tracer (torch_appearance.testing.reference_tracer)
   timing              forward and forward+backward at equal spp after warm-up (the peer JIT-compiles first),
                       medians; ratio_forward and ratio_forward_backward = peer time / our time
   efficiency          RMSE of the primal image and of the gradient against a high-spp reference for a ladder of
@@ -589,8 +589,7 @@ def main(argv=None):
 
     # ---- chromatic: both against the independent numpy reference
     if "chromatic" not in skip:
-        sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tests"))
-        from reference_tracer import reference_render_texels
+        from torch_appearance.testing.reference_tracer import reference_render_texels
         cs, ca = make_scene("chromatic", 6, 4, seed=3)
         ref_mean, ref_se = reference_render_texels(cs.double().numpy(), ca.double().numpy(), voxel_size=0.1,
                                                    g=0.4, ior=1.5, spp=20000, seed=1, max_depth=args.max_depth)

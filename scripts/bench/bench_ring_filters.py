@@ -59,7 +59,7 @@ def _timed(fn, repeat):
 
 def main(argv=None):
     args = parse_args(argv)
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
 
     torch.set_num_threads(args.threads)
     weights = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -74,7 +74,7 @@ def main(argv=None):
             synthetic_board(args.gabor_size, args.gabor_size, seed=0)["image"] @ weights
         jobs.append((f"curved_gabor {args.gabor_size}^2 p=q={args.pq}",
                      lambda: curved_gabor(g, p=args.pq, q=args.pq, num_workers=args.threads)))
-    for name, fn in tqdm(jobs, desc="filters", unit="filter"):
+    for name, fn in progress_bar(jobs, desc="filters", unit="filter"):
         seconds, out = _timed(fn, args.repeat if "curved" not in name else 1)
         fields = out if isinstance(out, tuple) else (out.magnitude, out.phase, out.frequency, out.orientation)
         for i, f in enumerate(fields):

@@ -160,14 +160,14 @@ def main(argv=None):
     if not os.path.exists(args.mesh):
         p.error(f"--mesh: no such file {args.mesh!r}")
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
 
     from torch_appearance import io as ta_io
     jobs = [(h, v) for h in heights for v in variants if not (v == "dense" and h > args.dense_max_mm)]
     rows = []
     env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), PYTHONPATH=ROOT + os.pathsep
                + os.environ.get("PYTHONPATH", ""))
-    bar = tqdm(jobs, desc="bench_texel_loss", unit="run")
+    bar = progress_bar(jobs, desc="bench_texel_loss", unit="run")
     for height, variant in bar:
         bar.set_postfix(height=f"{height:g}mm", variant=variant)
         path, info = _texels(args, height)
@@ -180,7 +180,7 @@ def main(argv=None):
         else:
             row = {**info, **json.loads(proc.stdout.strip().splitlines()[-1])}
         rows.append(row)
-        tqdm.write(json.dumps(row))
+        bar.write(json.dumps(row))
         ta_io.write_json(args.out, rows)
     return 0
 

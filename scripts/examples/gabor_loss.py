@@ -120,7 +120,7 @@ def _figure(rows, sweep, args, path):
 
 def main(argv=None):
     args = parse_args(argv)
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
 
     torch.set_num_threads(args.threads)
     os.makedirs(args.out, exist_ok=True)
@@ -135,7 +135,7 @@ def main(argv=None):
 
     sweep = []  # the loss against the ring scale (the basin of the loss)
     with torch.no_grad():
-        for factor in tqdm(np.linspace(0.7, 1.3, 25), desc="loss sweep", unit="scale", leave=False):
+        for factor in progress_bar(np.linspace(0.7, 1.3, 25), desc="loss sweep", unit="scale", leave=False):
             model.log_ring_scale.fill_(math.log(factor * args.ring_scale_mm))
             sweep.append((factor * args.ring_scale_mm, loss_fn(_render(model, args).permute(2, 0, 1)).item()))
         model.log_ring_scale.fill_(math.log(args.start_factor * args.ring_scale_mm))
@@ -144,7 +144,7 @@ def main(argv=None):
     optimizer = torch.optim.Adam([model.log_ring_scale], lr=args.lr)
     rows = []
     t0 = time.perf_counter()
-    bar = tqdm(range(args.iterations + 1), desc="Adam", unit="it")
+    bar = progress_bar(range(args.iterations + 1), desc="Adam", unit="it")
     for i in bar:
         loss = loss_fn(_render(model, args).permute(2, 0, 1))
         rows.append({"iteration": i, "wall_s": time.perf_counter() - t0, "loss": loss.item(),

@@ -247,14 +247,14 @@ def run_disc(args, rgb):
         ends = [_numbers(t, "--transect in disc mode (the end point X,Y)", 2) for t in (args.transect or [])]
     except ValueError as e:
         return fail(PROG, str(e))
-    from tqdm import tqdm
+    from ..progress import progress_bar
 
     def progress(k, n):
         bar.total = n
         bar.update(1)
 
-    with tqdm(total=(len(angles or []) + len(ends)) or 4, desc="transects", unit="transect",
-              disable=None) as bar:
+    with progress_bar(total=(len(angles or []) + len(ends)) or 4, desc="transects", unit="transect",
+                      disable=None) as bar:
         try:
             res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
                                          half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,

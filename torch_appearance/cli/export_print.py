@@ -8,6 +8,10 @@ layer by layer: memory does not grow with the number of layers. A printer profil
 --list-printers and the README); the built-in ones are J750/J850-like at 27 um (j750) and 14 um (j750-hq) layers
 and a generic 600 x 600 DPI, 20 um printer (generic).
 
+An existing --out is refused without --force, and so is an --out that another ta-export-print is writing; a run that
+ta-optimize-print is writing (or extending with --resume) is refused until it has written its results. export.json
+records the run's iteration that was packaged.
+
 Examples:
     ta-export-print results/spot --printer j750
     ta-export-print results/spot --printer j750-hq --format gcvf --out spot-hq --force
@@ -22,7 +26,7 @@ from ..fabrication.quantize import HALFTONES
 from ..pipelines.print.package import FORMATS, export_run
 from .command import CommandParser, check_output_folder, fail
 
-__all__ = ["parser", "main"]
+__all__ = ["parser", "main", "in_flags"]
 
 PROG = "ta-export-print"
 
@@ -67,8 +71,26 @@ def main(argv=None, prog=PROG):
         export_run(args.run, args.out, printer, formats, halftone=args.halftone, force=args.force,
                    progress=not args.quiet)
     except (ValueError, TypeError, FileNotFoundError) as error:
-        return fail(prog, error)
+        return fail(prog, in_flags(str(error)))
     return 0
+
+
+#: the library's argument names as this command's flags
+FLAGS = {"out": "--out", "printer": "--printer", "formats": "--format", "halftone": "--halftone", "run": "run"}
+
+
+def in_flags(message):
+    """A message of :func:`~torch_appearance.pipelines.print.package.export_run` in this command's words: its leading
+    argument name as the flag (``out: ...`` -> ``--out: ...``) and ``force=True (--force)`` as ``--force``.
+
+    Example:
+        >>> in_flags("out: 'p' exists; pass force=True (--force) to replace it")
+        "--out: 'p' exists; pass --force to replace it"
+    """
+    name, sep, rest = message.partition(": ")
+    if sep and name in FLAGS:
+        message = f"{FLAGS[name]}: {rest}"
+    return message.replace("force=True (--force)", "--force")
 
 
 if __name__ == "__main__":

@@ -1,13 +1,15 @@
 """What every long run needs from its machine and its run folder: an exclusive lock on the folder while the run
-writes to it (:func:`lock_run_folder`), the memory it may use (:func:`available_memory_bytes`, :func:`check_memory`),
-Ctrl-C held back while a step's state is written (:func:`sigint_deferred`), and the interruption that says how to
-resume (:class:`RunInterrupted`)."""
+writes to it, shared by the readers of a finished run (:func:`lock_run_folder`), a lock on an output name while it is
+written (:func:`lock_output`), the memory it may use (:func:`available_memory_bytes`, :func:`check_memory`), Ctrl-C
+held back while a step's state is written (:func:`sigint_deferred`), and the interruption that says how to resume
+(:class:`RunInterrupted`)."""
 import contextlib
 import os
 import signal
 import threading
 
-__all__ = ["RunInterrupted", "lock_run_folder", "available_memory_bytes", "check_memory", "sigint_deferred"]
+__all__ = ["RunInterrupted", "lock_run_folder", "lock_output", "available_memory_bytes", "check_memory",
+           "sigint_deferred"]
 
 GiB = float(1 << 30)
 
@@ -24,32 +26,108 @@ class RunInterrupted(KeyboardInterrupt):
         self.folder, self.iteration = folder, iteration
 
 
+#: the run folders this process holds locked: (st_dev, st_ino) -> [(thread ident, exclusive), ...]
+_HELD = {}
+_HELD_GUARD = threading.Lock()
+
+
 @contextlib.contextmanager
-def lock_run_folder(folder, name="out"):
-    """Create ``folder`` if needed and hold an exclusive lock on it while the ``with`` block runs: a second run on
-    the same folder (another process, or another thread) is refused at once instead of mixing its files with the
-    first's. The lock is ``flock`` on the folder itself (no lock file is left behind) and goes with the process,
-    so a killed run never leaves the folder locked. Without ``fcntl`` (Windows) the folder is not locked.
+def lock_run_folder(folder, name="out", *, shared=False, reentrant=False,
+                    advice="wait for it to end or choose another folder"):
+    """Create ``folder`` if needed and hold a lock on it while the ``with`` block runs: a second run on the same
+    folder (another process, or another thread) is refused at once instead of mixing its files with the first's. The
+    lock is ``flock`` on the folder itself (no lock file is left behind) and goes with the process, so a killed run
+    never leaves the folder locked. Without ``fcntl`` (Windows) the folder is not locked.
+
+    Args:
+        folder: the run folder. name: the argument to blame in the refusal. advice: what the refusal advises.
+        shared: a reader's lock (an export of a finished run): readers share the folder, a run (exclusive) excludes
+            them and is excluded by them.
+        reentrant: when this thread already holds the folder's lock (exclusive, or shared for a shared request),
+            go on under it instead of refusing: a run that exports its own package at its end.
+
+    Yields:
+        True when the block runs under a lock this thread already held (``reentrant``), else False.
 
     Raises:
-        ValueError: naming ``name``, when another run holds the folder.
+        ValueError: naming ``name``, when another run (or, for a run, an export) holds the folder.
     """
     os.makedirs(folder, exist_ok=True)
     try:
         import fcntl
     except ImportError:  # pragma: no cover - Windows
-        yield
+        yield False
         return
     fd = os.open(folder, os.O_RDONLY)
     try:
+        stat = os.fstat(fd)
+        key, me = (stat.st_dev, stat.st_ino), threading.get_ident()
+        with _HELD_GUARD:
+            held = [exclusive for thread, exclusive in _HELD.get(key, ()) if thread == me]
+        if reentrant and any(exclusive or shared for exclusive in held):
+            yield True
+            return
+        try:
+            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = "a run that is writing it" if shared else "another run or export"
+            raise ValueError(f"{name}: {folder!r} is in use by {holder} (it holds the folder's lock); "
+                             f"{advice}") from None
+        entry = (me, not shared)
+        with _HELD_GUARD:
+            _HELD.setdefault(key, []).append(entry)
+        try:
+            yield False
+        finally:
+            with _HELD_GUARD:
+                _HELD[key].remove(entry)
+                if not _HELD[key]:
+                    del _HELD[key]
+    finally:
+        os.close(fd)  # releases the lock
+
+
+@contextlib.contextmanager
+def lock_output(path, name="out", *, advice="wait for it to end or choose another name"):
+    """Hold an exclusive lock on the output name ``path`` (a file or folder written under a temporary name and renamed
+    over ``path``, :func:`torch_appearance.io.atomic_output`) while the ``with`` block runs: a second writer of the
+    same name is refused at once, so a check made inside the block (``path`` does not exist yet) still holds at the
+    rename. The lock is ``flock`` on a file ``.NAME.lock`` beside ``path``, removed when the block ends (a writer that
+    locked a removed one locks the new one instead); it goes with the process. The parent folder must exist. Without
+    ``fcntl`` (Windows) nothing is locked.
+
+    Raises:
+        ValueError: naming ``name``, when another writer holds the name.
+        OSError: the lock file cannot be created (a folder that is not writable).
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    folder, base = os.path.split(os.path.abspath(path))
+    lock_path = os.path.join(folder, f".{base}.lock")
+    while True:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise ValueError(f"{name}: {folder!r} is in use by another run (it holds the folder's lock); wait for "
-                             f"it to end or choose another folder") from None
+            os.close(fd)
+            raise ValueError(f"{name}: {path!r} is being written by another process (it holds {lock_path!r}); "
+                             f"{advice}") from None
+        try:
+            current = os.path.samestat(os.fstat(fd), os.stat(lock_path))
+        except FileNotFoundError:
+            current = False
+        if current:
+            break
+        os.close(fd)  # the previous holder removed this file as it ended: lock the one at the name now
+    try:
         yield
     finally:
-        os.close(fd)  # releases the lock
+        with contextlib.suppress(OSError):
+            os.unlink(lock_path)  # still locked: a writer that opened it before finds it gone and retries
+        os.close(fd)
 
 
 def available_memory_bytes():

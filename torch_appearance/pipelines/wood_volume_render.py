@@ -342,7 +342,7 @@ def render_wood_volume(cfg: WoodVolumeConfig, progress=True, log=print):
     kind, the same for fit and extruded, stated in the summary), ``figure.png`` and ``summary.json`` (settings,
     volume statistics, timings). Returns the summary dict.
     """
-    from tqdm import tqdm
+    from ..progress import progress_bar
 
     cfg.validate()
     if cfg.threads:
@@ -381,7 +381,7 @@ def render_wood_volume(cfg: WoodVolumeConfig, progress=True, log=print):
     timings["build_volumes_s"] = round(time.perf_counter() - t0, 2)
 
     renders, stats = {}, {}
-    with tqdm(total=5 * cfg.passes, desc="render_wood_volume", unit="pass", disable=not progress) as bar:
+    with progress_bar(total=5 * cfg.passes, desc="render_wood_volume", unit="pass", disable=not progress) as bar:
         for key in ("fit", "extruded"):
             renders["veneer_" + key], stats["veneer_" + key] = _render(front, vols[key], cfg.spp, cfg.passes,
                                                                       cfg.seed, bar)

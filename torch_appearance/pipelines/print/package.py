@@ -22,8 +22,18 @@ The volume is streamed layer by layer, so memory does not grow with the number o
   (:func:`.object_target.outside_micro_centres`).
 
 Everything is written into a temporary folder beside ``OUT`` and renamed at the end: a failed or interrupted export
-leaves no partial package. An existing ``OUT`` is refused unless ``force``.
+leaves no partial package. The export holds two locks for its whole length
+(:mod:`torch_appearance.pipelines.runs`): the run folder's, shared with other exports (a run that is optimising or
+writing its results holds it alone, so an export never reads a volume that is being replaced), and the name ``OUT``'s
+(:func:`~torch_appearance.pipelines.runs.lock_output`), under which an existing ``OUT`` is refused unless ``force``: of
+two exports to one ``OUT`` the second is refused, whichever comes first. ``export.json`` records the run's iteration
+that was packaged.
+
+What differs between a slab run and an object run (its rendered texels, the mesh of ``print.3mf``, the void outside
+a requantised object) is a method of its reader, :class:`SlabRun` or :class:`ObjectRun`; :func:`open_run` picks the
+reader from the run's ``config.json`` once.
 """
+import csv
 import os
 import time
 
@@ -35,33 +45,53 @@ from ...fabrication.export import VOID, IndexVolumeLayers, export_slices, npy_he
 from ...fabrication.inks import InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
 from ...fabrication.quantize import HALFTONES, iter_quantized, micro_grid_pitch
+from ..runs import lock_output, lock_run_folder
 from .config import iteration_seed
 
-__all__ = ["export_run", "run_layers", "FORMATS"]
+__all__ = ["export_run", "open_run", "run_layers", "RunFolder", "SlabRun", "ObjectRun", "FORMATS"]
 
 #: The package formats, in the order they are written.
 FORMATS = ("gcvf", "3mf", "slices")
 
 
-class RunFolder:
-    """What an export needs from a run folder, checked once: its config, inks, grid, quantised volume."""
+def _check_run_folder(folder):
+    if not isinstance(folder, (str, os.PathLike)):
+        raise TypeError(f"run: expected a run folder path, got {type(folder).__name__}")
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        raise ValueError(f"run: {folder!r} is not a folder")
+    return folder
 
-    def __init__(self, folder):
-        if not isinstance(folder, (str, os.PathLike)):
-            raise TypeError(f"run: expected a run folder path, got {type(folder).__name__}")
-        self.folder = os.fspath(folder)
-        if not os.path.isdir(self.folder):
-            raise ValueError(f"run: {self.folder!r} is not a folder")
+
+def open_run(folder):
+    """The reader of the print run in ``folder`` for its target type (:class:`SlabRun` or :class:`ObjectRun`), its
+    files checked once. Read a run under its lock (:func:`export_run` does): a run that is writing its results may
+    replace them meanwhile.
+
+    Raises:
+        TypeError, ValueError: not a folder, not a print run, a run from an incompatible version, an unfinished run.
+    """
+    folder = _check_run_folder(folder)
+    path = os.path.join(folder, "config.json")
+    if not os.path.isfile(path):
+        raise ValueError(f"run: {folder!r} is not a print run (no config.json)")
+    config = ta_io.read_json(path, name="run config.json")
+    needed = ("kind", "inks", "voxel_size_mm", "printer_dpi", "seed")
+    missing = [k for k in needed if k not in config]
+    if missing or config.get("kind") not in RUN_TYPES:
+        raise ValueError(f"run: {folder!r} was written by an incompatible version of torch_appearance "
+                         f"(config.json lacks {missing or ['a known kind']}); optimise it again")
+    return RUN_TYPES[config["kind"]](folder, config)
+
+
+class RunFolder:
+    """What an export needs from a run folder, checked once: its config, inks, grid, quantised volume. The target
+    type's part (:meth:`final_texels`, :meth:`mesh`, :meth:`outside`) is in :class:`SlabRun` and :class:`ObjectRun`;
+    open a run with :func:`open_run`."""
+
+    def __init__(self, folder, config):
+        self.folder, self.config = folder, config
         path = os.path.join(self.folder, "config.json")
-        if not os.path.isfile(path):
-            raise ValueError(f"run: {self.folder!r} is not a print run (no config.json)")
-        self.config = ta_io.read_json(path, name="run config.json")
-        needed = ("kind", "inks", "voxel_size_mm", "printer_dpi", "seed")
-        missing = [k for k in needed if k not in self.config]
-        if missing or self.config.get("kind") not in ("slab", "object"):
-            raise ValueError(f"run: {self.folder!r} was written by an incompatible version of torch_appearance "
-                             f"(config.json lacks {missing or ['a known kind']}); optimise it again")
-        self.kind = self.config["kind"]
         self.inks = InkSet([ink_from_dict(e, where=f"{path}: inks[{i}]") if isinstance(e, dict) else e
                             for i, e in enumerate(self.config["inks"])])
         self.quantized = os.path.join(self.folder, "quantized.npz")
@@ -74,6 +104,35 @@ class RunFolder:
                              f"{list(self.inks.names)}")
         self.voxel_size = float(self.config["voxel_size_mm"])
         self.halftone = self.config.get("halftone", "random")
+
+    def iteration(self, finishing=False):
+        """The iteration of the run whose results (``quantized.npz``, ``mixture.npz``) the folder holds: the last of
+        ``log.csv``, which ``summary.json`` must confirm unless ``finishing`` (the run itself exporting its package,
+        before it writes its summary).
+
+        Raises:
+            ValueError: a run that has not finished: no log or summary, or a log beyond the summary (a run that
+                ``--resume`` extended and that was interrupted before it wrote its results).
+        """
+        resume = f"ta-optimize-print --resume --out {self.folder}"
+        try:
+            with open(os.path.join(self.folder, "log.csv"), newline="") as handle:
+                rows = list(csv.DictReader(handle))
+            logged = int(float(rows[-1]["iteration"]))
+        except (OSError, IndexError, KeyError, TypeError, ValueError):
+            raise ValueError(f"run: {self.folder!r} has no readable log.csv: the run has not finished (resume it "
+                             f"with {resume})") from None
+        if finishing:
+            return logged
+        path = os.path.join(self.folder, "summary.json")
+        if not os.path.isfile(path):
+            raise ValueError(f"run: {self.folder!r} has no summary.json: the run has not finished (resume it with "
+                             f"{resume})")
+        summarised = ta_io.read_json(path, name="run summary.json").get("iterations")
+        if summarised != logged:
+            raise ValueError(f"run: {self.folder!r} was extended to iteration {logged} but its results are of "
+                             f"iteration {summarised}: the run has not finished (resume it with {resume})")
+        return logged
 
     def mixture(self):
         path = os.path.join(self.folder, "mixture.npz")
@@ -93,16 +152,58 @@ class RunFolder:
         except (OSError, KeyError, ValueError, zipfile.BadZipFile) as error:
             raise ValueError(f"run: {self.folder!r}: mixture.npz is missing or unreadable ({error})") from None
 
+    def final_texels(self):
+        """The rendered quantised print, linear RGB (its shape is the target type's)."""
+        raise NotImplementedError
+
+    def mesh(self, macro_shape):
+        """The surface of ``print.3mf``: (vertices (V, 3) mm, faces (F, 3) int64, colours: ``vertex_rgb`` or
+        ``face_rgb`` uint8 sRGB) for :func:`~torch_appearance.fabrication.threemf.write_3mf`. ``macro_shape``: (N, D,
+        H, W) of the run's mixture."""
+        raise NotImplementedError
+
+    def outside(self, micro_shape):
+        """None, or ``outside(z0, z1)`` -> bool (z1 - z0, Hy, Wx): the printer voxels of layers z0..z1 of a
+        ``micro_shape`` (Dz, Hy, Wx) volume that lie outside the object, void in a requantised volume."""
+        raise NotImplementedError
+
+
+class SlabRun(RunFolder):
+    """A slab run: the box of the run's grid, its top (and bottom) face rendered."""
+
+    def final_texels(self):
+        """(F, H, W, 3) faces of the slab (top, and bottom when the run rendered it), linear RGB."""
+        stems = ["final"] + (["final_bottom"] if os.path.isfile(os.path.join(self.folder, "final_bottom.exr")) else [])
+        return np.stack([ta_io.read_exr(os.path.join(self.folder, f"{s}.exr")) for s in stems])
+
+    def mesh(self, macro_shape):
+        return _slab_mesh(self, macro_shape)
+
+    def outside(self, micro_shape):
+        return None  # every voxel of the box is printed
+
+
+class ObjectRun(RunFolder):
+    """An object run: a mesh's SDF in the run's grid (``object.npz``), its surface texels rendered."""
+
     def object_sdf(self):
         with np.load(os.path.join(self.folder, "object.npz"), allow_pickle=False) as data:
             return data["sdf"], data["texel_points"], tuple(data["origin"].tolist())
 
     def final_texels(self):
-        """The rendered quantised print: (N, 3) texels of an object, (F, H, W, 3) faces of a slab, linear RGB."""
-        if self.kind == "object":
-            return np.load(os.path.join(self.folder, "final.npy"))
-        stems = ["final"] + (["final_bottom"] if os.path.isfile(os.path.join(self.folder, "final_bottom.exr")) else [])
-        return np.stack([ta_io.read_exr(os.path.join(self.folder, f"{s}.exr")) for s in stems])
+        """(N, 3) surface texels, linear RGB."""
+        return np.load(os.path.join(self.folder, "final.npy"))
+
+    def mesh(self, macro_shape):
+        return _object_mesh(self)
+
+    def outside(self, micro_shape):
+        from .object_target import outside_micro_centres
+        return outside_micro_centres(self.object_sdf()[0], micro_shape)
+
+
+#: the reader of each kind of run (``config.json``'s ``kind``)
+RUN_TYPES = {"slab": SlabRun, "object": ObjectRun}
 
 
 class _Requantized:
@@ -117,10 +218,7 @@ class _Requantized:
         self.blocks = iter_quantized(self.weights, run.voxel_size, dpi,
                                      iteration_seed(run.config["seed"], -2), halftone)
         self.shape = self.blocks.shape
-        self.outside = None
-        if run.kind == "object":
-            from .object_target import outside_micro_centres
-            self.outside = outside_micro_centres(run.object_sdf()[0], self.shape)
+        self.outside = run.outside(self.shape)
 
     def __len__(self):
         return self.shape[0]
@@ -133,7 +231,8 @@ class _Requantized:
 
 
 def run_layers(run, printer, halftone=None):
-    """The layer source of ``run`` (a :class:`RunFolder`) for ``printer`` and how it was made (see the module).
+    """The layer source of ``run`` (a :class:`RunFolder`, :func:`open_run`) for ``printer`` and how it was made (see
+    the module).
 
     Returns:
         (layers, source, dpi): an object with ``shape`` that yields the (Hy, Wx) uint8 layers; ``"run"`` or
@@ -214,87 +313,129 @@ def _slab_mesh(run, shape):
 
 def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halftone=None, force=False, progress=True,
                log=print):
-    """Write the printer package of a finished print run (see the module docstring for the layout).
+    """Write the printer package of a finished print run (see the module docstring for the layout and the locks).
 
     Args:
-        run: the run folder (``ta-optimize-print --out``), with ``quantized.npz``.
+        run: the run folder (``ta-optimize-print --out``), with ``quantized.npz``, ``log.csv`` and ``summary.json``
+            (the run's own export at its end needs no summary).
         out: the package folder; default ``RUN/package-PRINTER``. An existing one is refused unless ``force``.
         printer: a profile name, a profile JSON path or a :class:`~torch_appearance.fabrication.printer.PrinterProfile`.
         formats: any of :data:`FORMATS`.
         halftone: ``None`` (the run's), or one of :data:`~torch_appearance.fabrication.quantize.HALFTONES`.
         force: replace an existing ``out``.
-        progress: tqdm bars over the layers. log: one-line messages.
+        progress: progress bars over the layers (:func:`~torch_appearance.progress.progress_bar`). log: one-line
+            messages.
 
     Returns:
-        The dict written to ``export.json``.
+        The dict written to ``export.json``; its ``iteration`` is the run's iteration that was packaged.
 
     Raises:
         TypeError, ValueError: an unknown printer, an ink the printer does not hold, an unknown format, an existing
-            ``out``, a run folder without a quantised volume or from an incompatible version; before anything is
-            written.
+            ``out``, an ``out`` that another export is writing or that cannot be written, a run folder without a
+            quantised volume, unfinished, from an incompatible version or locked by a run that is writing it; before
+            anything is written (an ``out`` that fails while it is written: after, and then nothing is left).
     """
     t0 = time.perf_counter()
-    run = RunFolder(run)
-    printer = load_printer(printer)
-    if isinstance(formats, str):
-        formats = [f.strip() for f in formats.split(",") if f.strip()]
-    formats = list(dict.fromkeys(formats))
-    unknown = [f for f in formats if f not in FORMATS]
-    if unknown or not formats:
-        raise ValueError(f"formats: expected some of {FORMATS}, got {formats}")
-    printer.material_indices(run.inks.names)  # an ink the printer lacks: refused before anything is written
-    out = os.path.join(run.folder, f"package-{printer.name}") if out is None else os.fspath(out)
-    if os.path.exists(out) and not force:
-        raise ValueError(f"out: {out!r} exists; pass force=True (--force) to replace it")
-    layers, source, dpi = run_layers(run, printer, halftone)
-    dz, hy, wx = layers.shape
-    macro = run.mixture_shape() if "3mf" in formats else None          # (N, D, H, W)
-    pitch = micro_grid_pitch(macro[1:], run.voxel_size, dpi) if macro else None
-    parent = os.path.dirname(os.path.abspath(out))
-    os.makedirs(parent, exist_ok=True)
-    record = {"run": os.path.abspath(run.folder), "printer": printer.to_dict(), "formats": formats,
-              "volume": source, "halftone": run.halftone if halftone is None else halftone,
-              "shape_zyx": [dz, hy, wx], "dpi": list(dpi),
-              "printed_size_mm": [wx * 25.4 / printer.dpi[0], hy * 25.4 / printer.dpi[1],
-                                  dz * printer.layer_thickness_nm * 1e-6], "files": {}, "seconds": {}}
-    with ta_io.atomic_output(out, folder=True) as tmp:   # a failed export leaves no partial package
-        for fmt in formats:
-            t = time.perf_counter()
-            bar = _bar(progress, dz, f"{fmt} ({printer.name})")
-            tick = None if bar is None else (lambda k: bar.update(1))
-            if fmt == "gcvf":
-                from ...fabrication.gcvf import write_gcvf
-                info = write_gcvf(os.path.join(tmp, "print.gcvf"), layers, printer, run.inks.names, progress=tick)
-                record["files"]["print.gcvf"] = info
-            elif fmt == "3mf":
-                from ...fabrication.threemf import write_3mf
-                vertices, faces, colours = _object_mesh(run) if run.kind == "object" else _slab_mesh(run, macro)
-                materials = [printer.materials[m] for m in printer.material_indices(run.inks.names)]
-                # two files: lib3mf marks a file holding a volume as requiring the Volumetric extension, and a
-                # viewer without it must refuse the whole file; the coloured mesh alone opens anywhere
-                write_3mf(os.path.join(tmp, "print.3mf"), vertices, faces, **colours)
-                write_3mf(os.path.join(tmp, "print-volume.3mf"), vertices, faces, layers=iter(layers),
-                          grid_shape=(dz, hy, wx), pitch_mm=pitch, materials=materials, progress=tick, **colours)
-                for name in ("print.3mf", "print-volume.3mf"):
-                    record["files"][name] = {"triangles": int(len(faces)), "vertices": int(len(vertices)),
-                                             "bytes": os.path.getsize(os.path.join(tmp, name))}
-                record["files"]["print-volume.3mf"]["materials"] = [m[0] for m in materials]
-            else:
-                export_slices(layers, run.inks, os.path.join(tmp, "slices"), dpi=dpi, progress=tick)
-                record["files"]["slices"] = {"layers": dz}
-            if bar is not None:
-                bar.close()
-            record["seconds"][fmt] = round(time.perf_counter() - t, 3)
-        record["seconds"]["total"] = round(time.perf_counter() - t0, 3)
-        ta_io.write_json(os.path.join(tmp, "export.json"), record)
-    log(f"export: {', '.join(formats)} for {printer.name} ({dz} layers of {wx} x {hy}, {source} volume) in "
-        f"{record['seconds']['total']:.1f} s -> {out}")
+    folder = _check_run_folder(run)
+    with lock_run_folder(folder, "run", shared=True, reentrant=True,
+                         advice="wait for it to end, then export it") as finishing:
+        run = open_run(folder)
+        iteration = run.iteration(finishing)  # inside the run's lock, the run is exporting its own package
+        printer = load_printer(printer)
+        if isinstance(formats, str):
+            formats = [f.strip() for f in formats.split(",") if f.strip()]
+        formats = list(dict.fromkeys(formats))
+        unknown = [f for f in formats if f not in FORMATS]
+        if unknown or not formats:
+            raise ValueError(f"formats: expected some of {FORMATS}, got {formats}")
+        printer.material_indices(run.inks.names)  # an ink the printer lacks: refused before anything is written
+        out = os.path.join(run.folder, f"package-{printer.name}") if out is None else os.fspath(out)
+        if os.path.exists(out) and not force:  # early, before the volume is prepared; again under out's lock
+            raise _exists(out)
+        layers, source, dpi = run_layers(run, printer, halftone)
+        dz, hy, wx = layers.shape
+        macro = run.mixture_shape() if "3mf" in formats else None          # (N, D, H, W)
+        pitch = micro_grid_pitch(macro[1:], run.voxel_size, dpi) if macro else None
+        record = {"run": os.path.abspath(run.folder), "iteration": iteration, "printer": printer.to_dict(),
+                  "formats": formats, "volume": source, "halftone": run.halftone if halftone is None else halftone,
+                  "shape_zyx": [dz, hy, wx], "dpi": list(dpi),
+                  "printed_size_mm": [wx * 25.4 / printer.dpi[0], hy * 25.4 / printer.dpi[1],
+                                      dz * printer.layer_thickness_nm * 1e-6], "files": {}, "seconds": {}}
+        tmp = None
+        try:
+            os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+            with lock_output(out, "out", advice="wait for it to end or write elsewhere"):
+                if os.path.exists(out) and not force:  # another export may have written it meanwhile
+                    raise _exists(out)
+                with ta_io.atomic_output(out, folder=True) as tmp:   # a failed export leaves no partial package
+                    _write_package(tmp, run, printer, formats, layers, dpi, macro, pitch, record, progress)
+                    record["seconds"]["total"] = round(time.perf_counter() - t0, 3)
+                    ta_io.write_json(os.path.join(tmp, "export.json"), record)
+        except OSError as error:
+            raise _write_error(error, out, tmp) from None
+    log(f"export: {', '.join(formats)} for {printer.name} ({dz} layers of {wx} x {hy}, {source} volume of iteration "
+        f"{iteration}) in {record['seconds']['total']:.1f} s -> {out}")
     return record
+
+
+def _write_package(tmp, run, printer, formats, layers, dpi, macro, pitch, record, progress):
+    """The package's files in the folder ``tmp``, their entries in ``record["files"]`` and ``record["seconds"]``."""
+    dz, hy, wx = layers.shape
+    for fmt in formats:
+        t = time.perf_counter()
+        bar = _bar(progress, dz, f"{fmt} ({printer.name})")
+        tick = None if bar is None else (lambda k: bar.update(1))
+        if fmt == "gcvf":
+            from ...fabrication.gcvf import write_gcvf
+            info = write_gcvf(os.path.join(tmp, "print.gcvf"), layers, printer, run.inks.names, progress=tick)
+            record["files"]["print.gcvf"] = info
+        elif fmt == "3mf":
+            from ...fabrication.threemf import write_3mf
+            vertices, faces, colours = run.mesh(macro)
+            materials = [printer.materials[m] for m in printer.material_indices(run.inks.names)]
+            # two files: lib3mf marks a file holding a volume as requiring the Volumetric extension, and a
+            # viewer without it must refuse the whole file; the coloured mesh alone opens anywhere
+            write_3mf(os.path.join(tmp, "print.3mf"), vertices, faces, **colours)
+            write_3mf(os.path.join(tmp, "print-volume.3mf"), vertices, faces, layers=iter(layers),
+                      grid_shape=(dz, hy, wx), pitch_mm=pitch, materials=materials, progress=tick, **colours)
+            for name in ("print.3mf", "print-volume.3mf"):
+                record["files"][name] = {"triangles": int(len(faces)), "vertices": int(len(vertices)),
+                                         "bytes": os.path.getsize(os.path.join(tmp, name))}
+            record["files"]["print-volume.3mf"]["materials"] = [m[0] for m in materials]
+        else:
+            export_slices(layers, run.inks, os.path.join(tmp, "slices"), dpi=dpi, progress=tick)
+            record["files"]["slices"] = {"layers": dz}
+        if bar is not None:
+            bar.close()
+        record["seconds"][fmt] = round(time.perf_counter() - t, 3)
+
+
+def _exists(out):
+    return ValueError(f"out: {out!r} exists; pass force=True (--force) to replace it")
+
+
+def _write_error(error, out, tmp):
+    """An ``OSError`` of writing ``out`` as a ``ValueError`` that names ``out`` and not what the export makes beside
+    it (its temporary folder ``.OUT.*.tmp``, its lock file ``.OUT.lock``) or the folders it creates above it; any other
+    ``OSError`` (reading the run, say) is returned as it is."""
+    full = os.path.abspath(out)
+    where, base = os.path.split(full)
+
+    def ours(name):
+        name = os.path.abspath(name)
+        return (name == full or full.startswith(name + os.sep)                    # out, or a folder above it
+                or (os.path.dirname(name) == where and os.path.basename(name).startswith(f".{base}."))
+                or (tmp is not None and name.startswith(os.path.abspath(tmp) + os.sep)))
+
+    names = [f for f in (error.filename, error.filename2) if isinstance(f, (str, bytes, os.PathLike))]
+    if names and not all(ours(os.fsdecode(n)) for n in names):
+        return error
+    return ValueError(f"out: cannot write the package {out!r}: {error.strerror or error}")
 
 
 def _bar(progress, total, desc):
     if not progress:
         return None
-    from tqdm import tqdm
+    from ...progress import progress_bar
 
-    return tqdm(total=total, desc=desc, unit="layer", leave=False)
+    return progress_bar(total=total, desc=desc, unit="layer", leave=False)

@@ -115,12 +115,9 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
 
     rows = []
     start = time.perf_counter()
-    try:
-        from tqdm import tqdm
-        bar = tqdm(total=cfg.epochs + cfg.color_epochs + (cfg.photometric_epochs if cfg.photometric else 0),
-                   disable=not progress, desc="fit_wood", unit="ep")
-    except ImportError:  # pragma: no cover
-        bar = None
+    from ...progress import progress_bar
+    bar = progress_bar(total=cfg.epochs + cfg.color_epochs + (cfg.photometric_epochs if cfg.photometric else 0),
+                       disable=not progress, desc="fit_wood", unit="ep")
     # ---- stage 1: geometry from the cyclic phase loss
     fit_geometry(model, target_phase, weight, h, w, cfg, rows, start, bar)
     timings["stage1_s"] = time.perf_counter() - start

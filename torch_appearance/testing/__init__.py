@@ -63,7 +63,7 @@ def assert_z(estimate, stderr, expected, *, n_tests=None, family_alpha=1e-3, wha
 def simd_walk_level():
     """The widest SIMD slab walk that runs here: 0 none (no AVX2, or TA_SIMD is 0), 1 AVX2, 2 AVX-512; leaves the
     choice automatic."""
-    from ._ext import _C
+    from .._ext import _C
     _C._set_simd(-1)
     return int(_C._set_simd(-1))
 
@@ -95,7 +95,7 @@ def tiny_print_target(path, h=6, w=8):
     return the path as a str: the smallest slab target a print run takes."""
     import numpy as np
 
-    from . import io as ta_io
+    from .. import io as ta_io
 
     img = np.zeros((h, w, 3), np.float32)
     img[:, : w // 2] = (0.5, 0.1, 0.05)
@@ -141,7 +141,7 @@ def run_stiff_case(sigma, albedo, g, ior, thickness, *, texels=3, spp=64, seed=0
       Beer–Lambert (albedo 0): L = R + (1 − R)²T/(1 − RT) (or T index-matched), z-test at 5σ;
       gradient sign: ∂L/∂σ_t <= 0 when albedo = 0 (more extinction, less light), ∂L/∂albedo >= 0 everywhere.
     """
-    from .render.volpath import render_texels
+    from ..render.volpath import render_texels
 
     depth = 1 if thickness == "1 voxel" else int(round(2.5 / STIFF_VOXEL_MM))
     shape = (3, depth, texels, texels)

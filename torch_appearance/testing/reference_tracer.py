@@ -1,4 +1,4 @@
-"""Slow, obviously-correct numpy reference for the volume path tracer (tests only).
+"""Slow, obviously-correct numpy reference for the volume path tracer (for tests and benchmarks).
 
 This module re-implements the texel estimator of ``torch_appearance.render_texels`` from first principles,
 deliberately with a *different* algorithm than the fast C++ tracer, so that the two can be compared
@@ -29,9 +29,11 @@ trilinear corner SDF (found by marching + bisection, not by solving the cubic), 
 dielectric, seen by surface texels or orthographic / perspective cameras, lit by a constant, lat-long
 environment map or distant disc emitter. Its conventions are documented with the functions below.
 
+It imports nothing from torch_appearance (numpy only), so that it stays independent of what it checks.
+
 Run the module directly for a quick smoke test::
 
-    python tests/reference_tracer.py
+    python -m torch_appearance.testing.reference_tracer
 """
 
 from __future__ import annotations
