@@ -24,6 +24,7 @@ from torch_appearance.pipelines.print.baselines import render_quantized, render_
 from torch_appearance.pipelines.print.rendering import render_indexed, slab_scene
 from torch_appearance.pipelines.print.slab_target import SlabTarget, slab_memory_bytes
 from torch_appearance.pipelines.runs import RunInterrupted, check_memory, lock_run_folder
+from torch_appearance.print_error import EVAL_RENDERS
 from torch_appearance.testing import run_command, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
@@ -165,7 +166,7 @@ def test_interrupted_and_resumed_equals_uninterrupted(tmp_path, monkeypatch):
 
     def interrupting(self, *args, **kwargs):
         calls["n"] += 1
-        if calls["n"] == 5:  # the render of iteration 3 (renders: initial, 1, 2, eval at 2, 3)
+        if calls["n"] == 3 * EVAL_RENDERS - 1:  # iteration 3's render (initial evaluation, 1, 2, evaluation at 2, 3)
             raise KeyboardInterrupt
         return render(self, *args, **kwargs)
 
@@ -228,10 +229,10 @@ def test_results_reuse_the_last_evaluation(tmp_path, monkeypatch):
 
     monkeypatch.setattr(print_loop.SlabTarget, "render", counting)
     optimize_print(cfg, **QUIET)
-    assert calls["n"] == 4  # the initial evaluation, iterations 1 and 2, the evaluation at 2
+    assert calls["n"] == 2 * EVAL_RENDERS + 2  # the initial evaluation, iterations 1 and 2, the evaluation at 2
     first = ta_io.read_exr(os.path.join(cfg.out, "optimized.exr"))
     optimize_print(dataclasses.replace(cfg, resume=True), **QUIET)
-    assert calls["n"] == 5  # the resumed run has no evaluation in memory
+    assert calls["n"] == 3 * EVAL_RENDERS + 2  # the resumed run has no evaluation in memory
     assert np.array_equal(first, ta_io.read_exr(os.path.join(cfg.out, "optimized.exr")))
 
 

@@ -5,10 +5,12 @@ For each run folder (a slab or an object of ta-optimize-print) the run's target 
 optimised mixture (mixture.npz) rendered at --spp (the continuous optimum), then quantised with each halftoning at
 the run's printer resolution and rendered with the same spp and seed. Reported per halftoning:
 
-* ``dE00_vs_continuous``: mean CIEDE2000 of the quantised print's texels against the continuous optimum's (what the
-  quantisation costs, with the renders' remaining noise), ``dE00_vs_continuous_smoothed`` the same after smoothing
-  both (slabs: a Gaussian of σ = 3 texels; objects: the mean of each texel and its 8 nearest), which leaves the
-  colour shift and takes out most noise and grain, and ``dE00_vs_target`` (the print's score);
+* ``dE00_vs_continuous``: mean CIEDE2000 of the quantised print's texels against the continuous optimum's, both
+  free of render noise (:func:`torch_appearance.print_error.noise_free_error` on the two seeds of each: what the
+  quantisation costs, grain included), ``dE00_vs_continuous_smoothed`` the raw figure after smoothing both (slabs: a
+  Gaussian of σ = 3 texels; objects: the mean of each texel and its 8 nearest), which leaves the colour shift and
+  takes out most noise and grain, and ``dE00_vs_target`` (the print's score, free of render noise); ``*_raw``: the
+  figures of the two renders' means as they are;
 * ``grain``: the high-frequency energy of the texels' lightness, mean (L* − local mean L*)² — for a slab the local
   mean is a Gaussian of σ = --sigma texels, for an object the mean of the 8 nearest texels on the surface — free of
   Monte Carlo noise: every volume is rendered with two seeds and the two high-pass images are multiplied (their
@@ -33,6 +35,7 @@ import torch
 from torch_appearance import io as ta_io
 from torch_appearance.color import rgb_to_lab
 from torch_appearance.metrics import delta_e_2000
+from torch_appearance.print_error import noise_free_error
 from torch_appearance.nn.mixture import mix_inks
 from torch_appearance.pipelines.print import PrintConfig
 from torch_appearance.pipelines.print.baselines import quantize
@@ -106,10 +109,14 @@ def evaluate(folder, spp, sigma, seed, log=print, mesh=None, texture=None):
         saved[halftone] = np.stack(renders)
         mean = torch.as_tensor((renders[0] + renders[1]) / 2).reshape(-1, 3).double()
         smoothed = torch.as_tensor(smooth((renders[0] + renders[1]) / 2)).reshape(-1, 3).double()
+        pair = torch.as_tensor(np.stack(renders)).reshape(2, -1, 3).double()
+        pair_continuous = torch.as_tensor(np.stack(continuous)).reshape(2, -1, 3).double()
         return {"run": name, "kind": target.kind, "texels": int(len(goal)), "halftone": halftone,
-                "dE00_vs_continuous": float(delta_e_2000(mean, reference).mean()),
+                "dE00_vs_continuous": noise_free_error(pair, pair_continuous)["dE00_mean"],
+                "dE00_vs_continuous_raw": float(delta_e_2000(mean, reference).mean()),
                 "dE00_vs_continuous_smoothed": float(delta_e_2000(smoothed, smooth_reference).mean()),
-                "dE00_vs_target": float(delta_e_2000(mean, goal).mean()),
+                "dE00_vs_target": noise_free_error(pair, goal)["dE00_mean"],
+                "dE00_vs_target_raw": float(delta_e_2000(mean, goal).mean()),
                 "grain": float(np.mean(high(renders[0]) * high(renders[1]))), "seconds": seconds}
 
     rows = [row("continuous", continuous, 0.0)]
@@ -145,8 +152,8 @@ def main(argv=None):
         np.savez_compressed(os.path.splitext(args.out)[0] + f"_{more[0]['run']}_renders.npz", **renders)
     with open(args.out, "w") as handle:
         json.dump({"spp": args.spp, "sigma": args.sigma, "rows": rows}, handle, indent=2)
-    fields = ["run", "kind", "texels", "halftone", "dE00_vs_continuous", "dE00_vs_continuous_smoothed", "dE00_vs_target",
-              "grain", "grain_excess", "seconds"]
+    fields = ["run", "kind", "texels", "halftone", "dE00_vs_continuous", "dE00_vs_continuous_raw",
+              "dE00_vs_continuous_smoothed", "dE00_vs_target", "dE00_vs_target_raw", "grain", "grain_excess", "seconds"]
     print("| " + " | ".join(fields) + " |\n|" + "---|" * len(fields))
     for r in rows:
         print("| " + " | ".join(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in fields) + " |")

@@ -54,11 +54,23 @@ from torch_appearance.nn.mixture import MaterialMixture, mix_inks
 from torch_appearance.pipelines.print import LOG_FIELDS, PrintConfig, build_target, iteration_seed
 from torch_appearance.pipelines.print.baselines import quantize
 from torch_appearance.pipelines.print.run_folder import save_image, score
+from torch_appearance.print_error import EVAL_RENDERS
+
+def _evaluation(render, spp, seed):
+    """(K, F, H, W, 3) the evaluation renders of the print loop: K = EVAL_RENDERS independent renders of spp / K
+    spp (``render(spp, seed)``), as :func:`score` takes them."""
+    return torch.stack([render(spp // EVAL_RENDERS, iteration_seed(seed, k)) for k in range(EVAL_RENDERS)])
+
+
+def _score_top(renders, target):
+    """The print loop's scores (free of render noise) of the top face of evaluation ``renders``."""
+    return score(renders[:, 0], target.target[0])
+
 
 def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed):
-    """Printer-resolution indices of ``weights`` and their rendered texels (as the print loop scores a result)."""
+    """Printer-resolution indices of ``weights`` and their evaluation renders (as the print loop scores a result)."""
     indices = quantize(target, weights, inks, cfg, quant_seed)
-    return indices, target.render_quantized(indices, inks, cfg.printer_dpi, spp, seed)
+    return indices, _evaluation(lambda n, k: target.render_quantized(indices, inks, cfg.printer_dpi, n, k), spp, seed)
 
 
 EXTRA_FIELDS = ["cpu_s", "eval_s", "spp_used"]
@@ -150,11 +162,11 @@ def cmd_baseline(args):
                       "eval_spp": cfg.eval_spp, "final_spp": args.final_spp}, "table": table, **build_info()}
     for spp in sorted({cfg.eval_spp, args.final_spp}):
         _, img = _quantize_and_render(target, weights, inks, cfg, spp, eval_seed, quant_seed)
-        out[f"quantized_spp{spp}"] = score(img[0], target.target[0])
+        out[f"quantized_spp{spp}"] = _score_top(img, target)
         with torch.no_grad():
             s, a = mix_inks(weights, inks)
-            cont = target.render(s.contiguous(), a.contiguous(), spp, eval_seed)
-        out[f"continuous_spp{spp}"] = score(cont[0], target.target[0])
+            cont = _evaluation(lambda n, k: target.render(s.contiguous(), a.contiguous(), n, k), spp, eval_seed)
+        out[f"continuous_spp{spp}"] = _score_top(cont, target)
     out["seconds"] = time.perf_counter() - t0
     np.save(os.path.join(args.study, "baseline_weights.npy"), weights.numpy())
     write_json(path, out)
@@ -352,14 +364,14 @@ def cmd_run(args):
     def evaluate(spp=cfg.eval_spp):
         with torch.no_grad():
             s, a = model()
-            return target.render(s, a, spp, eval_seed)
+            return _evaluation(lambda n, k: target.render(s, a, n, k), spp, eval_seed)
 
     def eval_row(row):
         t = time.perf_counter()
-        img = evaluate()
-        row.update(score(img[0], target.target[0]))
+        renders = evaluate()
+        row.update(_score_top(renders, target))
         with torch.no_grad():
-            _, parts = criterion.forward_parts(target.to_grid(img), target.target_grid, target.mask)
+            _, parts = criterion.forward_parts(target.to_grid(renders.mean(0)), target.target_grid, target.mask)
         row.update({f"eval_{k}": float(v) for k, v in parts.items()})
         return time.perf_counter() - t
 
@@ -433,11 +445,11 @@ def cmd_run(args):
     summary = {**config, "iterations": it, "wall_s": opt_wall, "cpu_s": opt_cpu, "eval_s": eval_s,
                "seconds_per_iteration": opt_wall / max(it, 1)}
     for spp in sorted({cfg.eval_spp, args.final_spp}):
-        summary[f"optimized_spp{spp}"] = score(evaluate(spp)[0], target.target[0])
+        summary[f"optimized_spp{spp}"] = _score_top(evaluate(spp), target)
         _, img = _quantize_and_render(target, weights, inks, cfg, spp, eval_seed, quant_seed)
-        summary[f"final_spp{spp}"] = score(img[0], target.target[0])
+        summary[f"final_spp{spp}"] = _score_top(img, target)
         if spp == cfg.eval_spp:
-            save_image(folder, "final", img[0].numpy())
+            save_image(folder, "final", img.mean(0)[0].numpy())
     w = weights.double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
     summary["ink_usage_top_layer"] = dict(zip(inks.names, map(float, w[:, 0])))
     summary["ink_usage_mean"] = dict(zip(inks.names, map(float, w.mean(1))))

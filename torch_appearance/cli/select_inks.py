@@ -5,8 +5,9 @@ default), as a short print optimisation (ta-optimize-print's loop: --iterations 
 for every set) on one shared target/voxelisation, then ranks the sets and plots their convergence.
 
 The table is ordered by dE00_mean, the CIEDE2000 mean of each set's final *quantised* result (the printable
-volume, rendered at --eval-spp). Next to it, loss_rank orders the sets by loss_final, the appearance loss E of that
-same render. loss_last is the training loss (at --spp, averaged over the last 10% of iterations, at least one): at
+volume), free of the evaluation render's noise (four renders of --eval-spp/4 spp; dE00_mean_se its standard error:
+sets closer than about two of them are not told apart). Next to it, loss_rank orders the sets by loss_final, the
+appearance loss E of that same render. loss_last is the training loss (at --spp, averaged over the last 10% of iterations, at least one): at
 low spp it is dominated by the render noise (its ΔE76² term measures noise as well as error, and the noise differs
 between inks), so it shows convergence within a set but does not rank sets.
 
@@ -14,7 +15,7 @@ Output folder --out DIR:
     runs/<ink1+ink2+...>/   one optimize_print run folder per combination (+ inks.json, selection.json);
                             a combination whose summary.json exists is skipped, so rerunning the same command
                             resumes an interrupted selection (a half-done run continues from its checkpoint)
-    ranking.csv, ranking.json   rank, inks, dE00_mean, dE00_p95 (final quantised), dE00_continuous (the
+    ranking.csv, ranking.json   rank, inks, dE00_mean, dE00_mean_se, dE00_p95 (final quantised), dE00_continuous (the
                             continuous mixture), loss_final, loss_rank, loss_last, naive_dE00_mean (naive
                             extrusion, quantised), seconds (optimisation loop), run_seconds (the whole run with
                             baseline, quantisation and exports), folder
@@ -58,8 +59,8 @@ from .optimize_print import add_optimization_arguments, add_target_arguments, co
 
 DEFAULT_CANDIDATES = ("cyan", "cyan2", "magenta", "magenta2", "yellow", "yellow2", "orange")
 DEFAULT_FIXED = ("black", "white")
-RANKING_FIELDS = ["rank", "inks", "dE00_mean", "dE00_p95", "dE00_continuous", "loss_final", "loss_rank", "loss_last",
-                  "naive_dE00_mean", "seconds", "run_seconds", "folder"]
+RANKING_FIELDS = ["rank", "inks", "dE00_mean", "dE00_mean_se", "dE00_p95", "dE00_continuous", "loss_final", "loss_rank",
+                  "loss_last", "naive_dE00_mean", "seconds", "run_seconds", "folder"]
 ORDERED_BY = "dE00_mean (CIEDE2000 mean of the final quantised result), ties by loss_final"
 HIGHLIGHT = ("tab:red", "tab:blue", "tab:green")
 # settings that must agree between a finished run and this selection for the run to be reused
@@ -268,7 +269,9 @@ def _result(name, chosen, folder, target, gamma):
     if os.path.exists(os.path.join(folder, "selection.json")):
         with open(os.path.join(folder, "selection.json"), encoding="utf-8") as handle:
             extra = json.load(handle)
-    row = {"inks": name, "dE00_mean": s["final_quantized"]["dE00_mean"], "dE00_p95": s["final_quantized"]["dE00_p95"],
+    final = s["final_quantized"]
+    row = {"inks": name, "dE00_mean": final["dE00_mean"], "dE00_mean_se": final.get("dE00_mean_se"),
+           "dE00_p95": final["dE00_p95"],
            "dE00_continuous": s["optimized_continuous"]["dE00_mean"],
            "loss_final": _final_loss(folder, target, gamma), "loss_last": sum(tail) / len(tail),
            "naive_dE00_mean": s["baseline_naive_extrusion"]["dE00_mean"], "seconds": s["wall_s"],
@@ -290,7 +293,7 @@ def rank(rows):
 def _rounded(row):
     """A ranking row for the CSV: ΔE to 4 decimals, seconds to 3, the loss to 6 significant digits."""
     out = dict(row)
-    for k in ("dE00_mean", "dE00_p95", "dE00_continuous", "naive_dE00_mean"):
+    for k in ("dE00_mean", "dE00_mean_se", "dE00_p95", "dE00_continuous", "naive_dE00_mean"):
         out[k] = None if out[k] is None else round(out[k], 4)
     for k in ("seconds", "run_seconds"):
         out[k] = None if out[k] is None else round(out[k], 3)
@@ -311,9 +314,8 @@ def _running_mean(iterations, values, window):
 
 
 def plot(path, ranking, curves, plan, args):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
     order = [r["inks"] for r in ranking]
@@ -322,8 +324,9 @@ def plot(path, ranking, curves, plan, args):
     top = order[:min(3, n)]
     shown = order[:40]  # bars: the best 40 at most (the ranking files hold all)
     height = max(4.6, 0.2 * len(shown) + 1.6)
-    fig, ax = plt.subplots(1, 3, figsize=(16, height), gridspec_kw={"width_ratios": [1.0, 1.0, 0.85]})
-    grey = plt.get_cmap("Greys")
+    fig = Figure(figsize=(16, height))
+    ax = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1.0, 1.0, 0.85]})
+    grey = colormaps["Greys"]
     for pos in range(n - 1, -1, -1):  # worst first, so the best lie on top
         name = order[pos]
         c = curves[name]["log"]
@@ -480,7 +483,8 @@ def run(args):
     if not quiet:
         print(ta_io.markdown_table(ranking[:10], [
             ("rank", "rank", "{}"), ("inks", "inks", "{}"), ("dE00_mean", "ΔE00 mean", "{:.2f}"),
-            ("dE00_p95", "ΔE00 p95", "{:.2f}"), ("dE00_continuous", "ΔE00 cont.", "{:.2f}"),
+            ("dE00_mean_se", "± SE", "{:.2f}"), ("dE00_p95", "ΔE00 p95", "{:.2f}"),
+            ("dE00_continuous", "ΔE00 cont.", "{:.2f}"),
             ("loss_final", "loss", "{:.4g}"), ("loss_rank", "loss rank", "{}"), ("seconds", "s", "{:.1f}")]))
     print(f"select_inks: best set {best['inks']} + {'+'.join(i.name for i in plan.fixed) or 'nothing'} "
           f"(CIEDE2000 mean {best['dE00_mean']:.2f}, p95 {best['dE00_p95']:.2f}, loss rank {best['loss_rank']}); "

@@ -8,6 +8,7 @@ from typing import Optional, Sequence, Tuple
 from ...fabrication.inks import DEFAULT_INKS, Ink, InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
 from ...fabrication.quantize import HALFTONES, PRINTER_DPI
+from ...print_error import EVAL_RENDERS
 from .fixed_fractions import parse_fixed
 
 __all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts", "SCHEDULES"]
@@ -96,6 +97,10 @@ class PrintConfig:
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size"):
             if getattr(self, name) is not None or name not in SCHEDULES["slab"]:
                 positive(name, getattr(self, name), integer=True)
+        if self.eval_spp is not None and self.eval_spp % EVAL_RENDERS:
+            raise ValueError(f"eval_spp: expected a multiple of {EVAL_RENDERS} (an evaluation is {EVAL_RENDERS} "
+                             f"independent renders of eval_spp/{EVAL_RENDERS} spp, from which the render noise is "
+                             f"taken out of the error), got {self.eval_spp}")
         if isinstance(self.views, bool) or not isinstance(self.views, int) or self.views < 0:
             raise ValueError(f"views: expected an int >= 0, got {self.views!r}")
         for name in ("width_mm", "height_mm"):

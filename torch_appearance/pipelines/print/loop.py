@@ -7,9 +7,11 @@ target's methods (render, appearance, scores, baselines, outputs); it never asks
 
 Data flow: ``MaterialMixture`` (learnable logits, N × D × H × W) → (σ_t, albedo) → ``target.render`` (C++ path
 tracer through :class:`~torch_appearance.nn.SceneRenderer`, radiative backpropagation) → ``target.appearance``
-(E1 ΔE76², E2 3D SSIM, E3 3D Sobel) → ``loss.backward()`` → Adagrad/Adam step. Every ``eval_every`` iterations a
-render at ``eval_spp`` with a fixed seed is scored with CIEDE2000. After the loop: probabilistic quantisation (one
-ink per printer micro-voxel) and an evaluation render of the *quantised* volume at the printer resolution.
+(E1 ΔE76², E2 3D SSIM, E3 3D Sobel) → ``loss.backward()`` → Adagrad/Adam step. Every ``eval_every`` iterations
+the print is scored with CIEDE2000 free of the render's Monte Carlo noise: four independent renders of ``eval_spp / 4``
+spp with fixed seeds, extrapolated to infinitely many samples (:mod:`torch_appearance.print_error`). After the loop:
+probabilistic quantisation (one ink per printer micro-voxel) and the same evaluation of the *quantised* volume at the
+printer resolution; the baselines are scored the same way.
 """
 import dataclasses
 import os
@@ -31,6 +33,8 @@ from .object_target import ObjectTarget
 from .remap25d import MAX_SLAB_TEXELS, prepare_uv_slab, wrap_slab_weights
 from .report import write_figures
 from ..runs import RunInterrupted, lock_run_folder, sigint_deferred
+from ...print_error import EVAL_RENDERS
+from ...progress import progress_bar
 from .run_folder import CHECKPOINT, LOG_FIELDS, npz_bytes, save_torch, score
 from .slab_target import SlabTarget
 
@@ -55,10 +59,13 @@ def _check_core_ink(cfg, inks):
 def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     """Run one print optimisation of a slab or, with ``cfg.mesh``, of a textured object, and write ``cfg.out``.
 
-    Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (iteration, wall_s, loss, E1, E2,
-    E3, dE00_mean, dE00_p95, dE76_mean, seed); ``convergence.png``; ``ink_usage_by_depth.png``; the texel colours
-    of ``target``, ``baseline`` (naive extrusion, quantised), ``initial``, ``optimized`` (continuous mixture) and
-    ``final`` (quantised result): for a slab linear-RGB ``.exr`` images of the top face with PNG previews (and
+    Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (:data:`.run_folder.LOG_FIELDS`:
+    iteration, wall_s, loss, E1, E2, E3; at evaluations the error free of render noise ``dE00_mean`` ±
+    ``dE00_mean_se``, ``dE00_p95`` ± ``dE00_p95_se``, ``dE76_rms``, the evaluation render's raw ``dE00_mean_raw``,
+    ``dE00_p95_raw``, ``dE76_mean_raw`` and its noise ``dE00_noise``; seed); ``convergence.png``;
+    ``ink_usage_by_depth.png``; the texel colours of ``target``, ``baseline`` (naive extrusion, quantised),
+    ``initial``, ``optimized`` (continuous mixture) and ``final`` (quantised result; the means of their evaluation
+    renders): for a slab linear-RGB ``.exr`` images of the top face with PNG previews (and
     ``*_bottom`` for two-sided targets) and ``dE00_heatmap.png``; for an object ``.npy`` (N, 3) linear RGB and a
     coloured point cloud ``.ply`` at the texels' surface points, and ``object.npz`` (the voxelisation);
     ``mixture.npz`` (weights N×D×H×W, ink names, voxel size); ``quantized.npz`` (uint8 material indices at the
@@ -69,7 +76,8 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     (:func:`~torch_appearance.pipelines.runs.lock_run_folder`): a second run on it is refused.
 
     Args:
-        cfg: the settings. progress: show a tqdm bar. log: where one-line messages go.
+        cfg: the settings. progress: show a progress bar (whole lines when stderr is not a terminal).
+        log: where one-line messages go.
         target: optional prebuilt target from :func:`build_target` for the same geometry settings (a run with
             other inks or optimiser settings reuses the voxelisation and the scene).
 
@@ -115,6 +123,13 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     with lock_run_folder(folder):
         _check_not_a_run(cfg, ckpt_path)  # again under the lock: another run may have finished in the meantime
         return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world, t_call).run(progress)
+
+
+def _scores_text(scores):
+    """``mean ± SE/p95`` of a score dict (the SE left out where there is none)."""
+    se = scores.get("dE00_mean_se")
+    se_text = "" if se is None or se != se else f" ± {se:.2f}"
+    return f"{scores['dE00_mean']:.2f}{se_text}/{scores['dE00_p95']:.2f}"
 
 
 def _check_not_a_run(cfg, ckpt_path):
@@ -164,8 +179,11 @@ class _Run:
         self.rows, self.start, self.wall_offset = [], 0, 0.0
         self.ema = {"sum": None, "count": 0}  # estimator "ema": running mean of the renders (checkpointed)
         self.baseline, self.remap = None, None
-        self.evaluated = (None, None)  # (iteration, texels) of the latest evaluation render
+        self.evaluated = (None, None)  # (iteration, renders) of the latest evaluation
         self.eval_seed = iteration_seed(cfg.seed, -1)
+        # an evaluation: EVAL_RENDERS independent renders of eval_spp / EVAL_RENDERS spp with these seeds
+        self.eval_seeds = [iteration_seed(self.eval_seed, k) for k in range(EVAL_RENDERS)]
+        self.eval_seconds = 0.0  # spent on evaluations (renders and scores) by this call: the summary's evaluation
         self.quant_seed = iteration_seed(cfg.seed, -2)
 
     def run(self, progress):
@@ -193,13 +211,29 @@ class _Run:
                                  f"again", self.folder, self.cfg.iterations) from None
 
     # ---------------------------------------------------------------------------------------------- helpers
-    def evaluate(self, spp=None):
+    def renders(self, render):
+        """(K, *texels) the K = :data:`EVAL_RENDERS` independent renders of an evaluation: ``render(spp, seed)``
+        with ``eval_spp / K`` spp and the evaluation's seeds."""
+        t0 = time.perf_counter()
+        spp = self.cfg.eval_spp // EVAL_RENDERS
+        renders = torch.stack([render(spp, seed) for seed in self.eval_seeds])
+        self.eval_seconds += time.perf_counter() - t0
+        return renders
+
+    def evaluate(self):
+        """(K, *texels) evaluation renders of the current continuous mixture."""
         with torch.no_grad():
             s, a = self.model()
-            return self.target.render(s, a, self.cfg.eval_spp if spp is None else spp, self.eval_seed)
+            return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed))
 
-    def score(self, texels):
-        return score(*self.target.scored(texels))
+    def score(self, renders, texels=False):
+        """The scores (:func:`.run_folder.score`) of evaluation ``renders`` (K, *texels) on the target's scored
+        texels (``target.scored``)."""
+        t0 = time.perf_counter()
+        scored = [self.target.scored(r) for r in renders]
+        result = score(torch.stack([p for p, _ in scored]), scored[0][1], texels=texels)
+        self.eval_seconds += time.perf_counter() - t0
+        return result
 
     def loss_row(self, texels):
         with torch.no_grad():
@@ -207,10 +241,10 @@ class _Run:
         return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
     def quantized(self, weights, fixed=()):
-        """Printer-resolution indices of ``weights`` and their rendered texels at ``eval_spp``."""
+        """Printer-resolution indices of ``weights`` and their evaluation renders (K, *texels)."""
         indices = quantize(self.target, weights, self.inks, self.cfg, self.quant_seed, fixed)
-        return indices, self.target.render_quantized(indices, self.inks, self.cfg.printer_dpi, self.cfg.eval_spp,
-                                                     self.eval_seed)
+        return indices, self.renders(lambda spp, seed: self.target.render_quantized(
+            indices, self.inks, self.cfg.printer_dpi, spp, seed))
 
     # ---------------------------------------------------------------------------------------------- steps
     def write_inputs(self):
@@ -255,8 +289,8 @@ class _Run:
         if cfg.naive_baseline:
             t0 = time.perf_counter()
             base_w, table = target.naive_weights(self.inks, cfg)
-            _, base_img = self.quantized(base_w)
-            self.baseline = {"image": base_img.numpy(), **self.score(base_img), "table": table,
+            _, base_renders = self.quantized(base_w)
+            self.baseline = {"image": base_renders.mean(0).numpy(), **self.score(base_renders), "table": table,
                              "seconds": time.perf_counter() - t0}
             target.save_texels(self.folder, "baseline", self.baseline["image"])
         if cfg.init == "naive":  # warm start: the optimisation begins where the naive extrusion ends
@@ -264,8 +298,8 @@ class _Run:
         # the extrusion's (inks, D, H, W) weights are not kept through the optimisation (1.16 GB for Spot at 40 mm)
         del base_w
         initial = self.evaluate()
-        target.save_texels(self.folder, "initial", initial)
-        self.rows.append({"iteration": 0, "wall_s": 0.0, **self.loss_row(initial), **self.score(initial),
+        target.save_texels(self.folder, "initial", initial.mean(0))
+        self.rows.append({"iteration": 0, "wall_s": 0.0, **self.loss_row(initial.mean(0)), **self.score(initial),
                           "seed": self.eval_seed})
 
     def remap_baseline(self):
@@ -273,8 +307,9 @@ class _Run:
         t0 = time.perf_counter()
         weights, info = remap_baseline(self.target, self.inks, self.cfg,
                                        work_dir=os.path.join(self.folder, "remap25d"), log=self.log)
-        _, image = self.quantized(weights, self.fixed)
-        remap = {"image": image.numpy(), **self.score(image), "info": info, "seconds": time.perf_counter() - t0}
+        _, renders = self.quantized(weights, self.fixed)
+        remap = {"image": renders.mean(0).numpy(), **self.score(renders), "info": info,
+                 "seconds": time.perf_counter() - t0}
         self.target.save_texels(self.folder, "baseline_remap", remap["image"])
         return remap
 
@@ -336,12 +371,8 @@ class _Run:
         seconds of wall time without one, and on Ctrl-C (then :class:`~torch_appearance.pipelines.runs.RunInterrupted`
         says how to resume)."""
         cfg = self.cfg
-        try:
-            from tqdm import tqdm
-            bar = tqdm(total=cfg.iterations, initial=self.start, disable=not progress, desc="optimize_print",
-                       unit="it")
-        except ImportError:  # pragma: no cover
-            bar = None
+        bar = progress_bar(total=cfg.iterations, initial=self.start, disable=not progress, desc="optimize_print",
+                           unit="it")
         t_start = time.perf_counter() - self.wall_offset
         last_eval = self.rows[-1] if self.rows else {}
         last_checkpoint = time.perf_counter()
@@ -359,26 +390,23 @@ class _Run:
                 self.step(seed, record)
                 row = self.rows[-1]
                 if (it + 1) % cfg.eval_every == 0 or it + 1 == cfg.iterations:
-                    image = self.evaluate()
-                    row.update(self.score(image))
-                    self.evaluated = (done, image)
+                    renders = self.evaluate()
+                    row.update(self.score(renders))
+                    self.evaluated = (done, renders)
                     row["wall_s"] = time.perf_counter() - t_start
                     last_eval = row
                 if "dE00_mean" in row or time.perf_counter() - last_checkpoint > cfg.checkpoint_s:
                     self.checkpoint(done, row["wall_s"])
                     last_checkpoint = time.perf_counter()
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
+                bar.update(1)
+                bar.set_postfix(loss=f"{row['loss']:.4g}", dE00=f"{last_eval.get('dE00_mean', float('nan')):.2f}")
         except KeyboardInterrupt:
-            if bar is not None:
-                bar.close()
+            bar.close()
             self.checkpoint(done, time.perf_counter() - t_start)
             raise RunInterrupted(f"interrupted at iteration {done} of {cfg.iterations}; the checkpoint is in "
                                  f"{self.folder}; continue with --resume (Python: resume=True)", self.folder,
                                  done) from None
-        if bar is not None:
-            bar.close()
+        bar.close()
         ta_io.write_csv(os.path.join(self.folder, "log.csv"), self.rows, LOG_FIELDS)
 
     def finish(self):
@@ -386,21 +414,26 @@ class _Run:
         cfg, target, inks, folder, rows = self.cfg, self.target, self.inks, self.folder, self.rows
         # the last iteration's evaluation is this render (same state, same seed); a run resumed after its last
         # iteration renders it again, before the (N, D, H, W) weights exist: the two are not held together
-        done, image = self.evaluated
-        optimized = image if done == cfg.iterations else self.evaluate()
+        done, renders = self.evaluated
+        optimized = renders if done == cfg.iterations else self.evaluate()
         self.evaluated = (None, None)
-        target.save_texels(folder, "optimized", optimized)
+        target.save_texels(folder, "optimized", optimized.mean(0))
         weights = self.model.weights().detach()
-        indices, final_img = self.quantized(weights, self.fixed)
-        final = {"image": final_img.numpy(), **self.score(final_img)}
+        indices, final_renders = self.quantized(weights, self.fixed)
+        scores, texel_de = self.score(final_renders, texels=True)
+        final = {"image": final_renders.mean(0).numpy(), **scores, "texel_dE00": texel_de}
         target.save_texels(folder, "final", final["image"])
-        final.update(target.extra_scores(final_img))
+        final.update(target.extra_scores(final_renders))
+        # what quantisation costs: the quantised print's expected colours against the continuous optimum's (both
+        # free of render noise; the halftone grain is in it)
+        quantisation = score(torch.stack([target.scored(r)[0] for r in final_renders]),
+                             torch.stack([target.scored(r)[0] for r in optimized]))
         ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), npz_bytes(
             weights=np.asarray(weights.numpy(), np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
         save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
         export_slices(indices, inks, os.path.join(folder, "slices"), dpi=cfg.printer_dpi)
         write_figures(folder, rows, cfg, target, inks, weights, final, self.baseline, self.remap)
-        view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, final["image"], log=self.log)
+        view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, texel_de, log=self.log)
         package = None
         if cfg.printer is not None:  # the printer's package of the run's volume (pipelines.print.package)
             from .package import export_run
@@ -409,18 +442,25 @@ class _Run:
 
         baseline, remap = self.baseline, self.remap
         opt_rows = [r for r in rows if r["iteration"] > 0]
+        hidden = ("image", "texel_dE00")
         summary = {
             "kind": target.kind,
             "iterations": cfg.iterations,
             "wall_s": rows[-1]["wall_s"],
             "seconds_per_iteration": (rows[-1]["wall_s"] / max(1, len(opt_rows))) if opt_rows else None,
             **target.describe(), "spp": cfg.spp, "eval_spp": cfg.eval_spp,
-            "final_quantized": {k: v for k, v in final.items() if k != "image"},
+            "evaluation": {"renders": EVAL_RENDERS, "spp_each": cfg.eval_spp // EVAL_RENDERS,
+                           "seconds": self.eval_seconds,
+                           "share_of_job": self.eval_seconds / (time.perf_counter() - self.t_call),
+                           "estimator": "torch_appearance.print_error.noise_free_error: CIEDE2000 extrapolated to "
+                                        "infinitely many samples; *_raw: the mean of the renders scored as it is"},
+            "final_quantized": {k: v for k, v in final.items() if k not in hidden},
             "optimized_continuous": self.score(optimized),
+            "quantisation_vs_continuous": quantisation,
             "baseline_naive_extrusion": None if baseline is None else
-            {k: v for k, v in baseline.items() if k != "image"},
-            "baseline_remap_25d": None if remap is None else {k: v for k, v in remap.items() if k != "image"},
-            "initial": {k: rows[0][k] for k in ("dE00_mean", "dE00_p95", "dE76_mean") if k in rows[0]},
+            {k: v for k, v in baseline.items() if k not in hidden},
+            "baseline_remap_25d": None if remap is None else {k: v for k, v in remap.items() if k not in hidden},
+            "initial": {k: rows[0][k] for k in LOG_FIELDS if k in rows[0] and k.startswith("dE")},
             "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
             "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
             "parameters": int(self.model.logits.numel()), "views_s": view_seconds, "halftone": cfg.halftone,
@@ -431,11 +471,11 @@ class _Run:
             "job_s": time.perf_counter() - self.t_call,
         }
         ta_io.write_json(os.path.join(folder, "summary.json"), summary)
-        naive_text = "" if baseline is None else \
-            f", naive extrusion {baseline['dE00_mean']:.2f}/{baseline['dE00_p95']:.2f}"
-        remap_text = "" if remap is None else f", 2.5D remapped {remap['dE00_mean']:.2f}/{remap['dE00_p95']:.2f}"
+        naive_text = "" if baseline is None else f", naive extrusion {_scores_text(baseline)}"
+        remap_text = "" if remap is None else f", 2.5D remapped {_scores_text(remap)}"
         self.log(f"optimize_print: {cfg.iterations} iterations in {summary['wall_s']:.1f} s (the whole job "
-                 f"{summary['job_s'] / 60:.1f} min); CIEDE2000 mean/p95: "
-                 f"final (quantised) {final['dE00_mean']:.2f}/{final['dE00_p95']:.2f}{naive_text}{remap_text} "
+                 f"{summary['job_s'] / 60:.1f} min); CIEDE2000 mean ± SE / p95 of the print, free of render noise: "
+                 f"final (quantised) {_scores_text(final)}{naive_text}{remap_text}; the {cfg.eval_spp}-spp evaluation "
+                 f"render alone would read {final['dE00_mean_raw']:.2f} (its noise {final['dE00_noise']:.2f}) "
                  f"-> {folder}")
         return summary

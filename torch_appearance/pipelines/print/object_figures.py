@@ -90,7 +90,8 @@ def views_figure(path, target, cams, renders, *, texel_de=None, log=print):
         _, nearest = cKDTree(target.obj.texel_points.numpy()).query(np.asarray(target.mesh.vertices), workers=-1)
         per_vertex = np.asarray(texel_de, np.float64)[nearest]
         clim = (0.0, max(1.0, float(np.percentile(texel_de, 99))))
-        rows.append(("CIEDE2000 per texel", mesh_views(target.mesh, cams, scalars=per_vertex, clim=clim)))
+        rows.append(("CIEDE2000 per texel (render noise taken out)",
+                     mesh_views(target.mesh, cams, scalars=per_vertex, clim=clim)))
     rows = [(name, images) for name, images in rows if images is not None]
     n = len(cams)
     fig = Figure(figsize=(3.2 * n, 3.3 * len(rows)))

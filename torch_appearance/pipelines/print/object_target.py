@@ -20,7 +20,6 @@ from ... import distributed
 from ... import io as ta_io
 from ...fabrication.export import VOID
 from ...fabrication.quantize import micro_grid_pitch
-from ...metrics import delta_e_2000
 from ...render import ConstantEnvironment, EnvironmentMap, Scene, SDFBoundary, SurfaceTexels
 from ...render.volpath import render_scene_indexed
 from .baselines import naive_extrusion
@@ -370,18 +369,18 @@ class ObjectTarget:
         """``object.npz``: the voxelisation (:meth:`VoxelObject.save`)."""
         self.obj.save(os.path.join(folder, "object.npz"))
 
-    def figures(self, final_texels):
+    def figures(self, final):
         """The object's figure is ``views.png`` (:meth:`views`): nothing more."""
         return []
 
-    def views(self, folder, indices, inks, cfg, seed, final_texels, log=print):
+    def views(self, folder, indices, inks, cfg, seed, texel_de, log=print):
         """``cfg.views`` camera renders of the quantised object (``view_k.exr``/``.png``) and ``views.png`` beside
-        the target texture on the mesh, coloured by the final texels' CIEDE2000; returns the seconds spent."""
+        the target texture on the mesh, coloured by the final texels' CIEDE2000 ``texel_de`` (N,) (free of render
+        noise on average); returns the seconds spent."""
         if cfg.views == 0:
             return 0.0
         from .object_figures import views_figure
 
-        texel_de = np.asarray(delta_e_2000(torch.as_tensor(final_texels).double(), self.target.double()))
         t0 = time.perf_counter()
         cams = self.camera_views(cfg.views, cfg.view_size)
         renders = []

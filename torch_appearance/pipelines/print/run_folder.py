@@ -6,11 +6,14 @@ import numpy as np
 import torch
 
 from ... import io as ta_io
-from ...metrics import color_report
+from ...print_error import ERROR_FIELDS, noise_free_error
 
 __all__ = ["LOG_FIELDS", "CHECKPOINT", "save_image", "save_torch", "npz_bytes", "score"]
 
-LOG_FIELDS = ["iteration", "wall_s", "loss", "E1", "E2", "E3", "dE00_mean", "dE00_p95", "dE76_mean", "seed"]
+#: log.csv's columns: the training loss and its parts at every iteration; at evaluations the print's error free of
+#: render noise with its standard errors, the raw figures of the evaluation render and its noise
+#: (:data:`~torch_appearance.print_error.ERROR_FIELDS`)
+LOG_FIELDS = ["iteration", "wall_s", "loss", "E1", "E2", "E3", *ERROR_FIELDS, "seed"]
 CHECKPOINT = "checkpoint.pt"
 
 
@@ -35,7 +38,11 @@ def npz_bytes(**arrays):
     return buffer.getvalue()
 
 
-def score(image, target):
-    """CIEDE2000 mean/p95 and ΔE76 of (..., 3) linear RGB colours against the target's."""
-    rep = color_report(torch.as_tensor(image).reshape(-1, 3).double(), torch.as_tensor(target).reshape(-1, 3).double())
-    return {k: float(v) for k, v in rep.items()}
+def score(renders, target, texels=False):
+    """The print's CIEDE2000 free of render noise (:func:`~torch_appearance.print_error.noise_free_error`) from
+    ``renders`` (K, ..., 3), independent renders of the print, against ``target`` (..., 3) or against K renders of
+    another print (K, ..., 3); with ``texels=True`` a pair (scores, per-texel estimates (M,))."""
+    renders, target = torch.as_tensor(renders).double(), torch.as_tensor(target).double()
+    k = renders.shape[0]
+    target = target.reshape(k, -1, 3) if target.dim() == renders.dim() else target.reshape(-1, 3)
+    return noise_free_error(renders.reshape(k, -1, 3), target, texels=texels)

@@ -161,9 +161,10 @@ class SlabTarget:
         """The top face is scored (the bottom face is reported separately, :meth:`extra_scores`)."""
         return texels[0], self.target[0]
 
-    def extra_scores(self, texels):
-        """``{"bottom": scores}`` of a two-sided target's bottom face, else nothing."""
-        return {"bottom": score(texels[1], self.target[1])} if self.faces == 2 else {}
+    def extra_scores(self, renders):
+        """``{"bottom": scores}`` of a two-sided target's bottom face from evaluation ``renders`` (K, F, H, W, 3),
+        else nothing."""
+        return {"bottom": score(renders[:, 1], self.target[1])} if self.faces == 2 else {}
 
     # ------------------------------------------------------------------------------------------ baselines
     def naive_weights(self, inks, cfg):
@@ -226,10 +227,12 @@ class SlabTarget:
         w = weights.detach().double().mean((2, 3)).numpy()[:, ::-1]  # (N, D), depth 0 = top layer
         return w, (np.arange(w.shape[1]) + 0.5) * self.cfg.voxel_size
 
-    def figures(self, final_texels):
-        """``dE00_heatmap.png``: CIEDE2000 of the final (quantised) top face against the target."""
-        return [("dE00_heatmap.png", heatmap_figure(final_texels[0], self.target[0]))]
+    def figures(self, final):
+        """``dE00_heatmap.png``: the final (quantised) top face's CIEDE2000 per texel, free of render noise on
+        average (``final["texel_dE00"]``), with the scores of ``final``."""
+        return [("dE00_heatmap.png", heatmap_figure(np.asarray(final["texel_dE00"]).reshape(self.target.shape[1:3]),
+                                                    final))]
 
-    def views(self, folder, indices, inks, cfg, seed, final_texels, log=print):
+    def views(self, folder, indices, inks, cfg, seed, texel_de, log=print):
         """A slab has no camera views (its faces are the images); seconds spent: 0."""
         return 0.0
