@@ -74,3 +74,247 @@ def test_out_naming_a_file_is_refused(tmp_path):
     target.write_text("not a folder")
     rc, _, err = run_command("render_object", "--out", target)
     assert rc == 2 and "--out: expected a folder" in err and target.read_text() == "not a folder"
+
+
+# ---- issue 49: an --out that cannot be written, refused before any work, in one line naming --out
+def _unwritable_outs(tmp_path):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    outs = [str(tmp_path / "afile" / "sub")]
+    if os.path.isdir("/proc") and not os.path.exists("/proc/x"):
+        outs.append("/proc/x")  # exists as a folder where nothing can be made, even by root
+    return outs
+
+
+# each with an input that would be refused later: the --out check must come first, before the work
+BEFORE_WORK = {
+    "optimize_print": lambda out: ["--target", "missing.png", "--out", out],
+    "voxelize": lambda out: ["missing.obj", "--out", out],
+    "render_object": lambda out: ["--voxel-size", "0.001", "--out", out],
+    "fit_wood": lambda out: ["missing.png", "--out", out],
+    "detect_rings": lambda out: ["missing.png", "--out", out + ".csv"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(BEFORE_WORK))
+def test_an_out_that_cannot_be_written_is_refused_first(name, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for out in _unwritable_outs(tmp_path):
+        rc, _, err = run_command(name, *BEFORE_WORK[name](out))
+        lines = err.strip().splitlines()
+        assert rc == 2 and len(lines) == 1 and "error: --out: " in lines[0], (out, err)
+    assert (tmp_path / "afile").read_text() == "a file, not a folder"
+    assert sorted(os.listdir(tmp_path)) == ["afile"]  # no probe left behind
+
+
+def _one_line(rc, err, start):
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith(start), (rc, err)
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize("args, start", [
+    (["--ior", "0.5"], "ta-render-object: error: --ior: expected a finite value in [1, inf], got 0.5, or 0"),
+    (["--light-deg", "200"], "ta-render-object: error: --light-deg: expected a finite value in (0, 180]"),
+    (["--voxel-size", "0.001"], "ta-render-object: error: --voxel-size: a 10004³-voxel grid"),  # 24 TB, not tried
+    (["--envmap", "missing.exr"], "ta-render-object: error: --envmap: no such file 'missing.exr'"),
+])
+def test_render_object_refuses_bad_values_in_one_line(args, start, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _one_line(*run_command("render_object", *args, "--out", "r")[::2], start)
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("args, start", [
+    (["--spp", "1000000000"], "--spp: 1000000000 samples per texel"),  # was std::bad_alloc in the time estimate
+    (["--eval-spp", "1000000000"], "--eval-spp: 1000000000 samples per texel"),
+    (["--width-mm", "0.01"], "--width-mm: a slab 0.01 mm wide is 0 texels"),  # was a 1×1-texel slab
+    (["--width-mm", "0.25", "--height-mm", "5"], "--width-mm: a slab 0.25 mm wide is 3 texels"),
+    (["--height-mm", "0.2"], "--height-mm: a slab 0.2 mm high is 2 texels"),
+    (["--width-mm", "0.4"], "--width-mm: a slab 0.271 mm high (the height at the target's 62×42 aspect) is 3"),
+    (["--width-mm", "-1"], "--width-mm: expected > 0, got -1.0"),
+    (["--inks", "white,foo"], "--inks: unknown ink 'foo'"),
+    (["--gamma", "1,2"], "--gamma: expected 3 comma-separated numbers, got '1,2'"),
+    (["--mesh", "missing.obj", "--height-mm", "5"], "--mesh: no such file 'missing.obj'"),
+    (["--mesh", "missing.obj"], "--height-mm: an object print needs the object's height in mm"),
+    (["--remap-baseline"], "--remap-baseline: the 2.5D remapped baseline is for objects (--mesh)"),
+])
+def test_optimize_print_messages_name_its_flags(args, start, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc, _, err = run_command("optimize_print", *args, "--out", "r", "--quiet")
+    line = _one_line(rc, err, "ta-optimize-print: error: " + start)
+    assert ": --" not in line.split(": error: ", 1)[1]  # no doubled prefix (--gamma: --gamma:)
+    assert os.listdir(tmp_path) == []
+
+
+def test_optimize_print_advice_names_flags(tmp_path, monkeypatch):
+    """``pass resume=True (--resume)`` of the library reads ``pass --resume`` (a folder that holds a run)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "checkpoint.pt").write_bytes(b"")
+    rc, _, err = run_command("optimize_print", "--out", "r", "--quiet")
+    line = _one_line(rc, err, "ta-optimize-print: error: --out: 'r' already holds a run")
+    assert "pass --resume to continue it" in line and "resume=True" not in line
+
+
+def test_slab_aspect_change_is_warned_in_one_line():
+    from torch_appearance.cli.optimize_print import check_slab_size
+    from torch_appearance.pipelines.print import PrintConfig
+
+    said = []
+    check_slab_size(PrintConfig(target="colorchecker", width_mm=40.0, height_mm=40.0), said.append)
+    assert len(said) == 1 and said[0].startswith("width_mm/height_mm: a 40 × 40 mm slab stretches the target's "
+                                                 "62×42 texels (aspect 1.48) to an aspect of 1.00")
+    for kept in (dict(width_mm=40.0), dict(height_mm=10.0), dict(width_mm=62.0, height_mm=42.0)):
+        check_slab_size(PrintConfig(target="colorchecker", **kept), said.append)
+    assert len(said) == 1
+
+
+def _fake_run(folder, checkpoint_bytes):
+    import dataclasses
+
+    from torch_appearance import io as ta_io
+    from torch_appearance.pipelines.print import PrintConfig
+
+    folder.mkdir()
+    ta_io.write_json(str(folder / "config.json"), dataclasses.asdict(PrintConfig(out=str(folder))))
+    (folder / "checkpoint.pt").write_bytes(checkpoint_bytes)
+
+
+def _checkpoint_bytes():
+    import io
+
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save({"model": {"w": torch.zeros(4096)}, "optimizer": {}, "rows": [], "iteration": 3, "wall_s": 1.0,
+                "baseline": None, "grid_dhw": [1, 2, 3], "inks": ["white"]}, buffer)
+    return buffer.getvalue()
+
+
+def test_resume_of_a_truncated_checkpoint_is_refused_naming_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    whole = _checkpoint_bytes()
+    _fake_run(tmp_path / "r", whole[: len(whole) // 2])
+    rc, _, err = run_command("optimize_print", "--out", "r", "--resume", "--quiet")
+    line = _one_line(rc, err, "ta-optimize-print: error: --resume: the checkpoint 'r/checkpoint.pt' cannot be read")
+    assert "truncated or damaged" in line
+    assert (tmp_path / "r" / "checkpoint.pt").read_bytes() == whole[: len(whole) // 2]
+
+
+def test_load_checkpoint_names_a_damaged_file(tmp_path):
+    from torch_appearance.pipelines.runs import load_checkpoint
+
+    whole = _checkpoint_bytes()
+    path = tmp_path / "checkpoint.pt"
+    path.write_bytes(whole)
+    assert load_checkpoint(str(path))["iteration"] == 3
+    damaged = {"truncated": whole[:-100], "empty": b"", "overwritten": whole[:200] + b"x" * 400 + whole[600:]}
+    for what, data in damaged.items():
+        path.write_bytes(data)
+        with pytest.raises(ValueError, match=r"^resume: the checkpoint '.*checkpoint.pt' cannot be read .*truncated "
+                                             r"or damaged"):
+            load_checkpoint(str(path))
+    import torch
+    torch.save({"iteration": 3}, str(path))
+    with pytest.raises(ValueError, match="no model, optimizer"):
+        load_checkpoint(str(path))
+
+
+def test_voxelize_refuses_a_units_guess_it_would_not_apply(tmp_path, monkeypatch):
+    """Spot is 1.7 file units tall: read as mm it is a 1.7 mm cow, while the guess says metres (as trimesh, a
+    guess is not applied silently): refused naming --scale; --scale 1 keeps the millimetres on purpose."""
+    monkeypatch.chdir(tmp_path)
+    spot = os.path.join(ROOT, "tests", "data", "meshes", "spot", "spot_triangulated.obj")
+    rc, _, err = run_command("voxelize", spot, "--out", "v", "--no-previews", "--quiet")
+    line = _one_line(rc, err, "ta-voxelize: error: --scale: the model is 0.943 × 1.69 × 1.72 file units, which "
+                              "reads as metres")
+    assert "--scale 1000" in line and "--scale 1 " in line and "--height-mm" in line
+    assert os.listdir(tmp_path) == []
+    rc, out, err = run_command("voxelize", spot, "--scale", "1", "--dpi", "100", "--out", "v", "--no-previews",
+                               "--quiet")
+    assert rc == 0, err
+
+
+def test_voxelize_hint_names_the_flag(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "quad.obj").write_text("v 0 0 0\nv 4 0 0\nv 4 4 0\nv 0 0 4\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+                                       "f 1/1 3/3 2/2\nf 1/1 2/2 4/4\nf 2/2 3/3 4/4\nf 3/3 1/1 4/4\n")
+    rc, _, err = run_command("voxelize", "quad.obj", "--scale", "1", "--dpi", "50", "--out", "v", "--no-previews")
+    assert rc == 0, err
+    assert "pass --texture PATH (the base-colour image)" in err and "texture=" not in err
+
+
+def test_eval_rings_refuses_header_only_labels(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "d.csv").write_text("index,x_px,y_px\n0,1,1\n")
+    (tmp_path / "l.csv").write_text("index,x_px,y_px\n")
+    rc, out, err = run_command("eval_rings", "d.csv", "l.csv")
+    _one_line(rc, err, "ta-eval-rings: error: labels_csv: 'l.csv' holds no labelled boundary")
+    assert out == "" and "nan" not in err
+
+
+def test_ctrl_c_in_export_print_is_one_line(tmp_path, monkeypatch):
+    from torch_appearance.cli import export_print
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export_print, "export_run", interrupted)
+    try:
+        rc, _, err = run_command("export_print", tmp_path, "--out", tmp_path / "pkg")
+    except KeyboardInterrupt:  # not let through: it would stop the test session
+        pytest.fail("Ctrl-C escaped ta-export-print's main() (a traceback for the user)")
+    assert rc == 130 and err == "ta-export-print: interrupted; nothing was written (an existing package is as it " \
+                                "was)\n", err
+
+
+def _sigint_default():
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _board(path):
+    from torch_appearance import io as ta_io
+    from torch_appearance.rings.synthetic import synthetic_board
+
+    ta_io.write_png(str(path), synthetic_board(128, 128, 0.1, seed=3)["image"])
+
+
+def test_ctrl_c_in_fit_wood_leaves_no_partial_fit(tmp_path):
+    """SIGINT to a running ta-fit-wood, once it has written its first files: one line, exit 130, and the folder it
+    made is gone (a folder without summary.json is never left silently)."""
+    import signal
+    import time
+
+    _board(tmp_path / "board.png")
+    out = tmp_path / "fit"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "-m", "torch_appearance.cli.fit_wood", str(tmp_path / "board.png"),
+                             "--epochs", "100000", "--no-preview", "--quiet", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=_sigint_default)
+    deadline = time.monotonic() + 240
+    while not (out / "board_estimate.json").exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and err == "ta-fit-wood: interrupted; nothing was written (start it again)\n", err
+    assert not out.exists()
+
+
+def test_an_interrupted_fit_over_an_earlier_one_drops_its_summary(tmp_path):
+    from torch_appearance.cli.fit_wood import _listing, _undo_partial_fit
+
+    folder = tmp_path / "fit"
+    folder.mkdir()
+    for name in ("summary.json", "phase.npy", "notes.txt"):
+        (folder / name).write_text("earlier")
+    before = _listing(str(folder))
+    assert _undo_partial_fit(str(folder), before) == f"{str(folder)!r} is as it was (start it again)"
+    (folder / "orientation.png").write_text("new")  # added by the interrupted fit: removed
+    os.remove(folder / "phase.npy")
+    (folder / "phase.npy").write_text("replaced")   # replaced: the earlier fit is no longer whole
+    message = _undo_partial_fit(str(folder), before)
+    assert "partly replaced (phase.npy)" in message and "summary.json is removed" in message
+    assert sorted(os.listdir(folder)) == ["notes.txt", "phase.npy"]

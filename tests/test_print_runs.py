@@ -82,7 +82,7 @@ def test_slab_too_large_is_refused_before_any_file(tmp_path):
     rc, _, err = run_command("optimize_print", "--target", tiny_print_target(tmp_path / "t.exr"), "--width-mm", "2000",
                              "--out", out, "--quiet")
     assert rc == 2 and len(err.strip().splitlines()) == 1
-    assert re.search(r"width_mm/height_mm: a 23622×17717×12-voxel slab \(2000\.0 × 1500\.\d × 1 mm at 300 DPI\) "
+    assert re.search(r"--width-mm/--height-mm: a 23622×17717×12-voxel slab \(2000\.0 × 1500\.\d × 1 mm at 300 DPI\) "
                      r"needs about \d+\.\d GiB of memory, this machine has", err), err
     assert "GiB of memory" in err and "--dpi" in err
     assert not out.exists()
@@ -207,7 +207,7 @@ def test_schedule_defaults_follow_the_kind_of_target(tmp_path):
     assert PrintConfig(mesh="m.obj", height_mm=25.0, spp=3).resolved().spp == 3
     with pytest.raises(ValueError, match="spp: expected > 0, got 0"):
         PrintConfig(spp=0).validate()
-    cfg = small_cfg(tmp_path, eval_every=None, iterations=2)  # slab: every 25 iterations, and at the last
+    cfg = small_cfg(tmp_path, eval_every=None, iterations=2)  # slab: every 50 iterations, and at the last
     optimize_print(cfg, **QUIET)
     config = json.load(open(os.path.join(cfg.out, "config.json")))
     assert (config["eval_every"], config["spp"]) == (SCHEDULES["slab"]["eval_every"], 2)

@@ -69,6 +69,9 @@ def evaluate(detected_csv, labels_csv, tolerance_px=3.0, transect=None, pos_keep
     if not tolerance_px > 0:
         raise ValueError(f"--tolerance-px must be > 0; got {tolerance_px}")
     d, l = read_points(detected_csv, "detected"), read_labels(labels_csv, pos_keep_first)
+    if len(l["x_px"]) == 0:  # sensitivity and the mean error have nothing to count: no score, not a NaN
+        raise ValueError(f"labels_csv: {str(labels_csv)!r} holds no labelled boundary (a header only); expected at "
+                         f"least one")
     if transect is not None:
         if "transect" not in d:
             raise ValueError(f"--transect {transect}: detected CSV {detected_csv!r} has no transect column")
@@ -108,8 +111,9 @@ def main(argv=None):
         r = evaluate(args.detected_csv, args.labels_csv, args.tolerance_px, args.transect, args.pos_keep_first)
     except ValueError as e:
         return fail(PROG, e)
+    error = f"{r['mean_error_px']:.3f} px" if r["matched"] else "- (no match)"
     print(f"sensitivity {r['sensitivity']:.4f}  precision {r['precision']:.4f}  F1 {r['f1']:.4f}  "
-          f"mean error {r['mean_error_px']:.3f} px  (matched {r['matched']}, detected {r['detected']}, "
+          f"mean error {error}  (matched {r['matched']}, detected {r['detected']}, "
           f"labelled {r['labelled']}, tolerance {args.tolerance_px:g} px)")
     return 0
 

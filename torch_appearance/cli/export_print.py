@@ -24,9 +24,9 @@ import sys
 from ..fabrication.printer import builtin_printers, load_printer
 from ..fabrication.quantize import HALFTONES
 from ..pipelines.print.package import FORMATS, export_run
-from .command import CommandParser, check_output_folder, fail
+from .command import CommandParser, check_output_folder, fail, flag_names, interrupted
 
-__all__ = ["parser", "main", "in_flags"]
+__all__ = ["parser", "main"]
 
 PROG = "ta-export-print"
 
@@ -61,7 +61,7 @@ def main(argv=None, prog=PROG):
         return 0
     if args.run is None:
         p.error("run: expected a run folder (or --list-printers)")
-    check_output_folder(p, "--out", args.out)
+    check_output_folder(p, "--out", args.out, writable=False)  # export_run checks it under the name's lock
     formats = [f.strip() for f in args.format.split(",") if f.strip()]
     unknown = [f for f in formats if f not in FORMATS]
     if unknown or not formats:
@@ -71,26 +71,10 @@ def main(argv=None, prog=PROG):
         export_run(args.run, args.out, printer, formats, halftone=args.halftone, force=args.force,
                    progress=not args.quiet)
     except (ValueError, TypeError, FileNotFoundError) as error:
-        return fail(prog, in_flags(str(error)))
+        return fail(prog, error, flag_names(p, formats="--format"), vars(args))
+    except KeyboardInterrupt:  # the package is written under a temporary name, removed as the write unwinds
+        return interrupted(prog, "nothing was written (an existing package is as it was)")
     return 0
-
-
-#: the library's argument names as this command's flags
-FLAGS = {"out": "--out", "printer": "--printer", "formats": "--format", "halftone": "--halftone", "run": "run"}
-
-
-def in_flags(message):
-    """A message of :func:`~torch_appearance.pipelines.print.package.export_run` in this command's words: its leading
-    argument name as the flag (``out: ...`` -> ``--out: ...``) and ``force=True (--force)`` as ``--force``.
-
-    Example:
-        >>> in_flags("out: 'p' exists; pass force=True (--force) to replace it")
-        "--out: 'p' exists; pass --force to replace it"
-    """
-    name, sep, rest = message.partition(": ")
-    if sep and name in FLAGS:
-        message = f"{FLAGS[name]}: {rest}"
-    return message.replace("force=True (--force)", "--force")
 
 
 if __name__ == "__main__":

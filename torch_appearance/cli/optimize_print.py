@@ -31,24 +31,29 @@ from ..fabrication.printer import builtin_printers
 from ..fabrication.quantize import HALFTONES
 from ..pipelines.print.config import RESUME_MAY_CHANGE, SCHEDULES, PrintConfig, config_conflicts
 from ..pipelines.print.loop import optimize_print
-from ..pipelines.runs import RunInterrupted
-from .command import CommandParser, check_output_folder, fail
+from ..pipelines.print.target_images import load_target
+from ..pipelines.runs import TRACE_BATCH, RunInterrupted, check_checkpoint, check_memory, trace_buffer_bytes
+from .command import CommandParser, check_output_folder, fail, flag_names, in_flags
 
 __all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args", "ink_names_help",
-           "parser", "main"]
+           "check_slab_size", "check_render_memory", "parser", "main", "MIN_SLAB_TEXELS"]
 
 PROG = "ta-optimize-print"
 
+#: the fewest texels a slab may have along a side (its losses compare neighbourhoods: SSIM, Sobel)
+MIN_SLAB_TEXELS = 4
 
-def float_tuple(n, name):
-    """An argparse type: ``n`` comma-separated numbers → tuple of floats (``name`` in the message)."""
+
+def float_tuple(n, name=None):
+    """An argparse type: ``n`` comma-separated numbers → tuple of floats (argparse names the flag in the message;
+    ``name`` is kept for callers that pass it)."""
     def parse(text):
         try:
             values = tuple(float(v) for v in text.split(","))
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: expected {n} comma-separated numbers, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}") from None
         if len(values) != n:
-            raise argparse.ArgumentTypeError(f"{name}: expected {n} comma-separated numbers, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}")
         return values
     return parse
 
@@ -226,8 +231,56 @@ def resumed_config(p, args, argv):
         p.error(f"--resume: the run in {args.out!r} was made with other settings: " +
                 "; ".join(f"{flag[name]} {_show(mine)} (the run has {_show(theirs)})" for name, mine, theirs in differ)
                 + "; drop these flags to resume it, or start a new run in another --out")
+    checkpoint = os.path.join(args.out, "checkpoint.pt")
+    if os.path.exists(checkpoint):
+        try:  # a truncated or damaged checkpoint: one line naming it, before any work
+            check_checkpoint(checkpoint, name="--resume")
+        except ValueError as error:
+            p.error(str(error))
     keep = {name: getattr(args, name) for name in ("iterations", "checkpoint_s") if name in given}
     return dataclasses.replace(stored, out=args.out, resume=True, **keep)
+
+
+def check_slab_size(cfg, warn):
+    """A slab sized by ``--width-mm``/``--height-mm`` the way the run will size it (texels of the voxel pitch, the
+    side not given from the target's aspect): refused (ValueError naming the flag) when a side rounds to fewer than
+    :data:`MIN_SLAB_TEXELS` texels, and ``warn(line)`` when both sides are given and change the target's aspect by
+    more than 2 % (a 3:2 ColorChecker printed square: the slab is what was asked for, its patches are stretched)."""
+    if cfg.mesh is not None or (cfg.width_mm is None and cfg.height_mm is None):
+        return
+    for name, value in (("width_mm", cfg.width_mm), ("height_mm", cfg.height_mm)):
+        if value is not None and not value > 0:
+            raise ValueError(f"{name}: expected > 0, got {value}")
+    h0, w0 = load_target(cfg.target, name="target").shape[:2]
+    pitch = cfg.voxel_size
+    width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
+    height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
+    sides = [("width", width, cfg.width_mm), ("height", height, cfg.height_mm)]
+    for side, size, given in sorted(sides, key=lambda s: s[2] is None):  # a side given first, then one derived
+        texels = round(size / pitch)
+        if texels < MIN_SLAB_TEXELS:
+            name = f"{side}_mm" if given is not None else ("height_mm" if side == "width" else "width_mm")
+            how = "" if given is not None else f" (the {side} at the target's {w0}×{h0} aspect)"
+            raise ValueError(f"{name}: a slab {size:.3g} mm {'wide' if side == 'width' else 'high'}{how} is {texels} "
+                             f"texels at {cfg.dpi:g} DPI ({pitch:.4f} mm); expected at least {MIN_SLAB_TEXELS} "
+                             f"texels ({MIN_SLAB_TEXELS * pitch:.2f} mm), or a higher dpi (--dpi)")
+    if cfg.width_mm is not None and cfg.height_mm is not None:
+        asked, own = cfg.width_mm / cfg.height_mm, w0 / h0
+        if abs(asked / own - 1) > 0.02:
+            warn(f"width_mm/height_mm: a {cfg.width_mm:g} × {cfg.height_mm:g} mm slab stretches the target's "
+                 f"{w0}×{h0} texels (aspect {own:.2f}) to an aspect of {asked:.2f}; give only one of them to keep the "
+                 f"target's aspect")
+
+
+def check_render_memory(cfg, threads=None):
+    """Refuse a ``spp`` or ``eval_spp`` whose tracer buffers (:func:`~torch_appearance.pipelines.runs
+    .trace_buffer_bytes`) would not fit in memory, before any render (the first is the time estimate's)."""
+    cfg = cfg.resolved()
+    for name in ("spp", "eval_spp"):
+        spp = getattr(cfg, name)
+        check_memory(name, trace_buffer_bytes(spp, TRACE_BATCH, threads),
+                     f"{spp} samples per texel (the tracer holds every sample of {TRACE_BATCH} texels per thread)",
+                     f"lower --{name.replace('_', '-')}")
 
 
 def _show(value):
@@ -253,20 +306,38 @@ def main(argv=None, prog=PROG):
         torch.set_num_threads(args.threads)
     absolute_paths(args)
     cfg = resumed_config(p, args, argv) if args.resume else config_from_args(args)
+    flags = flag_names(p, names="--inks")
+
+    def say(line):  # the library's lines in this command's words
+        print(in_flags(line, flags))
+
+    def warn(line):
+        print(f"{prog}: warning: {in_flags(line, flags)}", file=sys.stderr)
+
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1  # started by torchrun: data-parallel rendering
+    try:
+        cfg.validate()
+        check_slab_size(cfg, warn)
+        check_render_memory(cfg)
+    except (ValueError, TypeError) as error:
+        return fail(prog, error, flags, vars(args))
     if distributed:
         import torch.distributed as dist
         dist.init_process_group("gloo")
     try:
-        optimize_print(cfg, progress=not args.quiet)
+        optimize_print(cfg, progress=not args.quiet, log=say)
     except (ValueError, TypeError) as error:
-        return fail(prog, error)
+        return fail(prog, error, flags, vars(args))
     except RunInterrupted as stop:
         print(f"{prog}: {stop}; resume with: {prog} --out {shlex.quote(stop.folder)} --resume", file=sys.stderr)
         return 130
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted before the optimisation began; nothing to resume (start it again)",
-              file=sys.stderr)
+        if os.path.exists(os.path.join(cfg.out, "checkpoint.pt")):  # a resumed run, stopped before its first step
+            print(f"{prog}: interrupted before the optimisation went on; its checkpoint is unchanged; resume with: "
+                  f"{prog} --out {shlex.quote(cfg.out)} --resume", file=sys.stderr)
+        else:
+            print(f"{prog}: interrupted before the optimisation began; nothing to resume (start it again)",
+                  file=sys.stderr)
         return 130
     finally:
         if distributed:

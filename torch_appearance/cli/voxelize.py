@@ -34,7 +34,7 @@ from torch_appearance import io as ta_io
 from torch_appearance.geometry import load_mesh, voxelize
 from torch_appearance.geometry.preview import write_previews
 
-from .command import CommandParser, check_output_folder, fail
+from .command import CommandParser, check_output_folder, fail, flag_names, in_flags
 
 PROG = "ta-voxelize"
 
@@ -56,6 +56,20 @@ class Progress:
     def __call__(self, message):
         if not self.quiet:
             print(f"[voxelize {time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr, flush=True)
+
+
+UNITS = {"m": ("metres", 1000), "cm": ("centimetres", 10)}
+
+
+def units_refusal(report):
+    """The one line for a model given without a scale whose size suggests other units than mm (``units_guess`` of
+    :func:`~torch_appearance.geometry.load_mesh`): as trimesh, a guess is not applied silently; unlike a renderer,
+    a printed size cannot be left unitless, so the command asks for the scale."""
+    extent = " × ".join(f"{e:.3g}" for e in report["extent_file_units"])
+    name, factor = UNITS[report["units_guess"]]
+    return (f"--scale: the model is {extent} file units, which reads as {name} (in millimetres it would be a "
+            f"{max(report['extent_file_units']):.3g} mm object); give --scale {factor} for {name}, --scale 1 if the "
+            f"file is in millimetres, or --height-mm")
 
 
 def main(argv=None):
@@ -81,13 +95,16 @@ def main(argv=None):
             p.error("--texture: this version of torch_appearance.geometry.load_mesh takes no texture= yet")
         load_kwargs["texture"] = args.texture
     progress = Progress(args.quiet)
+    flags = flag_names(p)
     try:
         t0 = time.perf_counter()
         progress(f"loading {args.model}" + (f" with texture {args.texture}" if args.texture else "") + " …")
         mesh, report = load_mesh(args.model, **load_kwargs)
         t1 = time.perf_counter()
+        if args.height_mm is None and args.scale is None and report["units_guess"] != "mm":
+            return fail(PROG, units_refusal(report))
         if report.get("hint"):
-            progress(f"hint: {report['hint']}")
+            progress(f"hint: {in_flags(report['hint'], flags)}")
         size = 25.4 / args.dpi
         extent = mesh.bounds[1] - mesh.bounds[0]
         dims = " × ".join(str(int(round(e / size))) for e in extent)
@@ -96,7 +113,7 @@ def main(argv=None):
         obj = voxelize(mesh, size, shell_mm=args.shell_mm)
         t2 = time.perf_counter()
     except (ValueError, TypeError) as error:
-        return fail(PROG, error)
+        return fail(PROG, error, flags, vars(args))
     progress(f"voxelised in {t2 - t1:.1f} s: grid {' × '.join(map(str, obj.grid_shape))} (D×H×W), "
              f"{len(obj.texel_voxels)} texels; writing object.npz …")
     os.makedirs(args.out, exist_ok=True)

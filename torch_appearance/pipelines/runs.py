@@ -1,15 +1,18 @@
 """What every long run needs from its machine and its run folder: an exclusive lock on the folder while the run
 writes to it, shared by the readers of a finished run (:func:`lock_run_folder`), a lock on an output name while it is
-written (:func:`lock_output`), the memory it may use (:func:`available_memory_bytes`, :func:`check_memory`), Ctrl-C
-held back while a step's state is written (:func:`sigint_deferred`), and the interruption that says how to resume
-(:class:`RunInterrupted`)."""
+written (:func:`lock_output`), the memory it may use (:func:`available_memory_bytes`, :func:`check_memory`; the
+tracer's own buffers, :func:`trace_buffer_bytes`), Ctrl-C held back while a step's state is written
+(:func:`sigint_deferred`), the interruption that says how to resume (:class:`RunInterrupted`), and a checkpoint read
+back with a message that names it when it is damaged (:func:`check_checkpoint`, :func:`load_checkpoint`)."""
 import contextlib
 import os
+import pickle
 import signal
 import threading
+import zipfile
 
 __all__ = ["RunInterrupted", "lock_run_folder", "lock_output", "available_memory_bytes", "check_memory",
-           "sigint_deferred"]
+           "trace_buffer_bytes", "sigint_deferred", "check_checkpoint", "load_checkpoint"]
 
 GiB = float(1 << 30)
 
@@ -162,6 +165,26 @@ def check_memory(name, need_bytes, what, fix, available=None):
                          f"{available / GiB:.1f} GiB available; {fix}")
 
 
+#: sensor elements a tracer thread walks at once (``kSimdBatch`` of csrc/volpath/simd_glue.h)
+TRACE_BATCH = 256
+
+
+def trace_buffer_bytes(spp, elements, threads=None):
+    """Memory in bytes of the tracer's per-thread buffers for a render at ``spp`` samples per element: each thread
+    holds every path's value of a batch of up to :data:`TRACE_BATCH` sensor elements (3 doubles per path) before it
+    sums them in sample order (``simd_forward_batches``), so a huge ``spp`` fails in the allocator (``std::bad_alloc``)
+    however small the image. ``threads``: default ``torch.get_num_threads()``.
+
+    Example:
+        >>> trace_buffer_bytes(32, 10_000, threads=2) == 2 * 256 * 32 * 24
+        True
+    """
+    if threads is None:
+        import torch
+        threads = torch.get_num_threads()
+    return int(threads) * min(TRACE_BATCH, max(1, int(elements))) * int(spp) * 3 * 8
+
+
 @contextlib.contextmanager
 def sigint_deferred():
     """Hold Ctrl-C back while the block runs (an optimiser step and its bookkeeping: a checkpoint written after an
@@ -179,3 +202,54 @@ def sigint_deferred():
         signal.signal(signal.SIGINT, previous)
     if pending:
         raise KeyboardInterrupt
+
+
+#: the entries of a print run's checkpoint (pipelines/print/loop.py, ``_Run.checkpoint``)
+CHECKPOINT_KEYS = ("model", "optimizer", "rows", "iteration", "wall_s", "baseline", "grid_dhw", "inks")
+
+
+def check_checkpoint(path, name="resume"):
+    """Refuse a checkpoint file that cannot be a whole one, cheaply (without reading its tensors): missing, empty, or
+    without the zip directory that ``torch.save`` writes last (a truncated file, a copy cut short).
+
+    Raises:
+        ValueError: ``"{name}: the checkpoint '{path}' cannot be read (...): it is truncated or damaged; ..."``.
+    """
+    if not os.path.isfile(path):
+        raise ValueError(f"{name}: no checkpoint {path!r} (no such file)")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            if not any(n.endswith("/data.pkl") or n == "data.pkl" for n in archive.namelist()):
+                raise zipfile.BadZipFile("no data.pkl in it")
+    except (OSError, zipfile.BadZipFile, EOFError) as error:
+        raise ValueError(_damaged(name, path, error)) from None
+
+
+def load_checkpoint(path, name="resume", keys=CHECKPOINT_KEYS):
+    """``torch.load`` of a run's checkpoint (a dict written by the run itself, so not ``weights_only``), with a
+    damaged file (truncated, cut short, overwritten, missing one of ``keys``) refused by a message that names it,
+    instead of the reader's own error.
+
+    Raises:
+        ValueError: ``"{name}: the checkpoint '{path}' cannot be read (...): it is truncated or damaged; ..."``.
+    """
+    import torch
+
+    check_checkpoint(path, name)
+    try:
+        state = torch.load(path, weights_only=False)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, AttributeError,
+            ImportError) as error:
+        raise ValueError(_damaged(name, path, error)) from None
+    missing = [key for key in keys if not isinstance(state, dict) or key not in state]
+    if missing:
+        raise ValueError(_damaged(name, path, f"no {', '.join(missing)} in it"))
+    return state
+
+
+def _damaged(name, path, error):
+    reason = str(error).split(". ")[0].strip() or type(error).__name__
+    if isinstance(error, zipfile.BadZipFile) and "not a zip file" in reason:
+        reason = "it does not end in the zip directory torch.save writes"
+    return (f"{name}: the checkpoint {path!r} cannot be read ({reason}): it is truncated or damaged; start the run "
+            f"again in a new folder (or remove the folder)")

@@ -32,7 +32,7 @@ from .fixed_fractions import fixed_fractions
 from .object_target import ObjectTarget
 from .remap25d import MAX_SLAB_TEXELS, prepare_uv_slab, wrap_slab_weights
 from .report import write_figures
-from ..runs import RunInterrupted, lock_run_folder, sigint_deferred
+from ..runs import RunInterrupted, load_checkpoint, lock_run_folder, sigint_deferred
 from ...print_error import EVAL_RENDERS
 from ...progress import progress_bar
 from .run_folder import CHECKPOINT, LOG_FIELDS, npz_bytes, save_torch, score
@@ -257,7 +257,7 @@ class _Run:
         target.save_texels(self.folder, "target", target.target)
 
     def resume(self):
-        state = torch.load(self.ckpt_path, weights_only=False)
+        state = load_checkpoint(self.ckpt_path)
         if state["iteration"] > self.cfg.iterations:
             raise ValueError(f"iterations: the checkpoint in {self.folder!r} is at iteration {state['iteration']}; "
                              f"expected at least that many, got {self.cfg.iterations}")
