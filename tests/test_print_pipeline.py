@@ -118,6 +118,14 @@ def test_run_folder_resume_and_refusal(tmp_path):
     assert final.shape == target.shape and np.isfinite(final).all()
     assert summary["quantized_shape_dhw"][0] == 13 and len(os.listdir(out / "slices")) == 13 + 1
     assert not [f for f in os.listdir(out) if f.startswith(".") or f.endswith(".tmp")]  # no temp files left
+    # every figure is the print's, free of render noise, scored from the evaluation's own four renders; the raw
+    # figure of their mean is kept beside it and reads higher at 8 spp
+    evaluated = [r for r in rows if r["dE00_mean"]]
+    for scores in [summary["final_quantized"], summary["baseline_naive_extrusion"], summary["optimized_continuous"],
+                   *[{k: float(r[k]) for k in ("dE00_mean", "dE00_mean_raw", "dE00_mean_se")} for r in evaluated]]:
+        assert scores["dE00_mean"] < scores["dE00_mean_raw"] and scores["dE00_mean_se"] > 0
+    assert summary["evaluation"]["renders"] == 4 and summary["evaluation"]["spp_each"] == 2
+    assert 0 < summary["evaluation"]["share_of_job"] < 1
 
 
 def test_same_seed_reproducible(tmp_path):

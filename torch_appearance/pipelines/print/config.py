@@ -17,15 +17,16 @@ __all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "c
 RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
 
 #: the schedule of a run by the kind of its target, for the :class:`PrintConfig` fields left at None. Slabs: the
-#: paper's 32 spp, with 300 iterations and evaluations at 256 spp (a 20 mm ColorChecker slab takes seconds per
-#: iteration). Objects: a textured object's paths diffuse through its whole body; an iteration of Spot at 25 mm
-#: takes about 26 s at 8 spp on 2 cores. Its error-against-time runs (``scripts/bench/README.md``, "Object
-#: schedule") reached the same error at the same time with 4 spp × 100 iterations as with 8 spp × 50 (quantised
-#: CIEDE2000 13.96 and 13.97, naive extrusion 15.76) and a worse one with lr 2 (15.49 against 14.59 at iteration
-#: 25); 45 iterations at 8 spp keep a whole 25 mm job, with its naive baseline, evaluations and views, under 30
-#: minutes (50 took 30.1).
+#: paper's 32 spp, with 300 iterations (a 20 mm ColorChecker slab takes seconds per iteration) and evaluations every
+#: 50 at 128 spp: free of render noise (:mod:`torch_appearance.print_error`) they read the same as at 256 spp every 25
+#: (the demo's final print 11.26 ± 0.08 and ± 0.05) at 0.14 of the job's time instead of 0.28. Objects: a textured
+#: object's paths diffuse through its whole body; an iteration of Spot at 25 mm takes about 26 s at 8 spp on 2 cores.
+#: Its error-against-time runs (``scripts/bench/README.md``, "Object schedule") reached the same error at the same
+#: time with 4 spp × 100 iterations as with 8 spp × 50 (quantised CIEDE2000 13.96 and 13.97, naive extrusion 15.76;
+#: raw figures of 32-spp renders) and a worse one with lr 2 (15.49 against 14.59 at iteration 25); 45 iterations
+#: at 8 spp keep a whole 25 mm job, with its naive baseline, evaluations and views, under 30 minutes (50 took 30.1).
 SCHEDULES = {
-    "slab": {"spp": 32, "iterations": 300, "eval_spp": 256, "eval_every": 25},
+    "slab": {"spp": 32, "iterations": 300, "eval_spp": 128, "eval_every": 50},
     "object": {"spp": 8, "iterations": 45, "eval_spp": 32, "eval_every": 25},
 }
 

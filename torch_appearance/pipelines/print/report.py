@@ -28,8 +28,8 @@ def convergence_figure(rows, spp, eval_spp, baseline=None, remap=None, final=Non
 
     # row 0 is scored at eval_spp, the others at spp: only the training rows share a noise level
     train = [r for r in rows if r["iteration"] > 0]
-    fig = Figure(figsize=(10, 4.2))
-    ax = fig.subplots(1, 2)
+    fig = Figure(figsize=(13, 4.2))
+    ax = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1, 1.1]})
     ax[0].plot([r["wall_s"] for r in train], [r["loss"] for r in train], lw=1)
     ax[0].set(xlabel="wall-clock time [s]", ylabel="appearance loss E", yscale="log")
     ax[0].set_title(f"training loss at {spp} spp\n(includes render noise)", fontsize=10)
@@ -55,7 +55,7 @@ def convergence_figure(rows, spp, eval_spp, baseline=None, remap=None, final=Non
     ax[1].set(xlabel="wall-clock time [s]", ylabel="CIEDE2000")
     ax[1].set_title(f"the print's error, render noise taken out\n({eval_spp} spp in 4 renders per evaluation)",
                     fontsize=10)
-    ax[1].legend(fontsize=7)
+    ax[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     return fig
 
