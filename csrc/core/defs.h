@@ -1,9 +1,31 @@
 // Shared definitions of the torch-free tracing core: the host/device marker and the few math helpers the core
-// uses, written so that a CUDA build can compile the same headers later (no std:: algorithms in device code).
+// uses, written so that a CUDA build compiles the same headers (no std:: algorithms in device code).
+//
+// The core's only libc needs are here. Under NVRTC (__CUDACC_RTC__; the CUDA glue of csrc/cuda/, compiled at run
+// time) there is no libc: the math functions are CUDA's device built-ins, the fixed-width integers are declared
+// below (LP64 on Linux, LLP64 on Windows, as the host compiler's), and the two things the host path takes from
+// libc or GCC (INFINITY, __builtin_memcpy) have device equivalents. The host build is unchanged.
 #pragma once
 
+#if defined(__CUDACC_RTC__)
+typedef signed char int8_t;
+typedef unsigned char uint8_t;
+typedef short int16_t;
+typedef unsigned short uint16_t;
+typedef int int32_t;
+typedef unsigned int uint32_t;
+#if defined(_WIN64)
+typedef long long int64_t;
+typedef unsigned long long uint64_t;
+#else
+typedef long int64_t;
+typedef unsigned long uint64_t;
+#endif
+static_assert(sizeof(int64_t) == 8 && sizeof(uint64_t) == 8, "64-bit integers");
+#else
 #include <math.h>
 #include <stdint.h>
+#endif
 
 #if defined(__CUDACC__)
 #define TA_HD __host__ __device__
@@ -61,17 +83,33 @@ TA_HD inline float tabs(float x) { return fabsf(x); }
 TA_HD inline double tabs(double x) { return fabs(x); }
 TA_HD inline float tcopysign(float x, float y) { return copysignf(x, y); }
 TA_HD inline double tcopysign(double x, double y) { return copysign(x, y); }
+// The bits of a float and back (a device has intrinsics for it; the host a memcpy, which compiles to a move).
+TA_HD inline uint32_t float_bits(float x) {
+#if defined(__CUDACC_RTC__)
+  return __float_as_uint(x);
+#else
+  uint32_t b;
+  __builtin_memcpy(&b, &x, 4);
+  return b;
+#endif
+}
+TA_HD inline float bits_float(uint32_t b) {
+#if defined(__CUDACC_RTC__)
+  return __uint_as_float(b);
+#else
+  float r;
+  __builtin_memcpy(&r, &b, 4);
+  return r;
+#endif
+}
 // nextafterf without the call into libm (the root search of boundary.h steps by it): the same result for any x, y
 TA_HD inline float tnextafter(float x, float y) {
   if (x != x || y != y) return x + y;  // NaN
   if (x == y) return y;
-  uint32_t b;
-  __builtin_memcpy(&b, &x, 4);
+  uint32_t b = float_bits(x);
   if (x == 0.0f) b = (y > 0.0f ? 0u : 0x80000000u) | 1u;  // the smallest subnormal toward y
   else b += ((x < y) == (x > 0.0f)) ? 1u : 0xffffffffu;   // |x| one unit in the last place up or down
-  float r;
-  __builtin_memcpy(&r, &b, 4);
-  return r;
+  return bits_float(b);
 }
 TA_HD inline double tnextafter(double x, double y) { return nextafter(x, y); }
 TA_HD inline float tatan2(float y, float x) { return atan2f(y, x); }
@@ -82,7 +120,13 @@ TA_HD inline float tfloor(float x) { return floorf(x); }
 TA_HD inline double tfloor(double x) { return floor(x); }
 
 template <typename T>
-TA_HD inline T tinf() { return T(INFINITY); }
+TA_HD inline T tinf() {
+#if defined(__CUDACC_RTC__)
+  return T(__int_as_float(0x7f800000));  // +inf (no INFINITY macro without libc)
+#else
+  return T(INFINITY);
+#endif
+}
 
 template <typename T>
 TA_HD inline T dot3(const T a[3], const T b[3]) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
