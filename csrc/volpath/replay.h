@@ -1,6 +1,7 @@
-// The scalar path replay of one path (radiative backpropagation): a recording walk into a per-thread tape, then
-// the deposit (core/tape.h); a path longer than the tape is walked once more, depositing as it goes. Shared by the
-// backward kernel (backward_cpu.cpp) and the SIMD glue (a path too long for its lane's tape).
+// The scalar path replay of one path (radiative backpropagation) on the CPU: core::replay_path (a recording walk into
+// a per-thread tape, then the deposit; a path longer than the tape is walked once more, depositing as it goes) with a
+// tape that grows after an overflow. Shared by the backward kernel (backward_cpu.cpp) and the SIMD glue (a path too
+// long for its lane's tape).
 #pragma once
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 #include <vector>
 
 #include "core/integrator.h"
+#include "core/replay.h"
 
 namespace ta {
 namespace volpath {
@@ -41,51 +43,19 @@ struct TapeStore {
   }
 };
 
-// What a replay adds to its element's image when forward and backward share the walk (scene_forward_backward):
-// acc[c] += V_c · L_e,c (V_c alone for a constant emitter, which the caller multiplies by its radiance), in the
-// forward kernel's terms; `truncated` counts the walks cut by max_depth.
-struct ImageTerms {
-  double* acc = nullptr;  // 3 channels of the element
-  int64_t truncated = 0;
-};
+// What a replay adds to its element's image (core/replay.h).
+using core::ImageTerms;
 
-// Replays one path: a single walk that records its events in the tape, then the deposit of ∂/∂θ (only escaped paths
-// that see a non-zero emitter carry any). A path that does not fit the tape is walked once more, depositing as it
-// goes (the two-pass replay). `g` is grad_output of the element (3 channels); `image` (optional) takes the walk's
-// term of the image. Returns the walks' scatter events.
+// Replays one path (core::replay_path) with the thread's tape; after a path that did not fit it, the tape grows for
+// the paths to come. `g` is grad_output of the element (3 channels); `image` (optional) takes the walk's term of the
+// image. Returns the walks' scatter events.
 template <typename T, int LANES, int B, bool DIEL, bool HERO>
 inline int64_t replay(const core::Scene<T>& S, int64_t t, int64_t s, int ch, const T* g, const core::Adjoint<T>& A,
                       TapeStore<T, LANES>& store, ImageTerms* image = nullptr) {
-  auto& tape = store.tape;
-  tape.clear();
-  const auto r1 =
-      core::trace_path<T, LANES, B, DIEL, true, false, true, HERO>(S, t, s, ch, nullptr, nullptr, A, &tape);
-  T Le[3];
-  if (r1.escaped) S.emitter.eval(r1.direction, Le);
-  if (image != nullptr) {
-    image->truncated += r1.truncated;
-    for (int l = 0; l < LANES; ++l) {
-      const int c = LANES == 1 ? ch : l;
-      if (S.emitter.kind == core::kConstant) image->acc[c] += double(r1.value[l]);
-      else if (r1.escaped) image->acc[c] += double(r1.value[l]) * double(Le[c]);
-    }
-  }
-  if (!r1.escaped) return r1.scatter_events;
-  T adj[LANES];
-  bool any = false;
-  for (int l = 0; l < LANES; ++l) {
-    const int c = LANES == 1 ? ch : l;
-    adj[l] = g[c] * Le[c] / T(S.spp);
-    any |= adj[l] != T(0);
-  }
-  if (!any) return r1.scatter_events;
-  if (!tape.overflow) {
-    core::deposit_tape<T, LANES>(tape, r1.value, r1.prod_nonzero, r1.zeros, ch, adj, A);
-    return r1.scatter_events;
-  }
-  store.grow();
-  const auto r2 = core::trace_path<T, LANES, B, DIEL, true, true, false, HERO>(S, t, s, ch, &r1, adj, A);
-  return r1.scatter_events + r2.scatter_events;
+  bool two_pass = false;
+  const int64_t events = core::replay_path<T, LANES, B, DIEL, HERO>(S, t, s, ch, g, A, store.tape, image, &two_pass);
+  if (two_pass) store.grow();
+  return events;
 }
 
 }  // namespace detail

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "core/integrator.h"
+#include "core/replay.h"
 #include "volpath/interrupt.h"
 
 namespace ta {
@@ -83,13 +84,8 @@ void for_chunk_elements(const core::Scene<T>& S, int64_t c, int64_t nchunks, con
   else for_elements_of_chunk(c, nchunks, share, body);
 }
 
-// A sensor element's radiance in channel c from the sum over its samples of the walks' terms (V·L_e, or V alone for a
-// constant emitter, whose radiance is applied here): how every kernel writes its image.
-template <typename T>
-inline T element_radiance(const core::Scene<T>& S, double sum, int c) {
-  return S.emitter.kind == core::kConstant ? T(sum * double(S.emitter.radiance[c]) / double(S.spp))
-                                           : T(sum / double(S.spp));
-}
+// A sensor element's radiance in channel c from the sum over its samples' terms (core/replay.h).
+using core::element_radiance;
 
 // A gradient buffer of n zeros from calloc: a large block comes fresh from the kernel, so the pages that the deposits
 // never touch are never resident (an object's paths touch the voxels near its surface, not its whole bounding box).
