@@ -332,7 +332,7 @@ def test_optimize_print_refuses_damaged_target(run_script, tmp_path, damaged):
     _nothing_written(tmp_path, out)
     rc, err = run_script("optimize_print.py", "--target", "colorchecker", "--bottom-target", damaged,
                          "--iterations", "1", "--out", out, "--quiet")
-    assert rc == 2 and "bottom_target: " in err and "truncated or corrupt" in err
+    assert rc == 2 and "error: --bottom-target: " in err and "truncated or corrupt" in err
     _nothing_written(tmp_path, out)
 
 
@@ -434,7 +434,9 @@ def test_render_object_refuses_truncated_envmap(run_script, tmp_path, good):
     path = _cut(good[".exr"], folder / "sky.exr", 5000)
     out = tmp_path / "render"
     rc, err = run_script("render_object.py", "--envmap", path, "--size", "8", "--spp", "1", "--out", out)
-    assert rc == 2 and "--envmap: envmap: " in err and "sky.exr" in err and "truncated or corrupt" in err
+    # one flag, not the library's name after it (issue 49: "--envmap: envmap:" was doubled)
+    assert rc == 2 and "error: --envmap: '" in err and "envmap: envmap" not in err and "sky.exr" in err
+    assert "truncated or corrupt" in err and len(err.strip().splitlines()) == 1
     _nothing_written(tmp_path, out)
 
 
