@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 import torch
 
-__all__ = ["ssim_2d", "linear_rgb_to_lab", "delta_e_2000", "delta_e_76", "color_report"]
+__all__ = ["ssim_2d", "linear_rgb_to_lab", "delta_e_2000", "delta_e_2000_lab", "delta_e_76", "color_report"]
 
 
 def _as_rgb_array(name, value):
@@ -103,10 +103,25 @@ def delta_e_2000(pred, target):
         >>> float(delta_e_2000(np.array([0.2, 0.3, 0.4]), np.array([0.2, 0.3, 0.4])))
         0.0
     """
+    a, b = _pair(pred, target)
+    return _like(delta_e_2000_lab(_lab(a), _lab(b)), pred)
+
+
+def delta_e_2000_lab(lab_a, lab_b):
+    """CIEDE2000 of colours already in L*a*b* (``(..., 3)`` float ndarrays, e.g. from :func:`linear_rgb_to_lab`):
+    for a caller that compares one colour set with several others and converts each set once.
+
+    Returns:
+        ``(...)`` float64 ndarray.
+
+    Example:
+        >>> lab = linear_rgb_to_lab(np.array([[0.2, 0.3, 0.4], [0.5, 0.5, 0.5]]))
+        >>> delta_e_2000_lab(lab, lab).tolist()
+        [0.0, 0.0]
+    """
     import colour
 
-    a, b = _pair(pred, target)
-    return _like(np.asarray(colour.delta_E(_lab(a), _lab(b), method="CIE 2000"), dtype=np.float64), pred)
+    return np.asarray(colour.delta_E(lab_a, lab_b, method="CIE 2000"), dtype=np.float64)
 
 
 def delta_e_76(pred, target):
@@ -143,8 +158,6 @@ def color_report(pred, target, mask=None):
         >>> color_report(x, x)
         {'dE00_mean': 0.0, 'dE00_p95': 0.0, 'dE76_mean': 0.0}
     """
-    import colour
-
     a, b = _pair(pred, target)
     if mask is not None:
         keep = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
@@ -157,7 +170,7 @@ def color_report(pred, target, mask=None):
     if a.size == 0:
         raise ValueError("no colours to report (empty input or all-False mask)")
     lab_a, lab_b = _lab(a.reshape(-1, 3)), _lab(b.reshape(-1, 3))
-    de00 = np.asarray(colour.delta_E(lab_a, lab_b, method="CIE 2000"), dtype=np.float64)
+    de00 = delta_e_2000_lab(lab_a, lab_b)
     de76 = np.linalg.norm(lab_a - lab_b, axis=-1)
     return {"dE00_mean": float(de00.mean()), "dE00_p95": float(np.percentile(de00, 95)),
             "dE76_mean": float(de76.mean())}

@@ -5,7 +5,7 @@ difference ``f`` of a noisy render against the target is biased upwards by that 
 spp the noise of one render is larger than the error of a good print (two renders of the same print differ by more
 ΔE00 than either differs from its target), so a raw figure says mostly how noisy the evaluation was.
 
-:func:`noise_free_error` takes ``K`` (even, ≥ 2; 4 for standard errors) independent renders of ``n`` spp each, splits
+:func:`noise_free_error` takes ``K`` (2, or 4 for standard errors) independent renders of ``n`` spp each, splits
 them into two halves and extrapolates to infinitely many samples (Richardson in 1/spp) from the two noise levels it
 has: the mean of all renders (``K·n`` spp) and the means of the halves (``K·n/2`` spp each)::
 
@@ -26,14 +26,15 @@ Halftone grain is not noise: the quantised print's expected colour varies from t
 stays in its error; only the renderer's sampling noise is taken out. To see what quantisation costs, pass the
 continuous optimum's renders as ``target``: the error is then between two expected colours, both noise-free.
 
-The standard error of the mean comes from the halves: with ``K ≥ 4`` each half gives its own estimate from its two
-quarters, and their per-texel differences estimate the estimator's Monte Carlo variance at half the samples (the
+The standard error of the mean comes from the halves: with ``K = 4`` each half gives its own estimate from its two
+renders, and their per-texel differences estimate the estimator's Monte Carlo variance at half the samples (the
 full estimate has at most half of it: the SE is an upper bound where the noise dominates and the variance falls
 faster). The percentile's SE is the two halves' difference (one degree of freedom). The figure of the mean of all
 renders, what a single render at ``K·n`` spp reports, is kept as ``*_raw``, and ``dE00_noise`` is the mean ΔE00
 between that render and the print's expected colour (half the mean ΔE00 between the two halves): the noise alone.
 
 Example:
+    >>> from torch_appearance.metrics import delta_e_2000
     >>> g = torch.Generator().manual_seed(0)
     >>> target = torch.rand(20000, 3, generator=g) * 0.5 + 0.25
     >>> print_ = (target * 1.04).clamp(0, 1)                              # a print 4 % too light
@@ -46,7 +47,7 @@ Example:
 import numpy as np
 import torch
 
-from .metrics import delta_e_2000, linear_rgb_to_lab
+from .metrics import delta_e_2000_lab, linear_rgb_to_lab
 
 __all__ = ["noise_free_error", "richardson", "ERROR_FIELDS", "EVAL_RENDERS"]
 
@@ -74,37 +75,43 @@ def _as_renders(name, value):
     return array
 
 
-def _splits(k):
-    """The ways of cutting ``k`` renders (2 or 4) into two halves: one for 2; all three for 4, so that every pair of
-    renders meets (the decorrelated product becomes the mean over all pairs, the least noisy of them)."""
-    return [((0,), (1,))] if k == 2 else [((0, 1), (2, 3)), ((0, 2), (1, 3)), ((0, 3), (1, 2))]
+class _Means:
+    """L*a*b* of the means of subsets of K renders ((K, M, 3) linear RGB), each converted once however many
+    comparisons use it; a noise-free target ((M, 3), no leading K) is the same colours for every subset."""
+
+    def __init__(self, renders):
+        self.renders, self._lab = renders, {}
+
+    def lab(self, subset):
+        """(M, 3) L*a*b* of the mean of the renders ``subset`` (a tuple of indices)."""
+        key = () if self.renders.ndim == 2 else tuple(subset)
+        if key not in self._lab:
+            rgb = self.renders if not key else self.renders[list(key)].mean(0)
+            self._lab[key] = np.asarray(linear_rgb_to_lab(rgb))
+        return self._lab[key]
 
 
-def _levels(renders, split):
-    """(full, (half 1, half 2)): the mean of all renders and of each half, (M, 3) each; a noise-free target
-    ((M, 3), no leading K) has the same colours at every level."""
-    if renders.ndim == 2:
-        return renders, (renders, renders)
-    return renders.mean(0), tuple(renders[list(h)].mean(0) for h in split)
+def _splits(subset):
+    """The ways of cutting ``subset`` (2 or 4 render indices) into two halves: one for 2; all three for 4, so that
+    every pair of renders meets (the decorrelated product becomes the mean over all pairs, the least noisy of them)."""
+    if len(subset) == 2:
+        return [((subset[0],), (subset[1],))]
+    a, b, c, d = subset
+    return [((a, b), (c, d)), ((a, c), (b, d)), ((a, d), (b, c))]
 
 
-def _extrapolated(pred, ref):
-    """Extrapolated ``[dE00 mean, dE00 p95, dE76 rms]`` of the renders ``pred`` (K, M, 3) against ``ref`` (K, M, 3)
-    or (M, 3), the per-texel extrapolated ΔE00 (M,) and the raw ``[dE00 mean, dE00 p95, dE76 mean]`` of the means of
-    all renders."""
-    splits = _splits(pred.shape[0])
-    full, _ = _levels(pred, splits[0])
-    ref_full, _ = _levels(ref, splits[0])
-    de00_full = np.asarray(delta_e_2000(full, ref_full), np.float64)
-    lab_full = np.asarray(linear_rgb_to_lab(full)) - np.asarray(linear_rgb_to_lab(ref_full))
+def _extrapolated(pred, ref, subset):
+    """Extrapolated ``[dE00 mean, dE00 p95, dE76 rms]`` of the renders ``subset`` of ``pred`` against ``ref``
+    (:class:`_Means`), the per-texel extrapolated ΔE00 (M,) and the raw ``[dE00 mean, dE00 p95, dE76 mean]`` of the
+    mean of those renders."""
+    lab_full = pred.lab(subset) - ref.lab(subset)
+    de00_full = delta_e_2000_lab(pred.lab(subset), ref.lab(subset))
     squares, p95, products = [], [], []
-    for split in splits:
-        halves = [np.asarray(delta_e_2000(p, r), np.float64)
-                  for p, r in zip(_levels(pred, split)[1], _levels(ref, split)[1])]
+    for split in _splits(subset):
+        halves = [delta_e_2000_lab(pred.lab(h), ref.lab(h)) for h in split]
         squares.append(richardson(de00_full ** 2, [x ** 2 for x in halves]))
         p95.append(richardson(np.percentile(de00_full, 95), [np.percentile(x, 95) for x in halves]))
-        lab = [np.asarray(linear_rgb_to_lab(p)) - np.asarray(linear_rgb_to_lab(r))
-               for p, r in zip(_levels(pred, split)[1], _levels(ref, split)[1])]
+        lab = [pred.lab(h) - ref.lab(h) for h in split]
         products.append((lab[0] * lab[1]).sum(-1).mean())
     texel = np.sqrt(np.maximum(np.mean(squares, 0), 0.0))
     rms76 = np.sqrt(max(float(np.mean(products)), 0.0))
@@ -116,8 +123,8 @@ def noise_free_error(renders, target, mask=None, texels=False):
     """Mean and p95 CIEDE2000 of a print's expected colour against its target, from ``K`` independent renders.
 
     Args:
-        renders: ``(K, ..., 3)`` linear RGB: ``K`` independent renders (other seeds) of one print at one spp; ``K``
-            even, ≥ 2 (≥ 4, and a multiple of 4, for standard errors).
+        renders: ``(K, ..., 3)`` linear RGB: ``K`` = 2 or 4 independent renders (other seeds) of one print at one
+            spp (4 for standard errors).
         target: ``(..., 3)`` linear RGB, or ``(K, ..., 3)`` independent renders of another print (the error is then
             between the two prints' expected colours, e.g. a quantised print against its continuous optimum).
         mask: optional bool ``(...)`` selecting the texels to score.
@@ -125,13 +132,13 @@ def noise_free_error(renders, target, mask=None, texels=False):
 
     Returns:
         dict of floats (:data:`ERROR_FIELDS`): ``dE00_mean``, ``dE00_p95``, ``dE76_rms`` extrapolated to infinitely
-        many samples; ``dE00_mean_se``, ``dE00_p95_se`` their Monte Carlo standard errors (NaN without the quarters);
+        many samples; ``dE00_mean_se``, ``dE00_p95_se`` their Monte Carlo standard errors (NaN for ``K = 2``);
         ``dE00_mean_raw``, ``dE00_p95_raw``, ``dE76_mean_raw`` of the mean of the ``K`` renders (a render at ``K``
         times the spp); ``dE00_noise``, the mean ΔE00 of that render's noise. With ``texels=True`` a pair (that dict,
         the (M,) per-texel estimates of the selected texels).
 
     Raises:
-        TypeError, ValueError: bad shapes, an odd ``K`` or ``K < 2``, non-finite colours, an empty mask.
+        ValueError: bad shapes, ``K`` other than 2 or 4, non-finite colours, an empty mask.
     """
     renders, target = _as_renders("renders", renders), _as_renders("target", target)
     k, noisy_target = renders.shape[0], target.ndim == renders.ndim
@@ -154,18 +161,18 @@ def noise_free_error(renders, target, mask=None, texels=False):
         renders, target = renders[:, keep], target[..., keep, :]
     if renders.shape[1] == 0:
         raise ValueError("mask: selects no texels")
-    estimate, per_texel, raw = _extrapolated(renders, target)
+    pred, ref = _Means(renders), _Means(target)
+    estimate, per_texel, raw = _extrapolated(pred, ref, tuple(range(k)))
     se = np.full(2, np.nan)
     if k == 4:
         # each half's own estimate from its two renders: two independent estimates at half the samples
-        parts = [_extrapolated(renders[s], target if target.ndim == 2 else target[s])
-                 for s in (slice(0, 2), slice(2, 4))]
+        parts = [_extrapolated(pred, ref, half) for half in ((0, 1), (2, 3))]
         # per texel: Var(one half's estimate) ≈ d²/2; the full estimate has twice the samples, at most half of that
         d = parts[0][1] - parts[1][1]
         se[0] = np.sqrt((d ** 2).sum() / 4.0) / renders.shape[1]
         se[1] = abs(parts[0][0][1] - parts[1][0][1]) / 2.0
-    half = k // 2
-    noise = np.asarray(delta_e_2000(renders[:half].mean(0), renders[half:].mean(0)), np.float64).mean() / 2.0
+    halves = _splits(tuple(range(k)))[0]
+    noise = delta_e_2000_lab(pred.lab(halves[0]), pred.lab(halves[1])).mean() / 2.0
     result = {name: float(v) for name, v in zip(ERROR_FIELDS, [estimate[0], se[0], estimate[1], se[1], estimate[2],
                                                                *raw, noise])}
     return (result, per_texel) if texels else result

@@ -226,12 +226,14 @@ class _Run:
             s, a = self.model()
             return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed))
 
-    def score(self, renders, texels=False):
+    def score(self, renders, texels=False, against=None):
         """The scores (:func:`.run_folder.score`) of evaluation ``renders`` (K, *texels) on the target's scored
-        texels (``target.scored``)."""
+        texels (``target.scored``): against the target, or against the evaluation renders ``against`` of another
+        print (both free of render noise)."""
         t0 = time.perf_counter()
         scored = [self.target.scored(r) for r in renders]
-        result = score(torch.stack([p for p, _ in scored]), scored[0][1], texels=texels)
+        reference = scored[0][1] if against is None else torch.stack([self.target.scored(r)[0] for r in against])
+        result = score(torch.stack([p for p, _ in scored]), reference, texels=texels)
         self.eval_seconds += time.perf_counter() - t0
         return result
 
@@ -426,8 +428,7 @@ class _Run:
         final.update(target.extra_scores(final_renders))
         # what quantisation costs: the quantised print's expected colours against the continuous optimum's (both
         # free of render noise; the halftone grain is in it)
-        quantisation = score(torch.stack([target.scored(r)[0] for r in final_renders]),
-                             torch.stack([target.scored(r)[0] for r in optimized]))
+        quantisation = self.score(final_renders, against=optimized)
         ta_io.atomic_write_bytes(os.path.join(folder, "mixture.npz"), npz_bytes(
             weights=np.asarray(weights.numpy(), np.float32), inks=np.array(inks.names), voxel_size_mm=cfg.voxel_size))
         save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
