@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from torch_appearance.testing import run_command
+from torch_appearance.testing import interrupt_when, run_command
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -269,11 +269,6 @@ def test_ctrl_c_in_export_print_is_one_line(tmp_path, monkeypatch):
                                 "was)\n", err
 
 
-def _sigint_default():
-    import signal
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _board(path):
     from torch_appearance import io as ta_io
     from torch_appearance.rings.synthetic import synthetic_board
@@ -284,22 +279,13 @@ def _board(path):
 def test_ctrl_c_in_fit_wood_leaves_no_partial_fit(tmp_path):
     """SIGINT to a running ta-fit-wood, once it has written its first files: one line, exit 130, and the folder it
     made is gone (a folder without summary.json is never left silently)."""
-    import signal
-    import time
-
     _board(tmp_path / "board.png")
     out = tmp_path / "fit"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.Popen([sys.executable, "-m", "torch_appearance.cli.fit_wood", str(tmp_path / "board.png"),
-                             "--epochs", "100000", "--no-preview", "--quiet", "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            preexec_fn=_sigint_default)
-    deadline = time.monotonic() + 240
-    while not (out / "board_estimate.json").exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130 and err == "ta-fit-wood: interrupted; nothing was written (start it again)\n", err
+    rc, _, err = interrupt_when([sys.executable, "-m", "torch_appearance.cli.fit_wood", tmp_path / "board.png",
+                                 "--epochs", "100000", "--no-preview", "--quiet", "--out", out],
+                                lambda: (out / "board_estimate.json").exists(), env=env, wait_s=240)
+    assert rc == 130 and err == "ta-fit-wood: interrupted; nothing was written (start it again)\n", err
     assert not out.exists()
 
 

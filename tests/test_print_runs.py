@@ -4,11 +4,9 @@ tracer that stops within moments), checkpoints by wall time, and the quantised s
 import json
 import os
 import re
-import signal
 import subprocess
 import sys
 import textwrap
-import time
 
 import numpy as np
 import pytest
@@ -25,7 +23,7 @@ from torch_appearance.pipelines.print.rendering import render_indexed, slab_scen
 from torch_appearance.pipelines.print.slab_target import SlabTarget, slab_memory_bytes
 from torch_appearance.pipelines.runs import RunInterrupted, check_memory, lock_run_folder
 from torch_appearance.print_error import EVAL_RENDERS
-from torch_appearance.testing import run_command, tiny_print_target
+from torch_appearance.testing import interrupt_when, run_command, sigint_default, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -256,17 +254,11 @@ _SLOW_RENDER = textwrap.dedent("""
 """)
 
 
-def _sigint_default():
-    """For a child that must see SIGINT as a terminal's Ctrl-C: a suite started in the background of a
-    non-interactive shell has SIGINT ignored, and a child keeps that (then Python installs no handler)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def test_ctrl_c_stops_the_tracer_within_moments():
     """SIGINT while the C++ tracer runs (GIL released, a render of minutes): it stops between sensor elements and
     Python gets KeyboardInterrupt at once; the next render is unchanged."""
     done = subprocess.run([sys.executable, "-c", _SLOW_RENDER], capture_output=True, text=True, timeout=300,
-                          env=command_env(), preexec_fn=_sigint_default)
+                          env=command_env(), preexec_fn=sigint_default)
     assert done.returncode == 0, done.stderr
     lines = done.stdout.split("\n")
     assert lines[0].startswith("interrupted"), done.stdout
@@ -281,14 +273,8 @@ def test_ctrl_c_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     args = ["--target", "zebra", "--width-mm", "3", "--thickness-mm", "0.5", "--spp", "4", "--eval-spp", "4",
             "--iterations", "60", "--eval-every", "1", "--init", "white", "--no-naive-baseline", "--quiet",
             "--out", out]
-    proc = subprocess.Popen(cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=command_env(),
-                            preexec_fn=_sigint_default)
-    deadline = time.monotonic() + 300
-    while not (out / "checkpoint.pt").exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    rc, _, err = interrupt_when(cli(*args), lambda: (out / "checkpoint.pt").exists(), env=command_env())
+    assert rc == 130, err
     assert "Traceback" not in err
     assert f"resume with: ta-optimize-print --out {out} --resume" in err
     state = torch.load(out / "checkpoint.pt", weights_only=False)

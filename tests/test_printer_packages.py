@@ -25,7 +25,7 @@ from torch_appearance.fabrication.quantize import iter_quantized, micro_grid_sha
 from torch_appearance.pipelines.print import PrintConfig, optimize_print
 from torch_appearance.pipelines.print.config import iteration_seed
 from torch_appearance.pipelines.print.package import export_run
-from torch_appearance.testing import reset_peak_rss, status_kb, tiny_print_target
+from torch_appearance.testing import reset_peak_rss, sigint_default, status_kb, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -582,7 +582,7 @@ def test_an_export_is_refused_while_a_run_writes_its_folder_and_records_the_iter
     extending = subprocess.Popen([sys.executable, "-m", "torch_appearance.cli.optimize_print", "--out", str(run),
                                   "--resume", "--iterations", "100000", "--quiet"], stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True, env=command_env(),
-                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                                 preexec_fn=sigint_default)
     try:
         deadline = time.monotonic() + 300
         while len(ta_io_rows(run)) <= 4:  # the resumed run has logged iterations: it holds the folder

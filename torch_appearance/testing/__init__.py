@@ -1,6 +1,6 @@
 """Helpers for testing code built on torch_appearance (as ``torch.testing`` and ``torch_scatter.testing``): z-tests of
-Monte Carlo estimates, statistics over seeds, the walk this CPU runs, memory probes, and running a ``ta-…`` command
-in-process.
+Monte Carlo estimates, statistics over seeds, the walk this CPU runs, memory probes, running a ``ta-…`` command
+in-process, and interrupting one in a child process as Ctrl-C would.
 
 Monte Carlo results are tested statistically (DESIGN.md, "How correctness is shown"): an estimate with its standard
 error is compared with an expected value by a z-test, with a Bonferroni correction when many entries are tested at
@@ -17,13 +17,16 @@ import contextlib
 import importlib
 import io
 import math
+import signal
+import subprocess
 import sys
+import time
 import warnings
 
 import torch
 
 __all__ = ["bonferroni_z", "seed_stats", "assert_z", "simd_walk_level", "status_kb", "reset_peak_rss",
-           "tiny_print_target", "run_command", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
+           "tiny_print_target", "run_command", "sigint_default", "interrupt_when", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
 
 
 def bonferroni_z(n_tests, family_alpha=1e-3):
@@ -120,6 +123,29 @@ def run_command(name, *args):
             rc = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
     sys.stdout.flush()
     return rc, out.getvalue(), err.getvalue()
+
+
+def sigint_default():
+    """``preexec_fn`` for a child that must see SIGINT as a terminal's Ctrl-C: a suite started in the background of
+    a non-interactive shell has SIGINT ignored, and a child keeps that (then Python installs no handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def interrupt_when(command, ready, *, env=None, wait_s=300.0, timeout_s=120.0):
+    """Start ``command`` (an argv list) in a child process, send it SIGINT once ``ready()`` is true (or it has ended,
+    or ``wait_s`` seconds have passed), and wait for it.
+
+    Returns:
+        (exit status, stdout, stderr) of the child, as text.
+    """
+    proc = subprocess.Popen([str(a) for a in command], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, preexec_fn=sigint_default)
+    deadline = time.monotonic() + wait_s
+    while not ready() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=timeout_s)
+    return proc.returncode, out, err
 
 
 # ---- stiff and extreme tracer cases (tests/test_stiff_sweep.py runs a part, scripts/bench/stiff_sweep.py all)
