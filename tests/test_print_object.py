@@ -368,3 +368,36 @@ def test_fill_void_at_surface_takes_the_inner_neighbour():
     assert indices[0, 0, 2] == VOID                  # the input is not modified
     with pytest.raises(ValueError, match="corner_sdf: expected shape"):
         fill_void_at_surface(indices, sdf[:, :, :4])
+
+
+def test_object_evaluations_score_a_fixed_random_subset(sphere_ply, tmp_path):
+    """``eval_texels``: every evaluation renders and scores the same random subset of the texels (the sensor's rows
+    and the target's rows agree: the subset's figure for the final print matches a render of all its texels within
+    their standard errors); the pictures of the final print and the naive baseline cover every texel, the in-run
+    ones only the subset."""
+    from torch_appearance.pipelines.print.loop import build_target
+    from torch_appearance.print_error import noise_free_error
+
+    out = tmp_path / "run"
+    cfg = config(sphere_ply, out, height_mm=3.6, dpi=200.0, iterations=2, eval_every=2, eval_spp=16,
+                 eval_texels=1024, views=1)
+    summary = optimize_print(cfg, **QUIET)
+    n = summary["texels"]
+    assert n > 1500 and summary["evaluation"]["texels"] == 1024
+    rendered = [np.isfinite(np.load(out / f"{stem}.npy")).all(1) for stem in ("initial", "optimized")]
+    assert rendered[0].sum() == 1024 and np.array_equal(rendered[0], rendered[1])
+    for stem in ("final", "baseline"):
+        assert np.isfinite(np.load(out / f"{stem}.npy")).all(), stem
+    rows = list(csv.DictReader(open(out / "log.csv")))  # row 0's loss: the first iteration's, of the same state
+    assert rows[0]["loss"] == rows[1]["loss"] != ""
+    final = summary["final_quantized"]
+    target = build_target(cfg.resolved(), log=lambda *_: None)
+    target.use(InkSet.from_names(), cfg.resolved())
+    indices = torch.as_tensor(load_index_volume(str(out / "quantized.npz"))[0])
+    renders = torch.stack([target.render_quantized(indices, InkSet.from_names(), cfg.printer_dpi, 4, 900 + k)
+                           for k in range(4)])
+    whole = noise_free_error(renders, target.target)
+    assert abs(final["dE00_mean"] - whole["dE00_mean"]) < 4 * np.hypot(final["dE00_mean_se"],
+                                                                        whole["dE00_mean_se"]), (final, whole)
+    # the whole population's SE has no sampling part: the subset's is larger
+    assert final["dE00_mean_se"] > whole["dE00_mean_se"]

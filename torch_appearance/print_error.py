@@ -119,7 +119,24 @@ def _extrapolated(pred, ref, subset):
             np.array([de00_full.mean(), np.percentile(de00_full, 95), np.linalg.norm(lab_full, axis=-1).mean()]))
 
 
-def noise_free_error(renders, target, mask=None, texels=False):
+def _sampling_se(per_texel, population):
+    """Standard errors ``[mean, p95]`` of the texels' estimates ``per_texel`` (M,) as a uniform sample without
+    replacement of ``population`` texels, for the figures of the whole population."""
+    m = per_texel.size
+    if isinstance(population, bool) or not isinstance(population, (int, np.integer)) or population < m:
+        raise ValueError(f"population: expected an int >= the {m} scored texels, got {population!r}")
+    if m < 2:
+        return np.zeros(2)
+    fpc = 1.0 - m / population
+    mean_se = np.sqrt(fpc * per_texel.var(ddof=1) / m)
+    # the 0.95 quantile's rank is Binomial(M, 0.95) about its place: one sd of ranks each side is ±1 SE
+    q, x = 0.95, np.sort(per_texel)
+    half = np.sqrt(m * q * (1 - q))
+    lo, hi = (int(np.clip(np.round(m * q + s * half), 0, m - 1)) for s in (-1, 1))
+    return np.array([mean_se, np.sqrt(fpc) * (x[hi] - x[lo]) / 2.0])
+
+
+def noise_free_error(renders, target, mask=None, texels=False, population=None):
     """Mean and p95 CIEDE2000 of a print's expected colour against its target, from ``K`` independent renders.
 
     Args:
@@ -129,6 +146,11 @@ def noise_free_error(renders, target, mask=None, texels=False):
             between the two prints' expected colours, e.g. a quantised print against its continuous optimum).
         mask: optional bool ``(...)`` selecting the texels to score.
         texels: also return the per-texel extrapolated ΔE00 (for heat maps).
+        population: the scored texels are a uniform random sample, without replacement, of this many texels (an
+            object's evaluation subset): the standard errors then include the sampling error over texels (the
+            variance of the texels' estimates over M, with the finite-population factor 1 − M/population; for the
+            p95 the spread of the order statistics around rank 0.95·M), so that they bound the error of the
+            figure for the whole population, not only for the texels drawn.
 
     Returns:
         dict of floats (:data:`ERROR_FIELDS`): ``dE00_mean``, ``dE00_p95``, ``dE76_rms`` extrapolated to infinitely
@@ -171,6 +193,8 @@ def noise_free_error(renders, target, mask=None, texels=False):
         d = parts[0][1] - parts[1][1]
         se[0] = np.sqrt((d ** 2).sum() / 4.0) / renders.shape[1]
         se[1] = abs(parts[0][0][1] - parts[1][0][1]) / 2.0
+    if population is not None:
+        se = np.hypot(se, _sampling_se(per_texel, population))
     halves = _splits(tuple(range(k)))[0]
     noise = delta_e_2000_lab(pred.lab(halves[0]), pred.lab(halves[1])).mean() / 2.0
     result = {name: float(v) for name, v in zip(ERROR_FIELDS, [estimate[0], se[0], estimate[1], se[1], estimate[2],

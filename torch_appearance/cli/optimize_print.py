@@ -105,6 +105,9 @@ def add_optimization_arguments(p, d=None):
                    help=f"samples per texel of evaluation renders {default('eval_spp')}")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"evaluate every k iterations {default('eval_every')}")
+    p.add_argument("--eval-texels", type=int, default=d.eval_texels,
+                   help=f"texels an evaluation scores, a random subset fixed for the run; 0: all "
+                        f"{default('eval_texels')}")
     p.add_argument("--iterations", type=int, default=d.iterations, help=default("iterations"))
     p.add_argument("--table-steps", type=int, default=d.table_steps,
                    help="naive-extrusion baseline: mixtures in steps of 1/N (default: %(default)s)")
@@ -166,6 +169,8 @@ def parser(prog=PROG):
                    help="objects: camera renders of the quantised print (default: %(default)s)")
     p.add_argument("--view-size", type=int, default=PrintConfig.view_size,
                    help="objects: pixels per side of those renders (default: %(default)s)")
+    p.add_argument("--view-spp", type=int, default=PrintConfig.view_spp,
+                   help="objects: samples per pixel of those renders (default: 32)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--out", default=PrintConfig.out,
                    help="run folder: config.json, log.csv, convergence.png, target/baseline/initial/optimized/final "

@@ -224,7 +224,7 @@ def _check_settings(folder, cfg, inkset):
         return
     with open(path, encoding="utf-8") as handle:
         stored = json.load(handle)
-    mine = _jsonable(dataclasses.asdict(cfg))
+    mine = _jsonable(dataclasses.asdict(cfg.resolved()))  # as the run records it
     differ = [f"{k}: {stored[k]!r} there, {mine[k]!r} now" for k in sorted(mine)
               if k not in _NOT_COMPARED and k in stored and stored[k] != mine[k]]
     inks = _jsonable([dataclasses.asdict(i) for i in inkset])

@@ -9,7 +9,9 @@ Data flow: ``MaterialMixture`` (learnable logits, N × D × H × W) → (σ_t, a
 tracer through :class:`~torch_appearance.nn.SceneRenderer`, radiative backpropagation) → ``target.appearance``
 (E1 ΔE76², E2 3D SSIM, E3 3D Sobel) → ``loss.backward()`` → Adagrad/Adam step. Every ``eval_every`` iterations
 the print is scored with CIEDE2000 free of the render's Monte Carlo noise: four independent renders of ``eval_spp / 4``
-spp with fixed seeds, extrapolated to infinitely many samples (:mod:`torch_appearance.print_error`). After the loop:
+spp with fixed seeds, extrapolated to infinitely many samples (:mod:`torch_appearance.print_error`); an object's
+evaluations render and score a fixed random subset of ``eval_texels`` texels (the sampling error is in the standard
+errors), its final print and naive baseline are also rendered whole as pictures. After the loop:
 probabilistic quantisation (one ink per printer micro-voxel) and the same evaluation of the *quantised* volume at the
 printer resolution; the baselines are scored the same way.
 """
@@ -184,6 +186,10 @@ class _Run:
         # an evaluation: EVAL_RENDERS independent renders of eval_spp / EVAL_RENDERS spp with these seeds
         self.eval_seeds = [iteration_seed(self.eval_seed, k) for k in range(EVAL_RENDERS)]
         self.eval_seconds = 0.0  # spent on evaluations (renders and scores) by this call: the summary's evaluation
+        self.picture_seconds = 0.0  # spent on whole pictures of prints scored on a subset (:meth:`picture`)
+        # an object's evaluations score a fixed random subset of its texels (None: all), the same for every print
+        self.subset = target.evaluation_subset(cfg.eval_texels, iteration_seed(cfg.seed, -3))
+        self.eval_scene = None if self.subset is None else target.subset_scene(self.subset)
         self.quant_seed = iteration_seed(cfg.seed, -2)
 
     def run(self, progress):
@@ -224,16 +230,20 @@ class _Run:
         """(K, *texels) evaluation renders of the current continuous mixture."""
         with torch.no_grad():
             s, a = self.model()
-            return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed))
+            if self.eval_scene is None:
+                return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed))
+            return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed, scene=self.eval_scene))
 
     def score(self, renders, texels=False, against=None):
         """The scores (:func:`.run_folder.score`) of evaluation ``renders`` (K, *texels) on the target's scored
-        texels (``target.scored``): against the target, or against the evaluation renders ``against`` of another
-        print (both free of render noise)."""
+        texels (``target.scored``; an object's evaluation subset, with its sampling error in the SE): against the
+        target, or against the evaluation renders ``against`` of another print (both free of render noise)."""
         t0 = time.perf_counter()
-        scored = [self.target.scored(r) for r in renders]
-        reference = scored[0][1] if against is None else torch.stack([self.target.scored(r)[0] for r in against])
-        result = score(torch.stack([p for p, _ in scored]), reference, texels=texels)
+        scored = [self.target.scored(r, self.subset) for r in renders]
+        reference = scored[0][1] if against is None else \
+            torch.stack([self.target.scored(r, self.subset)[0] for r in against])
+        population = None if self.subset is None else len(self.target.target)
+        result = score(torch.stack([p for p, _ in scored]), reference, texels=texels, population=population)
         self.eval_seconds += time.perf_counter() - t0
         return result
 
@@ -245,8 +255,21 @@ class _Run:
     def quantized(self, weights, fixed=()):
         """Printer-resolution indices of ``weights`` and their evaluation renders (K, *texels)."""
         indices = quantize(self.target, weights, self.inks, self.cfg, self.quant_seed, fixed)
+        subset = {} if self.eval_scene is None else {"sensor": self.eval_scene.sensor}
         return indices, self.renders(lambda spp, seed: self.target.render_quantized(
-            indices, self.inks, self.cfg.printer_dpi, spp, seed))
+            indices, self.inks, self.cfg.printer_dpi, spp, seed, **subset))
+
+    def picture(self, indices, renders):
+        """(*texels) the colours to save as the picture of a quantised print (``indices``) with evaluation
+        ``renders``: their mean where they cover every texel, else one render of every texel at the training's
+        spp (the print is scored on the subset; the picture is for looking at)."""
+        if self.subset is None:
+            return renders.mean(0)
+        t0 = time.perf_counter()
+        image = self.target.render_quantized(indices, self.inks, self.cfg.printer_dpi, self.cfg.spp,
+                                             iteration_seed(self.eval_seed, EVAL_RENDERS))
+        self.picture_seconds += time.perf_counter() - t0
+        return image
 
     # ---------------------------------------------------------------------------------------------- steps
     def write_inputs(self):
@@ -291,26 +314,30 @@ class _Run:
         if cfg.naive_baseline:
             t0 = time.perf_counter()
             base_w, table = target.naive_weights(self.inks, cfg)
-            _, base_renders = self.quantized(base_w)
-            self.baseline = {"image": base_renders.mean(0).numpy(), **self.score(base_renders), "table": table,
+            base_indices, base_renders = self.quantized(base_w)
+            self.baseline = {"image": self.picture(base_indices, base_renders).numpy(), **self.score(base_renders),
+                             "table": table,
                              "seconds": time.perf_counter() - t0}
             target.save_texels(self.folder, "baseline", self.baseline["image"])
+            del base_indices
         if cfg.init == "naive":  # warm start: the optimisation begins where the naive extrusion ends
             self.model.set_weights(target.naive_weights(self.inks, cfg)[0] if base_w is None else base_w)
         # the extrusion's (inks, D, H, W) weights are not kept through the optimisation (1.16 GB for Spot at 40 mm)
         del base_w
         initial = self.evaluate()
-        target.save_texels(self.folder, "initial", initial.mean(0))
-        self.rows.append({"iteration": 0, "wall_s": 0.0, **self.loss_row(initial.mean(0)), **self.score(initial),
-                          "seed": self.eval_seed})
+        target.save_texels(self.folder, "initial", initial.mean(0), self.subset)
+        # the appearance loss needs every texel (its filters see neighbours): on a subset, row 0 takes the loss of
+        # the first iteration's render, which is of this same state (:meth:`iterate`)
+        loss = self.loss_row(initial.mean(0)) if self.subset is None else {}
+        self.rows.append({"iteration": 0, "wall_s": 0.0, **loss, **self.score(initial), "seed": self.eval_seed})
 
     def remap_baseline(self):
         """The 2.5D remapped baseline (:func:`remap_baseline`), quantised and scored as the result."""
         t0 = time.perf_counter()
         weights, info = remap_baseline(self.target, self.inks, self.cfg,
                                        work_dir=os.path.join(self.folder, "remap25d"), log=self.log)
-        _, renders = self.quantized(weights, self.fixed)
-        remap = {"image": renders.mean(0).numpy(), **self.score(renders), "info": info,
+        remap_indices, renders = self.quantized(weights, self.fixed)
+        remap = {"image": self.picture(remap_indices, renders).numpy(), **self.score(renders), "info": info,
                  "seconds": time.perf_counter() - t0}
         self.target.save_texels(self.folder, "baseline_remap", remap["image"])
         return remap
@@ -382,6 +409,8 @@ class _Run:
 
         def record(loss, parts):
             nonlocal done
+            if done == 0 and "loss" not in self.rows[0]:  # scored on a subset: the loss of the same state
+                self.rows[0].update({"loss": loss.item(), **{k: v.item() for k, v in parts.items()}})
             self.rows.append({"iteration": done + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()},
                               "seed": seed, "wall_s": time.perf_counter() - t_start})
             done += 1
@@ -419,11 +448,11 @@ class _Run:
         done, renders = self.evaluated
         optimized = renders if done == cfg.iterations else self.evaluate()
         self.evaluated = (None, None)
-        target.save_texels(folder, "optimized", optimized.mean(0))
+        target.save_texels(folder, "optimized", optimized.mean(0), self.subset)
         weights = self.model.weights().detach()
         indices, final_renders = self.quantized(weights, self.fixed)
         scores, texel_de = self.score(final_renders, texels=True)
-        final = {"image": final_renders.mean(0).numpy(), **scores, "texel_dE00": texel_de}
+        final = {"image": self.picture(indices, final_renders).numpy(), **scores, "texel_dE00": texel_de}
         target.save_texels(folder, "final", final["image"])
         final.update(target.extra_scores(final_renders))
         # what quantisation costs: the quantised print's expected colours against the continuous optimum's (both
@@ -434,7 +463,8 @@ class _Run:
         save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
         export_slices(indices, inks, os.path.join(folder, "slices"), dpi=cfg.printer_dpi)
         write_figures(folder, rows, cfg, target, inks, weights, final, self.baseline, self.remap)
-        view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, texel_de, log=self.log)
+        view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, texel_de, log=self.log,
+                                    texel_index=self.subset)
         package = None
         if cfg.printer is not None:  # the printer's package of the run's volume (pipelines.print.package)
             from .package import export_run
@@ -451,7 +481,8 @@ class _Run:
             "seconds_per_iteration": (rows[-1]["wall_s"] / max(1, len(opt_rows))) if opt_rows else None,
             **target.describe(), "spp": cfg.spp, "eval_spp": cfg.eval_spp,
             "evaluation": {"renders": EVAL_RENDERS, "spp_each": cfg.eval_spp // EVAL_RENDERS,
-                           "seconds": self.eval_seconds,
+                           "texels": len(target.target) if self.subset is None else len(self.subset),
+                           "seconds": self.eval_seconds, "picture_seconds": self.picture_seconds,
                            "share_of_job": self.eval_seconds / (time.perf_counter() - self.t_call),
                            "estimator": "torch_appearance.print_error.noise_free_error: CIEDE2000 extrapolated to "
                                         "infinitely many samples; *_raw: the mean of the renders scored as it is"},
@@ -462,7 +493,7 @@ class _Run:
             {k: v for k, v in baseline.items() if k not in hidden},
             "baseline_remap_25d": None if remap is None else {k: v for k, v in remap.items() if k not in hidden},
             "initial": {k: rows[0][k] for k in LOG_FIELDS if k in rows[0] and k.startswith("dE")},
-            "loss_first_last": [rows[0]["loss"], rows[-1]["loss"]],
+            "loss_first_last": [rows[0].get("loss"), rows[-1].get("loss")],
             "quantized_shape_dhw": list(indices.shape), "printer_dpi": list(cfg.printer_dpi),
             "parameters": int(self.model.logits.numel()), "views_s": view_seconds, "halftone": cfg.halftone,
             "package": None if package is None else {"printer": package["printer"]["name"],

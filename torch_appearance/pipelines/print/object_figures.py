@@ -76,9 +76,10 @@ def mesh_views(mesh, cams, *, scalars=None, cmap="magma", clim=None):
         return None
 
 
-def views_figure(path, target, cams, renders, *, texel_de=None, log=print):
+def views_figure(path, target, cams, renders, *, texel_de=None, log=print, texel_index=None):
     """``views.png``: the target texture on the mesh (top), the rendered quantised print (middle) and, with
-    ``texel_de`` (N,), its per-texel CIEDE2000 on the mesh (bottom), one column per camera."""
+    ``texel_de`` (M,) of the texels ``texel_index`` (M,) (None: all N), its per-texel CIEDE2000 on the mesh
+    (bottom), one column per camera."""
     from matplotlib.figure import Figure
     from scipy.spatial import cKDTree
 
@@ -89,7 +90,8 @@ def views_figure(path, target, cams, renders, *, texel_de=None, log=print):
     if texel_de is not None and target.mesh is not None:
         # each vertex shows the mean of its 16 nearest texels' estimates: a texel's own estimate is free of the render
         # noise's bias but not of its spread, which would draw swirls of noise at a vertex's scale
-        texels = cKDTree(target.obj.texel_points.numpy())
+        points = target.obj.texel_points.numpy()
+        texels = cKDTree(points if texel_index is None else points[np.asarray(texel_index)])
         _, nearest = texels.query(np.asarray(target.mesh.vertices), k=min(16, len(texel_de)), workers=-1)
         per_vertex = np.asarray(texel_de, np.float64)[nearest.reshape(len(nearest), -1)].mean(1)
         clim = (0.0, max(1.0, float(np.percentile(texel_de, 99))))

@@ -137,9 +137,25 @@ class ObjectTarget:
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)
 
-    def scored(self, texels):
-        """(prediction, target) pairs of (M, 3) colours that are scored (all texels)."""
-        return texels, self.target
+    def evaluation_subset(self, count, seed):
+        """(M,) sorted int64 indices of the texels an evaluation scores: ``count`` of them drawn uniformly without
+        replacement with ``seed``; None (every texel) when ``count`` is 0 or at least the number of texels."""
+        n = len(self.target)
+        if not count or count >= n:
+            return None
+        generator = torch.Generator().manual_seed(int(seed) % (1 << 63))
+        return torch.randperm(n, generator=generator)[:count].sort().values
+
+    def subset_scene(self, index):
+        """The object's scene with a sensor of the texels ``index`` (M,) only (their rows of :attr:`target`)."""
+        sensor = self.scene.sensor
+        return dataclasses.replace(self.scene, sensor=SurfaceTexels(
+            sensor.points[index], sensor.normals[index], footprint_mm=sensor.footprint_mm[index]))
+
+    def scored(self, texels, index=None):
+        """(prediction, target) pairs of (M, 3) colours that are scored: every texel, or the texels ``index``
+        (:meth:`evaluation_subset`) of which ``texels`` are the renders."""
+        return texels, (self.target if index is None else self.target[index])
 
     def extra_scores(self, texels):
         """Every texel is scored (:meth:`scored`): nothing more."""
@@ -302,24 +318,29 @@ class ObjectTarget:
     # ------------------------------------------------------------------------------------------ outputs
     mesh = None  # the trimesh mesh that was voxelised (set by the pipeline; enables the UV-space bake)
 
-    def save_texels(self, folder, stem, texels):
+    def save_texels(self, folder, stem, texels, index=None):
         """Write the texel colours as a coloured point cloud ``stem.ply`` (sRGB bytes), ``stem.npy`` (linear) and,
-        when the mesh has a UV layout, ``stem_uv.png`` baked into it."""
+        when the mesh has a UV layout, ``stem_uv.png`` baked into it. ``index`` (M,): ``texels`` are those texels
+        only (an evaluation subset): the point cloud holds them, ``stem.npy`` is NaN elsewhere, no bake."""
         import trimesh
 
         from ...color import linear_to_srgb8
         from ...geometry.bake import bake_texels
 
         rgb = np.asarray(texels, np.float32).reshape(-1, 3)
+        points = self.obj.texel_points.numpy()
+        if index is not None:
+            full = np.full((len(points), 3), np.nan, np.float32)
+            full[np.asarray(index)] = rgb
+            points = points[np.asarray(index)]
         buffer = io.BytesIO()
-        np.save(buffer, rgb)
+        np.save(buffer, rgb if index is None else full)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.npy"), buffer.getvalue())
-        if self._has_uv_layout():
-            image, _ = bake_texels(self.mesh, self.obj.texel_points.numpy(), np.clip(rgb, 0, 1),
-                                   size=self._bake_size())
+        if index is None and self._has_uv_layout():
+            image, _ = bake_texels(self.mesh, points, np.clip(rgb, 0, 1), size=self._bake_size())
             ta_io.write_png(os.path.join(folder, f"{stem}_uv.png"), image)
         colours = np.concatenate([linear_to_srgb8(rgb), np.full((len(rgb), 1), 255, np.uint8)], axis=1)
-        cloud = trimesh.PointCloud(self.obj.texel_points.numpy(), colors=colours)
+        cloud = trimesh.PointCloud(points, colors=colours)
         ta_io.atomic_write_bytes(os.path.join(folder, f"{stem}.ply"), cloud.export(file_type="ply"))
 
     def load_texels(self, folder, stem):
@@ -373,10 +394,11 @@ class ObjectTarget:
         """The object's figure is ``views.png`` (:meth:`views`): nothing more."""
         return []
 
-    def views(self, folder, indices, inks, cfg, seed, texel_de, log=print):
-        """``cfg.views`` camera renders of the quantised object (``view_k.exr``/``.png``) and ``views.png`` beside
-        the target texture on the mesh, coloured by the final texels' CIEDE2000 ``texel_de`` (N,) (free of render
-        noise on average); returns the seconds spent."""
+    def views(self, folder, indices, inks, cfg, seed, texel_de, log=print, texel_index=None):
+        """``cfg.views`` camera renders of the quantised object at ``cfg.view_spp`` (``view_k.exr``/``.png``) and
+        ``views.png`` beside the target texture on the mesh, coloured by the final texels' CIEDE2000 ``texel_de``
+        (M,) (free of render noise on average) of the texels ``texel_index`` (M,) (None: all); returns the seconds
+        spent."""
         if cfg.views == 0:
             return 0.0
         from .object_figures import views_figure
@@ -385,11 +407,12 @@ class ObjectTarget:
         cams = self.camera_views(cfg.views, cfg.view_size)
         renders = []
         for k, cam in enumerate(cams):
-            image = self.render_quantized(indices, inks, cfg.printer_dpi, cfg.eval_spp, iteration_seed(seed, -10 - k),
+            image = self.render_quantized(indices, inks, cfg.printer_dpi, cfg.view_spp, iteration_seed(seed, -10 - k),
                                           sensor=cam)
             save_image(folder, f"view_{k}", image.numpy())
             renders.append(image.numpy())
-        views_figure(os.path.join(folder, "views.png"), self, cams, renders, texel_de=texel_de, log=log)
+        views_figure(os.path.join(folder, "views.png"), self, cams, renders, texel_de=texel_de, log=log,
+                     texel_index=texel_index)
         return time.perf_counter() - t0
 
 

@@ -38,11 +38,12 @@ def npz_bytes(**arrays):
     return buffer.getvalue()
 
 
-def score(renders, target, texels=False):
+def score(renders, target, texels=False, population=None):
     """The print's CIEDE2000 free of render noise (:func:`~torch_appearance.print_error.noise_free_error`) from
     ``renders`` (K, ..., 3), independent renders of the print, against ``target`` (..., 3) or against K renders of
-    another print (K, ..., 3); with ``texels=True`` a pair (scores, per-texel estimates (M,))."""
+    another print (K, ..., 3); with ``texels=True`` a pair (scores, per-texel estimates (M,)). ``population``: the
+    texels are a random sample of that many (the standard errors include the sampling error)."""
     renders, target = torch.as_tensor(renders).double(), torch.as_tensor(target).double()
     k = renders.shape[0]
     target = target.reshape(k, -1, 3) if target.dim() == renders.dim() else target.reshape(-1, 3)
-    return noise_free_error(renders.reshape(k, -1, 3), target, texels=texels)
+    return noise_free_error(renders.reshape(k, -1, 3), target, texels=texels, population=population)

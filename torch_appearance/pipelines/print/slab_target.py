@@ -157,8 +157,15 @@ class SlabTarget:
         are whole layers, which the grid path filters with per-axis matrices)."""
         return criterion.forward_parts(self.to_grid(texels), self.target_grid, self.mask)
 
-    def scored(self, texels):
-        """The top face is scored (the bottom face is reported separately, :meth:`extra_scores`)."""
+    def evaluation_subset(self, count, seed):
+        """A slab's evaluations score every texel of its top face: None."""
+        return None
+
+    def scored(self, texels, index=None):
+        """The top face is scored (the bottom face is reported separately, :meth:`extra_scores`); a slab has no
+        evaluation subset (``index`` None)."""
+        if index is not None:
+            raise ValueError("index: a slab is scored whole (evaluation_subset is None)")
         return texels[0], self.target[0]
 
     def extra_scores(self, renders):
@@ -210,8 +217,11 @@ class SlabTarget:
     def save_inputs(self, folder):
         """A slab's inputs are its target images (:meth:`save_texels`): nothing more."""
 
-    def save_texels(self, folder, stem, texels):
-        """``stem.exr`` + ``.png`` of the top face and ``stem_bottom`` of a bottom face."""
+    def save_texels(self, folder, stem, texels, index=None):
+        """``stem.exr`` + ``.png`` of the top face and ``stem_bottom`` of a bottom face (whole faces: ``index``
+        None)."""
+        if index is not None:
+            raise ValueError("index: a slab's faces are saved whole")
         texels = texels.numpy() if isinstance(texels, torch.Tensor) else np.asarray(texels)
         save_image(folder, stem, texels[0])
         if self.faces == 2:
@@ -233,6 +243,6 @@ class SlabTarget:
         return [("dE00_heatmap.png", heatmap_figure(np.asarray(final["texel_dE00"]).reshape(self.target.shape[1:3]),
                                                     final))]
 
-    def views(self, folder, indices, inks, cfg, seed, texel_de, log=print):
+    def views(self, folder, indices, inks, cfg, seed, texel_de, log=print, texel_index=None):
         """A slab has no camera views (its faces are the images); seconds spent: 0."""
         return 0.0
