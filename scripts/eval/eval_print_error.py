@@ -6,6 +6,9 @@ run) is rendered ``--renders`` times at ``--spp`` with independent seeds. The re
 them (``renders × spp`` samples per texel, four groups), beside the raw figure of their mean. Disjoint groups of them
 make evaluations at the budgets 4 × spp, 8 × spp, …: per budget the mean over groups of the raw figure and of the
 estimate, its bias against the reference, the spread over groups (sd) and the mean reported standard error (se).
+With ``--texels M`` every group scores its own random subset of M texels, as an object run's evaluations do
+(``eval_texels``): the reported SE then includes the sampling error over texels, and the spread over groups shows
+whether it should.
 
 Writes ``print_error.json`` and prints a Markdown table.
 
@@ -13,6 +16,7 @@ Examples:
     python scripts/eval/eval_print_error.py --target colorchecker --spp 16 --renders 256 --out /tmp/pe_slab
     python scripts/eval/eval_print_error.py --mesh-height-mm 10 --spp 16 --renders 64 --out /tmp/pe_spot10
     python scripts/eval/eval_print_error.py --run results/demo --spp 16 --renders 256 --out /tmp/pe_demo
+    python scripts/eval/eval_print_error.py --mesh-height-mm 10 --spp 8 --renders 128 --texels 12288 --out /tmp/pe_sub
 """
 import argparse
 import json
@@ -64,7 +68,9 @@ def main(argv=None):
     p.add_argument("--run", default=None, help="a finished ta-optimize-print run: its quantized.npz instead")
     p.add_argument("--spp", type=int, default=16, help="samples per texel of each render")
     p.add_argument("--renders", type=int, default=64, help="independent renders (a multiple of 16)")
-    p.add_argument("--out", required=True, help="folder for print_error.json (and renders.npz)")
+    p.add_argument("--texels", type=int, default=0,
+                   help="score each group on its own random subset of this many texels (0: all)")
+    p.add_argument("--out", required=True, help="folder for print_error.json")
     args = p.parse_args(argv)
     if args.renders % 16 or args.renders < 16:
         p.error(f"--renders: expected a multiple of 16, got {args.renders}")
@@ -79,14 +85,24 @@ def main(argv=None):
     seconds = time.perf_counter() - t0
     renders = np.stack(renders).astype(np.float64)
     goal = np.asarray(target.scored(image)[1], np.float64).reshape(-1, 3)
-    n = len(renders)
+    n, population = len(renders), goal.shape[0]
+    if not 0 <= args.texels <= population:
+        p.error(f"--texels: expected 0 (all) or at most the print's {population} texels, got {args.texels}")
     reference = noise_free_error(renders.reshape(4, n // 4, *renders.shape[1:]).mean(1), goal)
+    pick = np.random.default_rng(7)
+
+    def group(block):
+        """The estimate of one group of renders (4 × per, texels, 3): all texels or a random subset of them."""
+        if not args.texels:
+            return noise_free_error(block.mean(1), goal)
+        keep = np.sort(pick.choice(population, args.texels, replace=False))
+        return noise_free_error(block[:, :, keep].mean(1), goal[keep], population=population)
+
     rows = []
     per = 1
     while 4 * per <= n // 4:
         groups = n // (4 * per)
-        ests = [noise_free_error(renders[g * 4 * per:(g + 1) * 4 * per].reshape(4, per, -1, 3).mean(1), goal)
-                for g in range(groups)]
+        ests = [group(renders[g * 4 * per:(g + 1) * 4 * per].reshape(4, per, -1, 3)) for g in range(groups)]
 
         def stat(key):
             v = np.array([e[key] for e in ests])
@@ -101,11 +117,13 @@ def main(argv=None):
         row["dE00_noise"] = stat("dE00_noise")[0]
         rows.append(row)
         per *= 2
-    result = {"print": what, "texels": int(goal.shape[0]), "spp_per_render": args.spp, "renders": n,
+    result = {"print": what, "texels": int(population), "scored_texels": args.texels or int(population),
+              "spp_per_render": args.spp, "renders": n,
               "render_seconds": seconds, "reference_spp": n * args.spp, "reference": reference, "budgets": rows}
     with open(os.path.join(args.out, "print_error.json"), "w") as f:
         json.dump(result, f, indent=1)
-    print(f"\n{what}: {goal.shape[0]} texels; reference at {n * args.spp} spp: mean {reference['dE00_mean']:.2f} "
+    subset = f", groups scored on {args.texels} texels each" if args.texels else ""
+    print(f"\n{what}: {goal.shape[0]} texels{subset}; reference at {n * args.spp} spp: mean {reference['dE00_mean']:.2f} "
           f"± {reference['dE00_mean_se']:.2f} (raw {reference['dE00_mean_raw']:.2f}), p95 {reference['dE00_p95']:.2f} "
           f"(raw {reference['dE00_p95_raw']:.2f})\n")
     print("| budget (spp) | s per evaluation | mean raw | mean estimate (bias) | sd / se | p95 raw "
