@@ -17,7 +17,7 @@ has: the mean of all renders (``K·n`` spp) and the means of the halves (``K·n/
 * **p95 ΔE00**: ``S`` is the percentile of the texels' ΔE00 itself.
 * **rms ΔE76** (the loss's E1 is a mean ΔE76²): the root of the mean decorrelated product in L*a*b*.
 
-Measured against 4096-spp references (``scripts/eval/eval_print_error.py``, numbers in ``scripts/bench/README.md``)
+Measured against 4096-spp references (``scripts/eval/eval_print_error.py``, numbers in ``docs/bench_log.md``)
 the mean's remaining bias is about 1 % of the error at 128 spp and above, where the raw figure is off by 10–40 %.
 Not every bias can go: no estimator of ``|μ − T|`` from noisy samples is unbiased where the noise is far larger
 than the error, so a budget too small for the print still reads high (the log says how large the noise was).

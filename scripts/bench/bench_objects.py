@@ -36,7 +36,7 @@ it, an old build without that option replays every voxel), old and new alternati
 ``--reps`` times, with the medians and new / old ratios in a ``"compare": "new/old"`` line.
 
 One JSON line per height and estimator (``--chromatic per_channel,hero``); all lines are also written atomically
-to ``--out``. Numbers go to scripts/bench/README.md with the date and the command.
+to ``--out``. Numbers go to docs/bench_log.md with the date and the command.
 
 Usage::
 

@@ -8,7 +8,7 @@ different intervals compare fairly; the final quantised result is a marker at th
 horizontal line. Prints a Markdown table (spp, lr, estimator, s/iteration, ΔE00 at each evaluation, final quantised,
 the whole job's wall time when the summary has it).
 
-Runs to compare are plain commands, e.g. Spot at 25 mm (``scripts/bench/README.md``, "Object schedule"):
+Runs to compare are plain commands, e.g. Spot at 25 mm (``docs/bench_log.md``, "Object schedule"):
 
     ta-optimize-print --mesh tests/data/meshes/spot/spot_triangulated.obj \\
         --texture tests/data/meshes/spot/spot_texture.png --height-mm 25 --spp 4 --iterations 100 \\

@@ -21,7 +21,7 @@ RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
 #: 50 at 128 spp: free of render noise (:mod:`torch_appearance.print_error`) they read the same as at 256 spp every 25
 #: (the demo's final print 11.26 ± 0.08 and ± 0.05) at 0.14 of the job's time instead of 0.28. Objects: a textured
 #: object's paths diffuse through its whole body; an iteration of Spot at 25 mm takes about 26 s at 8 spp on 2 cores.
-#: Its error-against-time runs (``scripts/bench/README.md``, "Object schedule") reached the same error at the same
+#: Its error-against-time runs (``docs/bench_log.md``, "Object schedule") reached the same error at the same
 #: time with 4 spp × 100 iterations as with 8 spp × 50 (quantised CIEDE2000 13.96 and 13.97, naive extrusion 15.76;
 #: raw figures of 32-spp renders) and a worse one with lr 2 (15.49 against 14.59 at iteration 25); 45 iterations
 #: at 8 spp keep a whole 25 mm job, with its naive baseline, evaluations and views, under 30 minutes (50 took 30.1).
@@ -84,7 +84,7 @@ class PrintConfig:
     views: int = 3  # objects: camera renders of the quantised print from this many directions (0: none)
     view_size: int = 192  # objects: pixels per side of those renders
     halftone: str = "blue-noise"  # or "random" (independent draws, the paper): blue noise has less grain at the same
-    # colour (scripts/bench/README.md, "Halftoning"); a run recorded without this field was quantised at random
+    # colour (docs/bench_log.md, "Halftoning"); a run recorded without this field was quantised at random
     printer: Optional[str] = None  # a printer profile (name or JSON path): its resolution, and a package at the end
     fixed: Sequence[str] = ()  # "INK=FRACTION:MASK" constraints (see pipelines.print.fixed_fractions)
     envmap: Optional[str] = None  # objects: a lat-long linear EXR (z up) lighting the print instead of uniform white
