@@ -1,9 +1,10 @@
 """What every long run needs from its machine and its run folder: an exclusive lock on the folder while the run
 writes to it, shared by the readers of a finished run (:func:`lock_run_folder`), a lock on an output name while it is
-written (:func:`lock_output`), the memory it may use (:func:`available_memory_bytes`, :func:`check_memory`; the
-tracer's own buffers, :func:`trace_buffer_bytes`), Ctrl-C held back while a step's state is written
-(:func:`sigint_deferred`), the interruption that says how to resume (:class:`RunInterrupted`), and a checkpoint read
-back with a message that names it when it is damaged (:func:`check_checkpoint`, :func:`load_checkpoint`)."""
+written (:func:`lock_output`), the memory it may use (:func:`memory_limits`: the machine's, the address-space
+limit's, the cgroup's; :func:`available_memory_bytes`, :func:`check_memory`; the tracer's own buffers,
+:func:`trace_buffer_bytes`), Ctrl-C held back while a step's state is written (:func:`sigint_deferred`), the
+interruption that says how to resume (:class:`RunInterrupted`), and a checkpoint read back with a message that names
+it when it is damaged (:func:`check_checkpoint`, :func:`load_checkpoint`)."""
 import contextlib
 import os
 import pickle
@@ -11,7 +12,7 @@ import signal
 import threading
 import zipfile
 
-__all__ = ["RunInterrupted", "lock_run_folder", "lock_output", "available_memory_bytes", "check_memory",
+__all__ = ["RunInterrupted", "lock_run_folder", "lock_output", "available_memory_bytes", "memory_limits", "check_memory",
            "trace_buffer_bytes", "sigint_deferred", "check_checkpoint", "load_checkpoint"]
 
 GiB = float(1 << 30)
@@ -133,20 +134,157 @@ def lock_output(path, name="out", *, advice="wait for it to end or choose anothe
         os.close(fd)
 
 
-def available_memory_bytes():
-    """Memory a new allocation can get without swapping: ``MemAvailable`` of /proc/meminfo (Linux), else the
-    physical memory; None when neither is known."""
+#: a cgroup limit at or above this is "no limit" (cgroup v1 writes 2^63 rounded down to a page for "max")
+_NO_LIMIT = 1 << 60
+
+
+def memory_limits(proc="/proc"):
+    """What limits the memory a new allocation of this process can get, in bytes, by source (only the sources that
+    apply; the smallest binds, :func:`available_memory_bytes`):
+
+    - ``"MemAvailable"``: /proc/meminfo's estimate of what can be allocated without swapping (Linux), else
+      ``"physical memory"``;
+    - ``"address-space limit (ulimit -v)"``: ``RLIMIT_AS`` less the address space the process already maps
+      (``VmSize``); ``"data limit (ulimit -d)"``: ``RLIMIT_DATA`` less ``VmData``;
+    - ``"cgroup memory.max"`` (v2) and ``"cgroup memory.limit_in_bytes"`` (v1, the container's limit): the limit less
+      the cgroup's usage without its reclaimable page cache (``inactive_file``), the smallest over the process's
+      cgroup and those above it.
+
+    Args:
+        proc: where procfs is mounted (a test passes a folder with ``meminfo``, ``self/status``,
+            ``self/cgroup`` and ``self/mountinfo``; the rlimits are then not read).
+
+    Example:
+        >>> limits = memory_limits()
+        >>> all(isinstance(v, int) for v in limits.values())
+        True
+    """
+    limits = {}
+    meminfo = _read_fields(os.path.join(proc, "meminfo"))
+    if "MemAvailable" in meminfo:
+        limits["MemAvailable"] = meminfo["MemAvailable"]
+    else:
+        try:
+            limits["physical memory"] = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (AttributeError, ValueError, OSError):  # pragma: no cover - no sysconf
+            pass
+    status = _read_fields(os.path.join(proc, "self", "status"))
+    if proc == "/proc":
+        try:
+            import resource
+        except ImportError:  # pragma: no cover - Windows
+            resource = None
+        if resource is not None:
+            for rlimit, used, source in ((resource.RLIMIT_AS, "VmSize", "address-space limit (ulimit -v)"),
+                                         (getattr(resource, "RLIMIT_DATA", None), "VmData", "data limit (ulimit -d)")):
+                if rlimit is None:
+                    continue
+                soft = resource.getrlimit(rlimit)[0]
+                if soft != resource.RLIM_INFINITY and soft >= 0:
+                    limits[source] = max(0, soft - status.get(used, 0))
+    for source, left in _cgroup_room(proc).items():
+        limits[source] = left
+    return limits
+
+
+def available_memory_bytes(proc="/proc"):
+    """Memory a new allocation of this process can get: the smallest of :func:`memory_limits` (``MemAvailable``,
+    ``RLIMIT_AS`` and ``RLIMIT_DATA`` less what is mapped, the cgroup v2/v1 limit less its usage); None when none is
+    known."""
+    limits = memory_limits(proc)
+    return min(limits.values()) if limits else None
+
+
+def _read_fields(path):
+    """``Name: value kB`` lines (/proc/meminfo, /proc/self/status) as bytes by name; {} when unreadable."""
+    fields = {}
     try:
-        with open("/proc/meminfo") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                name, _, value = line.partition(":")
+                parts = value.split()
+                if parts and parts[0].isdigit():
+                    fields[name.strip()] = int(parts[0]) * (1024 if parts[1:2] == ["kB"] else 1)
     except OSError:
         pass
+    return fields
+
+
+def _read_int(path):
     try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):  # pragma: no cover - no sysconf
+        with open(path) as f:
+            text = f.read().strip()
+    except OSError:
         return None
+    return int(text) if text.isdigit() else None  # "max" (v2): no limit
+
+
+def _cgroup_room(proc):
+    """{source: bytes left} of the memory cgroups (v2 and v1) that hold this process, from /proc/self/cgroup and the
+    mounts of /proc/self/mountinfo."""
+    try:
+        with open(os.path.join(proc, "self", "cgroup")) as f:
+            lines = f.read().splitlines()
+        with open(os.path.join(proc, "self", "mountinfo")) as f:
+            mounts = f.read().splitlines()
+    except OSError:
+        return {}
+    paths = {}  # "v2" / "v1" -> the process's cgroup path
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) == 3 and parts[0] == "0" and parts[1] == "":
+            paths["v2"] = parts[2]
+        elif len(parts) == 3 and "memory" in parts[1].split(","):
+            paths["v1"] = parts[2]
+    room = {}
+    for line in mounts:
+        fields = line.split()
+        if " - " not in line or len(fields) < 5:
+            continue
+        tail = line.split(" - ", 1)[1].split()
+        fstype, options = tail[0], (tail[2] if len(tail) > 2 else "")
+        root, mountpoint = fields[3], fields[4]
+        if fstype == "cgroup2" and "v2" in paths:
+            files = ("cgroup memory.max", "memory.max", "memory.current")
+            path = paths["v2"]
+        elif fstype == "cgroup" and "memory" in options.split(",") and "v1" in paths:
+            files = ("cgroup memory.limit_in_bytes", "memory.limit_in_bytes", "memory.usage_in_bytes")
+            path = paths["v1"]
+        else:
+            continue
+        source, limit_name, usage_name = files
+        relative = path[len(root):] if path.startswith(root) and root != "/" else path
+        folder = os.path.normpath(mountpoint + "/" + relative.lstrip("/"))
+        if not folder.startswith(os.path.normpath(mountpoint)) or not os.path.isdir(folder):
+            folder = mountpoint  # a namespaced view: the process's cgroup is the mount's root
+        best = None
+        while True:  # the process's cgroup and each above it, up to the mount point
+            limit = _read_int(os.path.join(folder, limit_name))
+            if limit is not None and limit < _NO_LIMIT:
+                usage = _read_int(os.path.join(folder, usage_name)) or 0
+                cache = _read_fields_plain(os.path.join(folder, "memory.stat")).get("inactive_file", 0)
+                left = max(0, limit - max(0, usage - cache))
+                best = left if best is None else min(best, left)
+            if os.path.normpath(folder) == os.path.normpath(mountpoint):
+                break
+            folder = os.path.dirname(folder)
+        if best is not None:
+            room[source] = min(best, room.get(source, best))
+    return room
+
+
+def _read_fields_plain(path):
+    """``name value`` lines (a cgroup's memory.stat) as a dict of ints; {} when unreadable."""
+    fields = {}
+    try:
+        with open(path) as f:
+            for line in f:
+                parts = line.split()
+                if len(parts) == 2 and parts[1].isdigit():
+                    fields[parts[0]] = int(parts[1])
+    except OSError:
+        pass
+    return fields
 
 
 def check_memory(name, need_bytes, what, fix, available=None):
@@ -154,15 +292,24 @@ def check_memory(name, need_bytes, what, fix, available=None):
 
     Args:
         name: the argument to blame. need_bytes: the estimate. what: what needs it ("a 1644×1644×12 slab").
-        fix: what to change. available: bytes available (default :func:`available_memory_bytes`).
+        fix: what to change. available: bytes available (default: the smallest of :func:`memory_limits`, so an
+            address-space limit (``ulimit -v``) or a container's cgroup limit refuses as the machine's memory does).
 
     Raises:
-        ValueError: ``"{name}: {what} needs about X GiB of memory, this machine has Y GiB available; {fix}"``.
+        ValueError: ``"{name}: {what} needs about X GiB of memory, this machine has Y GiB available; {fix}"``, or
+            ``"... this process may use Y GiB (its address-space limit (ulimit -v)); {fix}"`` when a limit of the
+            process binds before the machine's memory.
     """
-    available = available_memory_bytes() if available is None else available
+    source = None
+    if available is None:
+        limits = memory_limits()
+        if limits:
+            source, available = min(limits.items(), key=lambda item: item[1])
     if available is not None and need_bytes > available:
-        raise ValueError(f"{name}: {what} needs about {need_bytes / GiB:.1f} GiB of memory, this machine has "
-                         f"{available / GiB:.1f} GiB available; {fix}")
+        have = (f"this machine has {available / GiB:.1f} GiB available" if source in (None, "MemAvailable",
+                                                                                     "physical memory")
+                else f"this process may use {available / GiB:.1f} GiB (its {source})")
+        raise ValueError(f"{name}: {what} needs about {need_bytes / GiB:.1f} GiB of memory, {have}; {fix}")
 
 
 #: sensor elements a tracer thread walks at once (``kSimdBatch`` of csrc/volpath/simd_glue.h)

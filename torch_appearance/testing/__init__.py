@@ -26,7 +26,8 @@ import warnings
 import torch
 
 __all__ = ["bonferroni_z", "seed_stats", "assert_z", "simd_walk_level", "status_kb", "reset_peak_rss",
-           "tiny_print_target", "run_command", "sigint_default", "interrupt_when", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
+           "tiny_print_target", "run_command", "sigint_default", "address_space_limit", "interrupt_when",
+           "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
 
 
 def bonferroni_z(n_tests, family_alpha=1e-3):
@@ -129,6 +130,18 @@ def sigint_default():
     """``preexec_fn`` for a child that must see SIGINT as a terminal's Ctrl-C: a suite started in the background of
     a non-interactive shell has SIGINT ignored, and a child keeps that (then Python installs no handler)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def address_space_limit(limit_bytes):
+    """``preexec_fn`` for a child run under ``ulimit -v``: its ``RLIMIT_AS`` (soft and hard) set to ``limit_bytes``,
+    and SIGINT as a terminal's Ctrl-C (:func:`sigint_default`)."""
+    import resource
+
+    def apply():
+        sigint_default()
+        resource.setrlimit(resource.RLIMIT_AS, (int(limit_bytes), int(limit_bytes)))
+
+    return apply
 
 
 def interrupt_when(command, ready, *, env=None, wait_s=300.0, timeout_s=120.0):
