@@ -37,6 +37,14 @@ SCHEDULES = {
 }
 
 
+#: the least time an iteration takes (the mixture, a render, the loss and the optimiser step of the smallest slab
+#: take 5 ms on the development machine) and the longest job admitted: a count of iterations that cannot end within
+#: a year even at that pace (``--iterations 10**12``) is refused before any work; the time of a job that starts is
+#: logged once its first iteration has been timed
+MIN_ITERATION_S = 1e-3
+MAX_JOB_S = 365.25 * 86400
+
+
 @dataclass
 class PrintConfig:
     """Settings of one print optimisation run (every field is a flag of ta-optimize-print).
@@ -111,6 +119,11 @@ class PrintConfig:
                                    0 < texels < 1024):
             raise ValueError(f"eval_texels: expected 0 (every texel) or an int >= 1024 (a random subset large "
                              f"enough for the mean's sampling error), got {texels!r}")
+        if self.iterations is not None and self.iterations * MIN_ITERATION_S > MAX_JOB_S:
+            raise ValueError(f"iterations: {self.iterations} iterations take at least "
+                             f"{self.iterations * MIN_ITERATION_S / (365.25 * 86400):.3g} years (an iteration takes "
+                             f"at least {MIN_ITERATION_S * 1e3:g} ms); expected a job under a year, at most "
+                             f"{int(MAX_JOB_S / MIN_ITERATION_S)} iterations")
         if self.eval_spp is not None and self.eval_spp % EVAL_RENDERS:
             raise ValueError(f"eval_spp: expected a multiple of {EVAL_RENDERS} (an evaluation is {EVAL_RENDERS} "
                              f"independent renders of eval_spp/{EVAL_RENDERS} spp, from which the render noise is "

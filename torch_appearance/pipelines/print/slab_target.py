@@ -1,20 +1,18 @@
 """A slab as the print target: images of its top (and bottom) face, texel [j, i] = voxel column (j, i)."""
 import dataclasses
 import os
-import time
 
 import numpy as np
 import torch
 
 from ... import io as ta_io
-from ...nn.mixture import MaterialMixture
 from ..runs import check_memory
 from .baselines import naive_extrusion, render_quantized, render_slab
 from .report import heatmap_figure
 from .run_folder import save_image, score
 from .target_images import load_target
 
-__all__ = ["SlabTarget", "slab_texel_grid", "slab_memory_bytes", "iteration_seconds"]
+__all__ = ["SlabTarget", "slab_texel_grid", "slab_memory_bytes"]
 
 
 def slab_texel_grid(faces_rgb, depth):
@@ -50,7 +48,6 @@ def slab_texel_grid(faces_rgb, depth):
 SLAB_FIXED_BYTES = 0.35 * 2 ** 30
 SLAB_BYTES_PER_VOXEL = 300
 SLAB_BYTES_PER_INK_VOXEL = 16
-_PROBE = 24  # texels per side of the probe render of iteration_seconds
 
 
 def slab_memory_bytes(shape, n_inks):
@@ -63,21 +60,6 @@ def slab_memory_bytes(shape, n_inks):
     """
     d, h, w = (int(n) for n in shape)
     return SLAB_FIXED_BYTES + d * h * w * (SLAB_BYTES_PER_VOXEL + SLAB_BYTES_PER_INK_VOXEL * n_inks)
-
-
-def iteration_seconds(cfg, inks, faces, texels):
-    """Expected seconds of one optimisation iteration's render and gradient replay on a slab of ``texels`` texels
-    per face: a timed render + replay of a 24 × 24 slab of the run's thickness in 97 % white (the longest paths of
-    the default inks; an even mixture without a white ink), scaled by the texel count. With the ``ema`` estimator
-    the probe is one walk for the render and its gradient, as the loop's iterations after the first."""
-    white = "white" if "white" in [n.lower() for n in inks.names] else None
-    probe = MaterialMixture(inks, (cfg.depth, _PROBE, _PROBE), init_ink=white)
-    sigma_t, albedo = probe()
-    adjoint = torch.ones((faces, _PROBE, _PROBE, 3)) if cfg.estimator == "ema" else None
-    start = time.perf_counter()
-    image = render_slab(sigma_t, albedo, cfg, inks, faces, cfg.spp, 0, adjoint=adjoint)
-    (image if adjoint is None else adjoint * image).sum().backward()
-    return (time.perf_counter() - start) * texels / (_PROBE * _PROBE)
 
 
 class SlabTarget:
@@ -109,8 +91,8 @@ class SlabTarget:
         """The slab of ``cfg``: top (and bottom) images sized by the image at the voxel pitch or by width/height.
 
         A slab that would not fit in memory (:func:`slab_memory_bytes` against ``available`` bytes, default what
-        the machine has) is refused before any resampling or file; the log names its size, its memory and the
-        expected seconds per iteration (:func:`iteration_seconds`)."""
+        the process may use) is refused before any resampling or file; the log names its size and its memory (the
+        seconds per iteration and the whole job's are logged once an iteration has been timed, by the loop)."""
         top = load_target(cfg.target, name="target")
         size = None
         h0, w0 = top.shape[:2]
@@ -126,8 +108,7 @@ class SlabTarget:
         check_memory("target" if size is None else "width_mm/height_mm", need, what,
                      "print a smaller slab (width_mm/height_mm, --width-mm/--height-mm) or optimise at a lower dpi "
                      "(--dpi)", available)
-        log(f"optimize_print: {what}, {faces * h * w} texels, about {need / 2**30:.1f} GiB of memory and "
-            f"{iteration_seconds(cfg, inks, faces, h * w):.2g} s per iteration at {cfg.spp} spp")
+        log(f"optimize_print: {what}, {faces * h * w} texels, about {need / 2**30:.1f} GiB of memory")
         if size is not None:
             top = load_target(cfg.target, size=size, name="target")
         faces_target = [top]
