@@ -21,11 +21,14 @@ Examples:
     ta-voxelize model.obj --height-mm 30 --dpi 300 --shell-mm 2 --out results/voxelize
     ta-voxelize model.ply --texture albedo.png --scale 1000 --out results/voxelize
 """
+import contextlib
 import inspect
 import json
 import os
 import resource
+import signal
 import sys
+import threading
 import time
 
 import numpy as np
@@ -34,9 +37,10 @@ from torch_appearance import io as ta_io
 from torch_appearance.geometry import load_mesh, voxelize
 from torch_appearance.geometry.preview import write_previews
 
-from .command import CommandParser, check_output_folder, fail, flag_names, in_flags
+from .command import INTERRUPTED, CommandParser, check_output_folder, fail, flag_names, in_flags, interrupted
 
 PROG = "ta-voxelize"
+NOTHING_WRITTEN = "nothing written (object.npz was not finished)"
 
 
 def _accepts_keyword(fn, name):
@@ -73,6 +77,22 @@ def units_refusal(report):
 
 
 def main(argv=None):
+    """Run the command with the flags in ``argv`` (default ``sys.argv[1:]``); returns the exit status (2 for refused
+    input, 130 after Ctrl-C, with one line saying what was written)."""
+    state = {"out": None, "created": False, "object": False}
+    try:
+        return _main(argv, state)
+    except KeyboardInterrupt:
+        if not state["object"]:
+            if state["created"]:  # the folder this run made, before anything was written in it
+                with contextlib.suppress(OSError):
+                    os.rmdir(state["out"])
+            return interrupted(PROG, NOTHING_WRITTEN)
+        return interrupted(PROG, f"object.npz in {state['out']} is complete, the previews are not (--no-previews "
+                                 f"skips them)")
+
+
+def _main(argv, state):
     p = CommandParser(PROG, __doc__)
     p.add_argument("model", help="mesh file (OBJ + MTL + texture, GLB/GLTF, PLY, STL)")
     p.add_argument("--texture", default=None, metavar="PATH",
@@ -96,28 +116,17 @@ def main(argv=None):
         load_kwargs["texture"] = args.texture
     progress = Progress(args.quiet)
     flags = flag_names(p)
-    try:
-        t0 = time.perf_counter()
-        progress(f"loading {args.model}" + (f" with texture {args.texture}" if args.texture else "") + " …")
-        mesh, report = load_mesh(args.model, **load_kwargs)
-        t1 = time.perf_counter()
-        if args.height_mm is None and args.scale is None and report["units_guess"] != "mm":
-            return fail(PROG, units_refusal(report))
-        if report.get("hint"):
-            progress(f"hint: {in_flags(report['hint'], flags)}")
-        size = 25.4 / args.dpi
-        extent = mesh.bounds[1] - mesh.bounds[0]
-        dims = " × ".join(str(int(round(e / size))) for e in extent)
-        progress(f"loaded {report.get('triangles')} triangles, colour {report.get('colour')}, {extent[0]:.1f} × "
-                 f"{extent[1]:.1f} × {extent[2]:.1f} mm (x × y × z); voxelising at {size:.4g} mm (about {dims} voxels) …")
-        obj = voxelize(mesh, size, shell_mm=args.shell_mm)
-        t2 = time.perf_counter()
-    except (ValueError, TypeError) as error:
-        return fail(PROG, error, flags, vars(args))
+    with _exit_on_sigint():  # nothing is written while the mesh loads and is voxelised
+        loaded = _load_and_voxelize(args, load_kwargs, progress, flags)
+    if isinstance(loaded, int):
+        return loaded
+    obj, report, t0, t1, t2 = loaded
     progress(f"voxelised in {t2 - t1:.1f} s: grid {' × '.join(map(str, obj.grid_shape))} (D×H×W), "
              f"{len(obj.texel_voxels)} texels; writing object.npz …")
+    state["out"], state["created"] = args.out, not os.path.exists(args.out)
     os.makedirs(args.out, exist_ok=True)
-    obj.save(os.path.join(args.out, "object.npz"))
+    obj.save(os.path.join(args.out, "object.npz"))  # atomically: whole or not at all
+    state["object"] = True
     centres = (obj.texel_voxels.numpy()[:, ::-1] + 0.5) * obj.voxel_size + np.array(obj.origin)
     summary = {
         "model": os.path.abspath(args.model), **report, "voxel_size_mm": obj.voxel_size,
@@ -144,6 +153,50 @@ def main(argv=None):
     progress(f"done: {args.out}")
     print(json.dumps(summary))
     return 0
+
+
+def _load_and_voxelize(args, load_kwargs, progress, flags):
+    """(object, load report, t0, t1, t2) of the mesh of ``args``, or the exit status of a refusal."""
+    try:
+        t0 = time.perf_counter()
+        progress(f"loading {args.model}" + (f" with texture {args.texture}" if args.texture else "") + " …")
+        mesh, report = load_mesh(args.model, **load_kwargs)
+        t1 = time.perf_counter()
+        if args.height_mm is None and args.scale is None and report["units_guess"] != "mm":
+            return fail(PROG, units_refusal(report))
+        if report.get("hint"):
+            progress(f"hint: {in_flags(report['hint'], flags)}")
+        size = 25.4 / args.dpi
+        extent = mesh.bounds[1] - mesh.bounds[0]
+        dims = " × ".join(str(int(round(e / size))) for e in extent)
+        progress(f"loaded {report.get('triangles')} triangles, colour {report.get('colour')}, {extent[0]:.1f} × "
+                 f"{extent[1]:.1f} × {extent[2]:.1f} mm (x × y × z); voxelising at {size:.4g} mm (about {dims} voxels) …")
+        obj = voxelize(mesh, size, shell_mm=args.shell_mm)
+        t2 = time.perf_counter()
+    except (ValueError, TypeError) as error:
+        return fail(PROG, error, flags, vars(args))
+    return obj, report, t0, t1, t2
+
+
+@contextlib.contextmanager
+def _exit_on_sigint():
+    """Ctrl-C while nothing is written ends the process at once with the one line and exit 130, instead of a
+    ``KeyboardInterrupt`` raised inside the mesh and voxel libraries (trimesh swallows one raised during its lazy
+    imports, and one raised while a native module loads can abort the process). Only in the main thread."""
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or not callable(previous):
+        yield
+        return
+
+    def exit_now(signum, frame):
+        print(f"{PROG}: interrupted; {NOTHING_WRITTEN}", file=sys.stderr, flush=True)
+        os._exit(INTERRUPTED)
+
+    signal.signal(signal.SIGINT, exit_now)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

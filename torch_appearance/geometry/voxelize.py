@@ -11,6 +11,7 @@ Units: mm. Axes: x ↔ W, y ↔ H, z ↔ D; corner (k, j, i) of the SDF grid sit
 and voxel (k, j, i) spans [origin + (i, j, k)·h, … + h].
 """
 from dataclasses import dataclass, fields
+import contextlib
 import json
 import math
 import os
@@ -92,8 +93,13 @@ class VoxelObject:
                 continue
             arrays[f.name] = v.numpy() if isinstance(v, torch.Tensor) else np.asarray(v)
         tmp = f"{path}.partial.npz"
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
+        try:
+            np.savez_compressed(tmp, **arrays)
+            os.replace(tmp, path)
+        except BaseException:  # Ctrl-C or a full disk: no partial file left beside the folder's others
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
 
     @staticmethod
     def load(path):
