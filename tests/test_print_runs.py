@@ -97,6 +97,20 @@ def test_slab_memory_check_against_a_given_budget(tmp_path):
     check_memory("x", 10, "it", "fix", available=None)  # this machine's own figure: 10 bytes fit
 
 
+def test_a_slab_of_fewer_than_four_texels_is_refused_by_the_library(tmp_path):
+    """``width_mm``/``height_mm`` that round to fewer than MIN_SLAB_TEXELS texels: a ValueError naming the argument
+    (the side given, or the one whose aspect made the other too small), not a 1-texel slab."""
+    inks = InkSet.from_names()
+    quiet = dict(log=lambda *_: None)
+    with pytest.raises(ValueError, match=r"^width_mm: a slab 0\.01 mm wide is 0 texels at 300 DPI .* at least 4 "):
+        SlabTarget.from_config(small_cfg(tmp_path, width_mm=0.01), inks, **quiet)
+    with pytest.raises(ValueError, match=r"^height_mm: a slab 0\.25 mm high is 3 texels"):
+        SlabTarget.from_config(small_cfg(tmp_path, width_mm=5.0, height_mm=0.25), inks, **quiet)
+    with pytest.raises(ValueError, match=r"^width_mm: a slab 0\.255 mm high \(the height at the target's 8×6 aspect"):
+        SlabTarget.from_config(small_cfg(tmp_path, width_mm=0.34), inks, **quiet)
+    assert SlabTarget.from_config(small_cfg(tmp_path, width_mm=0.34, height_mm=0.34), inks, **quiet).shape[1:] == (4, 4)
+
+
 def test_quantised_slab_render_equals_the_dense_one_hot_render():
     """The palette render of a quantised slab (uint8 indices + ink tables, 1 byte per printer voxel) equals, bit for
     bit, the render of the dense one-hot mixture it replaces (σ_t and albedo, 24 bytes per printer voxel): one- and

@@ -31,6 +31,7 @@ from ..fabrication.printer import builtin_printers
 from ..fabrication.quantize import HALFTONES
 from ..pipelines.print.config import RESUME_MAY_CHANGE, SCHEDULES, PrintConfig, config_conflicts
 from ..pipelines.print.loop import optimize_print
+from ..pipelines.print.slab_target import MIN_SLAB_TEXELS, slab_texels
 from ..pipelines.print.target_images import load_target
 from ..pipelines.runs import TRACE_BATCH, RunInterrupted, check_checkpoint, check_memory, trace_buffer_bytes
 from .command import CommandParser, check_output_folder, fail, flag_names, in_flags
@@ -39,10 +40,6 @@ __all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", 
            "check_slab_size", "check_render_memory", "parser", "main", "MIN_SLAB_TEXELS"]
 
 PROG = "ta-optimize-print"
-
-#: the fewest texels a slab may have along a side (its losses compare neighbourhoods: SSIM, Sobel)
-MIN_SLAB_TEXELS = 4
-
 
 def float_tuple(n, name=None):
     """An argparse type: ``n`` comma-separated numbers → tuple of floats (argparse names the flag in the message;
@@ -247,34 +244,12 @@ def resumed_config(p, args, argv):
 
 
 def check_slab_size(cfg, warn):
-    """A slab sized by ``--width-mm``/``--height-mm`` the way the run will size it (texels of the voxel pitch, the
-    side not given from the target's aspect): refused (ValueError naming the flag) when a side rounds to fewer than
-    :data:`MIN_SLAB_TEXELS` texels, and ``warn(line)`` when both sides are given and change the target's aspect by
-    more than 2 % (a 3:2 ColorChecker printed square: the slab is what was asked for, its patches are stretched)."""
+    """A slab sized by ``--width-mm``/``--height-mm`` checked before any work the way the run sizes it
+    (:func:`~torch_appearance.pipelines.print.slab_target.slab_texels`): a side of fewer than
+    :data:`MIN_SLAB_TEXELS` texels refused (ValueError naming the flag), ``warn(line)`` for a changed aspect."""
     if cfg.mesh is not None or (cfg.width_mm is None and cfg.height_mm is None):
         return
-    for name, value in (("width_mm", cfg.width_mm), ("height_mm", cfg.height_mm)):
-        if value is not None and not value > 0:
-            raise ValueError(f"{name}: expected > 0, got {value}")
-    h0, w0 = load_target(cfg.target, name="target").shape[:2]
-    pitch = cfg.voxel_size
-    width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
-    height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
-    sides = [("width", width, cfg.width_mm), ("height", height, cfg.height_mm)]
-    for side, size, given in sorted(sides, key=lambda s: s[2] is None):  # a side given first, then one derived
-        texels = round(size / pitch)
-        if texels < MIN_SLAB_TEXELS:
-            name = f"{side}_mm" if given is not None else ("height_mm" if side == "width" else "width_mm")
-            how = "" if given is not None else f" (the {side} at the target's {w0}×{h0} aspect)"
-            raise ValueError(f"{name}: a slab {size:.3g} mm {'wide' if side == 'width' else 'high'}{how} is {texels} "
-                             f"texels at {cfg.dpi:g} DPI ({pitch:.4f} mm); expected at least {MIN_SLAB_TEXELS} "
-                             f"texels ({MIN_SLAB_TEXELS * pitch:.2f} mm), or a higher dpi (--dpi)")
-    if cfg.width_mm is not None and cfg.height_mm is not None:
-        asked, own = cfg.width_mm / cfg.height_mm, w0 / h0
-        if abs(asked / own - 1) > 0.02:
-            warn(f"width_mm/height_mm: a {cfg.width_mm:g} × {cfg.height_mm:g} mm slab stretches the target's "
-                 f"{w0}×{h0} texels (aspect {own:.2f}) to an aspect of {asked:.2f}; give only one of them to keep the "
-                 f"target's aspect")
+    slab_texels(cfg, load_target(cfg.target, name="target").shape[:2], warn)
 
 
 def check_render_memory(cfg, threads=None):

@@ -12,7 +12,7 @@ from .report import heatmap_figure
 from .run_folder import save_image, score
 from .target_images import load_target
 
-__all__ = ["SlabTarget", "slab_texel_grid", "slab_memory_bytes"]
+__all__ = ["SlabTarget", "slab_texel_grid", "slab_texels", "slab_memory_bytes", "MIN_SLAB_TEXELS"]
 
 
 def slab_texel_grid(faces_rgb, depth):
@@ -48,6 +48,60 @@ def slab_texel_grid(faces_rgb, depth):
 SLAB_FIXED_BYTES = 0.35 * 2 ** 30
 SLAB_BYTES_PER_VOXEL = 300
 SLAB_BYTES_PER_INK_VOXEL = 16
+
+
+#: the fewest texels a side of a slab may have (its losses compare neighbourhoods: SSIM, Sobel): a size that rounds
+#: to fewer is refused, not optimised as a 1-texel slab
+MIN_SLAB_TEXELS = 4
+
+
+def slab_texels(cfg, target_hw, warn=None):
+    """(H, W) texels of the slab that ``cfg.width_mm``/``cfg.height_mm`` ask for at the voxel pitch, the side not
+    given from the target's ``target_hw`` aspect; None when neither is given (the target's own size).
+
+    Args:
+        cfg: the :class:`~torch_appearance.pipelines.print.PrintConfig`. target_hw: the target image's (H, W).
+        warn: optional ``callable(str)``, told when both sides are given and change the target's aspect by more
+            than 2 % (a 3:2 ColorChecker printed square: the slab is what was asked for, its patches are stretched).
+
+    Raises:
+        ValueError: naming ``width_mm`` or ``height_mm`` (the side given, or the one given that made the other)
+            when a side rounds to fewer than :data:`MIN_SLAB_TEXELS` texels, or a size is not > 0.
+
+    Example:
+        >>> from torch_appearance.pipelines.print import PrintConfig
+        >>> slab_texels(PrintConfig(width_mm=20.0), (42, 62))
+        (159, 236)
+        >>> slab_texels(PrintConfig(width_mm=0.01), (42, 62))
+        Traceback (most recent call last):
+        ...
+        ValueError: width_mm: a slab 0.01 mm wide is 0 texels at 300 DPI (0.0847 mm); expected at least 4 texels (0.34 mm), or pass a higher dpi=DPI
+    """
+    if cfg.width_mm is None and cfg.height_mm is None:
+        return None
+    for name, value in (("width_mm", cfg.width_mm), ("height_mm", cfg.height_mm)):
+        if value is not None and not value > 0:
+            raise ValueError(f"{name}: expected > 0, got {value}")
+    h0, w0 = (int(n) for n in target_hw)
+    pitch = cfg.voxel_size
+    width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
+    height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
+    sides = [("width", width, cfg.width_mm), ("height", height, cfg.height_mm)]
+    for side, size, given in sorted(sides, key=lambda s: s[2] is None):  # a side given first, then one derived
+        texels = round(size / pitch)
+        if texels < MIN_SLAB_TEXELS:
+            name = f"{side}_mm" if given is not None else ("height_mm" if side == "width" else "width_mm")
+            how = "" if given is not None else f" (the {side} at the target's {w0}×{h0} aspect)"
+            raise ValueError(f"{name}: a slab {size:.3g} mm {'wide' if side == 'width' else 'high'}{how} is {texels} "
+                             f"texels at {cfg.dpi:g} DPI ({pitch:.4f} mm); expected at least {MIN_SLAB_TEXELS} "
+                             f"texels ({MIN_SLAB_TEXELS * pitch:.2f} mm), or pass a higher dpi=DPI")
+    if warn is not None and cfg.width_mm is not None and cfg.height_mm is not None:
+        asked, own = cfg.width_mm / cfg.height_mm, w0 / h0
+        if abs(asked / own - 1) > 0.02:
+            warn(f"width_mm/height_mm: a {cfg.width_mm:g} × {cfg.height_mm:g} mm slab stretches the target's "
+                 f"{w0}×{h0} texels (aspect {own:.2f}) to an aspect of {asked:.2f}; give only one of them to keep the "
+                 f"target's aspect")
+    return round(height / pitch), round(width / pitch)
 
 
 def slab_memory_bytes(shape, n_inks):
@@ -94,13 +148,8 @@ class SlabTarget:
         the process may use) is refused before any resampling or file; the log names its size and its memory (the
         seconds per iteration and the whole job's are logged once an iteration has been timed, by the loop)."""
         top = load_target(cfg.target, name="target")
-        size = None
-        h0, w0 = top.shape[:2]
-        if cfg.width_mm is not None or cfg.height_mm is not None:
-            width = cfg.width_mm if cfg.width_mm is not None else cfg.height_mm * w0 / h0
-            height = cfg.height_mm if cfg.height_mm is not None else cfg.width_mm * h0 / w0
-            size = (max(1, round(height / cfg.voxel_size)), max(1, round(width / cfg.voxel_size)))
-        h, w = size or (h0, w0)
+        size = slab_texels(cfg, top.shape[:2])  # a side of fewer than MIN_SLAB_TEXELS texels is refused
+        h, w = size or top.shape[:2]
         faces = 1 if cfg.bottom_target is None else 2
         what = (f"a {w}×{h}×{cfg.depth}-voxel slab ({w * cfg.voxel_size:.1f} × {h * cfg.voxel_size:.1f} × "
                 f"{cfg.thickness_mm:g} mm at {cfg.dpi:g} DPI)")
