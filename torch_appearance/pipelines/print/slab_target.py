@@ -71,7 +71,7 @@ def slab_texels(cfg, target_hw, warn=None):
     Example:
         >>> from torch_appearance.pipelines.print import PrintConfig
         >>> slab_texels(PrintConfig(width_mm=20.0), (42, 62))
-        (159, 236)
+        (160, 236)
         >>> slab_texels(PrintConfig(width_mm=0.01), (42, 62))
         Traceback (most recent call last):
         ...
