@@ -88,3 +88,25 @@ def test_line_progress_steps(tmp_path):
         progress_bar(total=3, file=io.StringIO(), step_percent=0)
     with pytest.raises(ValueError, match="interval_s: expected seconds > 0, got -1"):
         progress_bar(file=io.StringIO(), interval_s=-1)
+
+
+def test_commands_and_scripts_take_their_bars_from_progress_bar():
+    """No command, pipeline or evaluation script builds a tqdm bar itself (a log that is not a terminal would get
+    carriage returns): every bar comes from :func:`torch_appearance.progress.progress_bar`; only progress.py
+    imports tqdm (read from each file's syntax)."""
+    import ast
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    offenders = []
+    for folder in ("torch_appearance", "scripts"):
+        for base, _, files in os.walk(os.path.join(root, folder)):
+            for name in files:
+                path = os.path.join(base, name)
+                if not name.endswith(".py") or path.endswith(os.path.join("torch_appearance", "progress.py")):
+                    continue
+                for node in ast.walk(ast.parse(open(path, encoding="utf-8").read())):
+                    names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                             [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+                    if any(n == "tqdm" or n.startswith("tqdm.") for n in names):
+                        offenders.append(f"{os.path.relpath(path, root)}:{node.lineno}")
+    assert offenders == [], offenders

@@ -182,13 +182,13 @@ def main(argv=None):
         if path is not None and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
             print(f"{PROG}: error: {name}: folder of {path!r} does not exist", file=sys.stderr)
             return 2
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
 
     def progress(k, n):
         bar.total = n
         bar.update(1)
 
-    with tqdm(total=len(angles), desc="transects", unit="transect", disable=None) as bar:
+    with progress_bar(total=len(angles), desc="transects", unit="transect") as bar:
         try:
             rgb, res, labels, rows, pooled, seconds, pith_info = evaluate(
                 args.data, angles, keep_pith_polygon=args.keep_pith_polygon, pith_offset=offset,

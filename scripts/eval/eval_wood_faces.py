@@ -270,10 +270,11 @@ def main(argv=None):
         return 2
     os.makedirs(args.out, exist_ok=True)
 
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
     rows, panels = [], []
-    for face in tqdm(faces, desc="faces", unit="face"):
-        row, pan = evaluate_face(args.data, face, args.out, args, log=tqdm.write)
+    bar = progress_bar(faces, desc="faces", unit="face")
+    for face in bar:
+        row, pan = evaluate_face(args.data, face, args.out, args, log=bar.write)
         rows.append(ta_io.nan_to_none(row))
         panels.append(pan)
 

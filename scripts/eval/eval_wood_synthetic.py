@@ -291,10 +291,11 @@ def main(argv=None):
         return 2
     os.makedirs(args.out, exist_ok=True)
 
-    from tqdm import tqdm
+    from torch_appearance.progress import progress_bar
     rows = []
-    for seed in tqdm(seeds, desc="seeds", unit="board"):
-        rows.append(ta_io.nan_to_none(evaluate_seed(seed, args, log=tqdm.write)))
+    bar = progress_bar(seeds, desc="seeds", unit="board")
+    for seed in bar:
+        rows.append(ta_io.nan_to_none(evaluate_seed(seed, args, log=bar.write)))
 
     summ = summarise(rows)
     table = ta_io.markdown_table(rows, FIELDS)

@@ -22,9 +22,9 @@ import time
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from torch_appearance.io import atomic_write_bytes
+from torch_appearance.progress import progress_bar
 from torch_appearance.render import albedo_mapping
 from torch_appearance.render.albedo_mapping import albedo_from_colour, slab_colour
 
@@ -78,7 +78,7 @@ def main(argv=None):
     alphas[0] = 0.0
     for g in args.g:
         colours, t0 = [], time.perf_counter()
-        for a in tqdm(alphas, desc=f"table g={g}", unit="α"):
+        for a in progress_bar(alphas, desc=f"table g={g}", unit="α"):
             colours.append(float(slab_colour(torch.tensor(a), g=g, ior=args.ior, spp=args.spp, seed=args.seed)[0]))
         if np.any(np.diff(colours) < 0):
             print(f"warning: C(α) not monotone at g={g}: {colours}", file=sys.stderr)

@@ -34,10 +34,10 @@ import time
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from torch_appearance import io as ta_io
 from torch_appearance.nn import WoodModel
+from torch_appearance.progress import progress_bar
 from torch_appearance.nn.wood_reparam import (CylinderView, compare_parameter_gradients, parse_parameter,
                                               render_filtered)
 
@@ -137,7 +137,7 @@ def main(argv=None):
             surface = CylinderView(args.cylinder_radius_mm, 0.5 * w * args.pixel_mm)
         os.makedirs(args.out, exist_ok=True)
         results, seconds = {}, {}
-        with tqdm(total=len(args.param) * (1 + 2 * args.seeds), desc="wood_gradients", disable=args.quiet) as bar:
+        with progress_bar(total=len(args.param) * (1 + 2 * args.seeds), desc="wood_gradients", disable=args.quiet) as bar:
             for spec in args.param:
                 t0 = time.perf_counter()
                 results[spec] = compare_parameter_gradients(model, spec, h, w, args.pixel_mm, spp=args.spp,

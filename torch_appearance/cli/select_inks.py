@@ -53,6 +53,7 @@ import time
 from torch_appearance import io as ta_io
 from torch_appearance.fabrication.inks import INKS, InkSet
 from torch_appearance.pipelines.print import PrintConfig, build_target, optimize_print
+from torch_appearance.progress import LineProgress, progress_bar
 
 from .command import CommandParser, check_output_folder, fail
 from .optimize_print import add_optimization_arguments, add_target_arguments, config_from_args
@@ -395,18 +396,10 @@ def run(args):
         _check_settings(os.path.join(runs_dir, name), plan.cfg, inkset)
 
     quiet = args.quiet
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
 
     def say(msg):
-        if quiet:
-            return
-        if tqdm is not None:
-            tqdm.write(msg, file=sys.stderr)
-        else:  # pragma: no cover
-            print(msg, file=sys.stderr)
+        if not quiet:
+            LineProgress.write(msg, file=sys.stderr)  # tqdm's write: above a terminal's bar, a line elsewhere
 
     # one target / voxelisation for every set (the slab's inks and the object's g are set per run)
     t0 = time.perf_counter()
@@ -424,7 +417,7 @@ def run(args):
 
     os.makedirs(runs_dir, exist_ok=True)
     InkSet(plan.library).save_json(os.path.join(out, "inks.json"))
-    bar = tqdm(total=n, desc="select_inks", unit="set", disable=quiet) if tqdm is not None else None
+    bar = progress_bar(total=n, desc="select_inks", unit="set", disable=quiet)  # whole lines when not a terminal
     rows, curves, ran, skipped, run_seconds = [], {}, [], [], 0.0
     for name, chosen, inkset in plan.combinations:
         folder = os.path.join(runs_dir, name)
@@ -432,8 +425,7 @@ def run(args):
             say(f"select_inks: skipping {name} (done: {os.path.join(folder, 'summary.json')})")
             skipped.append(name)
         else:
-            if bar is not None:
-                bar.set_postfix_str(name)
+            bar.set_postfix_str(name)
             os.makedirs(folder, exist_ok=True)
             inkset.save_json(os.path.join(folder, "inks.json"))
             cfg = dataclasses.replace(plan.cfg, inks=os.path.join(folder, "inks.json"), out=folder)
@@ -450,12 +442,10 @@ def run(args):
         row, curve = _result(name, chosen, folder, target, plan.cfg.gamma)
         rows.append(row)
         curves[name] = curve
-        if bar is not None:
-            best = min(rows, key=lambda r: r["dE00_mean"])
-            bar.set_postfix_str(f"best {best['inks']} ΔE00 {best['dE00_mean']:.2f}")
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+        best = min(rows, key=lambda r: r["dE00_mean"])
+        bar.set_postfix_str(f"best {best['inks']} ΔE00 {best['dE00_mean']:.2f}")
+        bar.update(1)
+    bar.close()
 
     ranking = rank(rows)
     ta_io.write_csv(os.path.join(out, "ranking.csv"), [_rounded(r) for r in ranking], RANKING_FIELDS)
