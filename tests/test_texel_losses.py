@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_appearance.nn import losses
+from torch_appearance.nn import texel_losses
 from torch_appearance.nn.losses import (AppearanceLoss, TexelFilters, appearance_loss, sobel_kernels_3d,
                                         texel_appearance_loss)
 
@@ -147,7 +147,7 @@ def test_chunked_construction_is_the_same(monkeypatch):
     _, pos = _sphere_shell(4.2)
     whole = TexelFilters(pos)._matrices("gaussian", torch.float64, "cpu")[0]
     sobel = TexelFilters(pos)._matrices("sobel", torch.float64, "cpu")
-    monkeypatch.setattr(losses, "_ROW_CHUNK", 7)
+    monkeypatch.setattr(texel_losses, "_ROW_CHUNK", 7)
     chunked = TexelFilters(pos)
     parts = chunked._matrices("gaussian", torch.float64, "cpu")[0]
     for a, b in zip((whole.crow_indices(), whole.col_indices(), whole.values()),

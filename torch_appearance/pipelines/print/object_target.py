@@ -4,7 +4,7 @@ needs of an object: the same methods as the slab target of :mod:`.slab_target`.
 The object's surface is a smooth dielectric given by its SDF grid; the texel sensor shoots from the surface texels
 along the inward normal; only a shell of voxels within ``shell_mm`` of the surface carries mixture logits, deeper
 voxels hold the core ink. The appearance losses see the texel colours at their voxel positions through the sparse
-texel path (:class:`~torch_appearance.nn.losses.TexelFilters`): the same E1/E2/E3 as on the voxel grid
+texel path (:class:`~torch_appearance.nn.texel_losses.TexelFilters`): the same E1/E2/E3 as on the voxel grid
 (:meth:`VoxelObject.texels_to_grid`, masked to the texels) at a cost that follows the texels, not the bounding box.
 """
 import dataclasses
