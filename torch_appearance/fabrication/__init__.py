@@ -7,7 +7,8 @@ from .quantize import (HALFTONES, PRINTER_DPI, index_volume_to_weights, iter_qua
 from .export import IndexVolumeLayers, export_slices, load_index_volume, read_slices, save_index_volume
 from .printer import PrinterProfile, builtin_printers, load_printer
 from .gcvf import read_gcvf, write_gcvf
-from .threemf import iter_3mf_layers, read_3mf, write_3mf
+from .threemf import write_3mf
+from .threemf_read import iter_3mf_layers, read_3mf
 
 __all__ = [
     "Ink", "InkSet", "INKS", "DEFAULT_INKS", "ink_from_dict",
