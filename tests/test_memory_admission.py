@@ -56,6 +56,29 @@ def test_slab_admitted_by_the_machine_is_refused_under_ulimit_v(tmp_path):
     assert not out.exists()
 
 
+def test_object_admitted_by_the_machine_is_refused_under_ulimit_v(tmp_path):
+    """An object print (Spot at 25 mm, ≈ 2.9 GiB by object_memory_bytes) that the machine's memory admits is refused
+    under an address space of what the command maps at import + 2 GiB, after loading the mesh and before voxelising
+    it: one line naming --height-mm, exit 2, no run folder."""
+    from torch_appearance.pipelines.print.object_target import object_memory_bytes
+    spot = os.path.join(os.path.dirname(__file__), "data", "meshes", "spot")
+    need = object_memory_bytes(13e6)  # at least: the grid is about 224 × 236 × 262 voxels
+    if _machine_available() < need + GiB:
+        pytest.skip("the machine refuses this object too")
+    limit = _mapped_after_import("torch_appearance.cli.optimize_print") + 2 * GiB
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "torch_appearance.cli.optimize_print", "--mesh",
+                           os.path.join(spot, "spot_triangulated.obj"), "--texture",
+                           os.path.join(spot, "spot_texture.png"), "--height-mm", "25", "--quiet", "--out", str(out)],
+                          capture_output=True, text=True, env=_env(), preexec_fn=address_space_limit(limit),
+                          timeout=300)
+    err = proc.stderr.strip()
+    assert proc.returncode == 2 and len(err.splitlines()) == 1, (proc.returncode, err)
+    assert err.startswith("ta-optimize-print: error: --height-mm: a "), err
+    assert "-voxel object (" in err and "(its address-space limit (ulimit -v))" in err and "--dpi" in err, err
+    assert not out.exists()
+
+
 def test_render_object_grid_refused_under_ulimit_v(tmp_path):
     """ta-render-object's grid (a 100³ grid admitted by the machine) refused by the address-space limit."""
     from torch_appearance.cli.render_object import BYTES_PER_VOXEL

@@ -22,12 +22,30 @@ from ...fabrication.export import VOID
 from ...fabrication.quantize import micro_grid_pitch
 from ...render import ConstantEnvironment, EnvironmentMap, Scene, SDFBoundary, SurfaceTexels
 from ...render.volpath import render_scene_indexed
+from ..runs import check_memory
 from .baselines import naive_extrusion
 from .config import iteration_seed
 from .rendering import render, replay_seed
 from .run_folder import save_image
 
-__all__ = ["ObjectTarget", "fill_void_at_surface", "outside_micro_centres"]
+__all__ = ["ObjectTarget", "object_memory_bytes", "fill_void_at_surface", "outside_micro_centres"]
+
+#: peak memory of an object run against its voxel grid (the bounding box at the voxel pitch): Spot at 40 mm
+#: (475×467×262 voxels) peaked at 7.65 GB and at 25 mm at 3.2 GB (docs/bench_log.md, "Memory of a whole object
+#: run"); 1 GiB + 140 bytes per grid voxel covers both (9.2 and 3.1 GB)
+OBJECT_FIXED_BYTES = 1 << 30
+OBJECT_BYTES_PER_VOXEL = 140
+
+
+def object_memory_bytes(grid_voxels):
+    """Expected peak memory in bytes of a print run on an object whose voxel grid has ``grid_voxels`` voxels.
+
+    Example:
+        >>> round(object_memory_bytes(475 * 467 * 262) / 2**30, 1)   # Spot at 40 mm, 300 DPI
+        8.6
+    """
+    return OBJECT_FIXED_BYTES + OBJECT_BYTES_PER_VOXEL * int(grid_voxels)
+
 
 _CHUNK = 1 << 22  # micro-voxels per chunk of the quantised-volume passes (bounds their temporaries to ~100 MB)
 
@@ -95,6 +113,13 @@ class ObjectTarget:
         from ...geometry import load_mesh, voxelize
 
         mesh, report = load_mesh(cfg.mesh, height_mm=cfg.height_mm, texture=cfg.texture)
+        # an object too large for the memory this process may use is refused before it is voxelised
+        extent = np.asarray(mesh.bounds[1] - mesh.bounds[0], dtype=np.float64)
+        dims = [int(np.ceil(e / cfg.voxel_size)) + 4 for e in extent]  # + the SDF band's margin
+        check_memory("height_mm", object_memory_bytes(np.prod(dims, dtype=np.float64)),
+                     f"a {' × '.join(map(str, dims))}-voxel object ({extent[0]:.1f} × {extent[1]:.1f} × "
+                     f"{extent[2]:.1f} mm at {cfg.dpi:g} DPI)",
+                     "print it smaller (height_mm, --height-mm) or optimise at a lower dpi (--dpi)")
         t0 = time.perf_counter()
         obj = voxelize(mesh, cfg.voxel_size, shell_mm=cfg.shell_mm)
         inside, shell = int(obj.occupancy.sum()), int(obj.shell.sum())
