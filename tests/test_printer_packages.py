@@ -640,3 +640,20 @@ def test_write_errors_name_out_not_the_temporary_folder(tmp_path, cli, monkeypat
                                           f"{os.strerror(errno.ENOSPC)}")
     assert ".tmp" not in result.stderr and ".lock" not in result.stderr
     assert sorted(os.listdir(tmp_path)) == ["afile", "run"]      # no package, no temporary folder, no lock file
+
+
+def test_an_export_beyond_the_memory_the_process_may_use_is_refused_before_any_file(tmp_path, cli, monkeypatch):
+    """The export's memory (export_memory_bytes: more when the mixture is quantised again) against what the process
+    may use (runs.memory_limits; here a cgroup limit): refused in one line before the volume is prepared, no package."""
+    from torch_appearance.pipelines import runs
+    from torch_appearance.pipelines.print.package import export_memory_bytes
+
+    run = fake_run(str(tmp_path / "run"), 5)
+    own, again = export_memory_bytes((3, 2, 24, 16), False), export_memory_bytes((3, 2, 24, 16), True)
+    assert again > own
+    monkeypatch.setattr(runs, "memory_limits", lambda proc="/proc": {"cgroup memory.max": (own + again) // 2})
+    assert cli(run, "--printer", "j750").returncode == 0  # its own volume: admitted
+    result = cli(run, "--printer", "j750-hq", "--out", tmp_path / "hq")
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "needs about" in result.stderr and "(its cgroup memory.max)" in result.stderr, result.stderr
+    assert not (tmp_path / "hq").exists()

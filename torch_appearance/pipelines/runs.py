@@ -306,10 +306,11 @@ def check_memory(name, need_bytes, what, fix, available=None):
         if limits:
             source, available = min(limits.items(), key=lambda item: item[1])
     if available is not None and need_bytes > available:
-        have = (f"this machine has {available / GiB:.1f} GiB available" if source in (None, "MemAvailable",
-                                                                                     "physical memory")
-                else f"this process may use {available / GiB:.1f} GiB (its {source})")
-        raise ValueError(f"{name}: {what} needs about {need_bytes / GiB:.1f} GiB of memory, {have}; {fix}")
+        digits = 1 if f"{need_bytes / GiB:.1f}" != f"{available / GiB:.1f}" else 3  # "needs 0.3, may use 0.3"
+        have = (f"this machine has {available / GiB:.{digits}f} GiB available" if source in (None, "MemAvailable",
+                                                                                             "physical memory")
+                else f"this process may use {available / GiB:.{digits}f} GiB (its {source})")
+        raise ValueError(f"{name}: {what} needs about {need_bytes / GiB:.{digits}f} GiB of memory, {have}; {fix}")
 
 
 #: sensor elements a tracer thread walks at once (``kSimdBatch`` of csrc/volpath/simd_glue.h)

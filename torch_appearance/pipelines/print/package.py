@@ -45,7 +45,7 @@ from ...fabrication.export import VOID, IndexVolumeLayers, export_slices, npy_he
 from ...fabrication.inks import InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
 from ...fabrication.quantize import HALFTONES, iter_quantized, micro_grid_pitch
-from ..runs import lock_output, lock_run_folder
+from ..runs import check_memory, lock_output, lock_run_folder
 from .config import iteration_seed
 
 __all__ = ["export_run", "open_run", "run_layers", "RunFolder", "SlabRun", "ObjectRun", "FORMATS"]
@@ -239,11 +239,37 @@ def run_layers(run, printer, halftone=None):
         ``"requantized"``; the (x, y, z) DPI of the volume.
     """
     halftone = run.halftone if halftone is None else halftone
-    if halftone not in HALFTONES:
-        raise ValueError(f"halftone: expected one of {HALFTONES}, got {halftone!r}")
-    if printer.matches(run.layers.dpi) and halftone == run.halftone:
+    if not _requantizes(run, printer, halftone):
         return run.layers, "run", tuple(run.layers.dpi)
     return _Requantized(run, printer.dpi, halftone), "requantized", printer.dpi
+
+
+def _requantizes(run, printer, halftone):
+    """Whether ``run`` is quantised again for ``printer`` with ``halftone`` (None: the run's), or its own volume is
+    packaged."""
+    halftone = run.halftone if halftone is None else halftone
+    if halftone not in HALFTONES:
+        raise ValueError(f"halftone: expected one of {HALFTONES}, got {halftone!r}")
+    return not (printer.matches(run.layers.dpi) and halftone == run.halftone)
+
+
+#: peak memory of an export over the imported package: Spot at 40 mm (5 × 475 × 467 × 262 mixture) took 549 MB
+#: from the run's volume and 2.0 GB quantised again (1.16 GB of it the float32 mixture, loaded whole), at 20 mm 169
+#: and 367 MB (docs/bench_log.md, "Printer packages"): 0.25 GiB + 12 bytes per voxel of the run's grid, + 4 bytes
+#: per ink and voxel when quantised again, covers them
+EXPORT_FIXED_BYTES = 1 << 28
+EXPORT_BYTES_PER_VOXEL = 12
+
+
+def export_memory_bytes(mixture_shape, requantized):
+    """Expected peak memory in bytes of exporting a run with an (N, D, H, W) mixture.
+
+    Example:
+        >>> round(export_memory_bytes((5, 262, 467, 475), True) / 2**30, 1)   # Spot at 40 mm for a j750-hq
+        2.0
+    """
+    n, voxels = int(mixture_shape[0]), int(np.prod(mixture_shape[1:], dtype=np.float64))
+    return EXPORT_FIXED_BYTES + voxels * (EXPORT_BYTES_PER_VOXEL + (4 * n if requantized else 0))
 
 
 def _object_mesh(run, block=24):
@@ -352,6 +378,11 @@ def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halfto
         out = os.path.join(run.folder, f"package-{printer.name}") if out is None else os.fspath(out)
         if os.path.exists(out) and not force:  # early, before the volume is prepared; again under out's lock
             raise _exists(out)
+        shape = run.mixture_shape()
+        check_memory("run", export_memory_bytes(shape, _requantizes(run, printer, halftone)),
+                     f"exporting a run of {' × '.join(map(str, shape[1:]))} voxels and {shape[0]} inks for "
+                     f"{printer.name}", "export on a machine with more memory, or for a printer whose resolution "
+                     "the run was quantised at (no new quantisation)")
         layers, source, dpi = run_layers(run, printer, halftone)
         dz, hy, wx = layers.shape
         macro = run.mixture_shape() if "3mf" in formats else None          # (N, D, H, W)
