@@ -254,7 +254,7 @@ def check_slab_size(cfg, warn):
 
 def check_render_memory(cfg, threads=None):
     """Refuse a ``spp`` or ``eval_spp`` whose tracer buffers (:func:`~torch_appearance.pipelines.runs
-    .trace_buffer_bytes`) would not fit in memory, before any render (the first is the time estimate's)."""
+    .trace_buffer_bytes`) would not fit in the memory the process may use, before any render."""
     cfg = cfg.resolved()
     for name in ("spp", "eval_spp"):
         spp = getattr(cfg, name)
