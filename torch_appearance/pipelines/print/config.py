@@ -27,12 +27,13 @@ RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
 #: at 8 spp keep a whole 25 mm job, with its naive baseline, evaluations and views, under 30 minutes (50 took 30.1).
 #: An object's evaluations score a fixed random subset of ``eval_texels`` texels (the same for every evaluation and
 #: every print of the run, so that comparisons are paired) at 128 spp: at 32 spp on all texels the estimate still
-#: read 0.85 high on Spot at 10 mm and the evaluations took 27 % of a 25 mm job; 12,288 texels add a sampling error
-#: of about 0.05 ΔE00 (in the reported SE) and take 1/12 of Spot 25 mm's texels at 4× the spp.
+#: read 0.85 high on Spot at 10 mm (0.17 at 128) and the evaluations took 27 % of a 25 mm job. With 12,288 texels
+#: they took 17.7 % of the default Spot 25 mm job (751 of 4,244 s; final print 8.56 ± 0.06, docs/bench_log.md); the
+#: cost is linear in the texels, so 8,192 take about 12.5 %, at a sampling error of about 0.08 ΔE00 (in the SE).
 #: Camera views of the quantised object render at ``view_spp``. ``eval_texels`` 0: every texel.
 SCHEDULES = {
     "slab": {"spp": 32, "iterations": 300, "eval_spp": 128, "eval_every": 50, "eval_texels": 0, "view_spp": 32},
-    "object": {"spp": 8, "iterations": 45, "eval_spp": 128, "eval_every": 25, "eval_texels": 12288,
+    "object": {"spp": 8, "iterations": 45, "eval_spp": 128, "eval_every": 25, "eval_texels": 8192,
                "view_spp": 32},
 }
 
@@ -69,7 +70,7 @@ class PrintConfig:
     eval_spp: Optional[int] = None
     eval_every: Optional[int] = None
     iterations: Optional[int] = None
-    eval_texels: Optional[int] = None  # texels an evaluation scores, a random subset (0: all; objects: 12288)
+    eval_texels: Optional[int] = None  # texels an evaluation scores, a random subset (0: all; objects: 8192)
     view_spp: Optional[int] = None  # objects: samples per pixel of the camera views (default 32)
     optimizer: str = "adagrad"
     lr: float = 1.0
