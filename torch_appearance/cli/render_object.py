@@ -7,7 +7,9 @@ angular radius) plus an ambient term, or by a lat-long environment map (``--envm
 perspective camera. A backward pass of ``image.mean()`` is timed too.
 
 The run folder receives (each written atomically): ``render.png`` (sRGB), ``render.exr`` (linear RGB),
-``timings.json`` (forward/backward seconds, scatter events per second) and ``config.json``.
+``timings.json`` (forward/backward seconds, scatter events per second) and ``config.json``, the four together once
+the render is done. A second ``ta-render-object`` on the same ``--out`` while one renders is refused; Ctrl-C ends it
+with one line and exit 130, and writes nothing (or, when it comes while the files are written, all four).
 
 Examples:
     ta-render-object --shape torus --size 256 --spp 64 --out results/render-object
@@ -23,11 +25,11 @@ import torch
 import torch_appearance
 from torch_appearance import io as ta_io
 from torch_appearance.geometry import corner_points, sphere_sdf, torus_sdf
-from torch_appearance.pipelines.runs import check_memory
+from torch_appearance.pipelines.runs import check_memory, lock_output, sigint_deferred
 from torch_appearance.render import (BoxBoundary, DiscLight, EnvironmentMap, PerspectiveCamera, Scene,
                                      SDFBoundary)
 
-from .command import CommandParser, check_output_folder, fail, flag_names
+from .command import CommandParser, check_output_folder, fail, flag_names, interrupted
 
 PROG = "ta-render-object"
 
@@ -94,6 +96,26 @@ def main(argv=None):
                      "raise --voxel-size or lower --radius-mm")
     except ValueError as error:
         return fail(PROG, error, flags)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)  # the lock file lies beside --out
+    written = []
+    try:
+        with lock_output(args.out, "--out", advice="wait for the other ta-render-object to end or choose another "
+                                                   "folder"):
+            timings = _render(args, n, emitter, written)
+    except ValueError as error:
+        return fail(PROG, error, flags)
+    except KeyboardInterrupt:
+        if written:
+            return interrupted(PROG, f"the render in {args.out!r} is complete")
+        return interrupted(PROG, "nothing was written (start it again)")
+    print(json.dumps(timings))
+    return 0
+
+
+def _render(args, n, emitter, written):
+    """Render, time the backward pass, and write the run folder (Ctrl-C held back while it is written; ``written``
+    gets True once it is); returns the timings."""
+    r, h = args.radius_mm, args.voxel_size
     origin = (-n * h / 2,) * 3
     if args.shape == "torus":
         sdf = torus_sdf((n,) * 3, h, origin, (0, 0, 0), 0.68 * r, 0.32 * r)
@@ -110,16 +132,17 @@ def main(argv=None):
     image = torch_appearance.render_scene(scene, sigma_t, albedo, spp=args.spp, seed=args.seed, stats=stats)
     forward_s = time.perf_counter() - start
     image.mean().backward()
-    os.makedirs(args.out, exist_ok=True)
-    ta_io.write_png(os.path.join(args.out, "render.png"), image.detach())
-    ta_io.write_exr(os.path.join(args.out, "render.exr"), image.detach())
     timings = {"forward_s": forward_s, "backward_s": stats.get("backward_s"), "grid_dhw": [n, n, n],
                "pixels": args.size ** 2, "spp": args.spp, "scatter_events": stats["scatter_events"],
                "events_per_s": stats["scatter_events"] / forward_s, "threads": torch.get_num_threads()}
-    ta_io.write_json(os.path.join(args.out, "timings.json"), timings)
-    ta_io.write_json(os.path.join(args.out, "config.json"), vars(args))
-    print(json.dumps(timings))
-    return 0
+    with sigint_deferred():
+        os.makedirs(args.out, exist_ok=True)
+        ta_io.write_png(os.path.join(args.out, "render.png"), image.detach())
+        ta_io.write_exr(os.path.join(args.out, "render.exr"), image.detach())
+        ta_io.write_json(os.path.join(args.out, "timings.json"), timings)
+        ta_io.write_json(os.path.join(args.out, "config.json"), vars(args))
+        written.append(True)
+    return timings
 
 
 if __name__ == "__main__":

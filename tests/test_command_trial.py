@@ -1,0 +1,45 @@
+"""What the new-user trial (scripts/eval/new_user_trial.py) found, kept as tests with real processes: Ctrl-C and a
+second process on one --out for the commands that had neither."""
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from torch_appearance.testing import interrupt_when
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SIGINT to a child: POSIX")
+
+
+def _env():
+    return dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+
+
+def _cli(name, *args):
+    return [sys.executable, "-m", f"torch_appearance.cli.{name}", *[str(a) for a in args]]
+
+
+def test_render_object_refuses_a_second_process_and_ends_in_one_line_on_ctrl_c(tmp_path):
+    """ta-render-object while another renders to the same --out: refused in one line, exit 2 (it replaced the
+    other's files); Ctrl-C to the one rendering: one line, exit 130, no folder and no lock file left (it was a
+    KeyboardInterrupt traceback and exit -2)."""
+    out = tmp_path / "r"
+    lock = tmp_path / ".r.lock"
+    second = []
+
+    def ready():  # the first renders (it holds --out's lock): start the second, then interrupt the first
+        if not lock.exists():
+            return False
+        second.append(subprocess.run(_cli("render_object", "--size", "8", "--spp", "1", "--voxel-size", "0.5",
+                                          "--out", out), capture_output=True, text=True, env=_env(), timeout=300))
+        return True
+
+    rc, _, err = interrupt_when(_cli("render_object", "--size", "64", "--spp", "100000", "--voxel-size", "0.5",
+                                     "--out", out), ready, env=_env(), wait_s=240)
+    assert second, "the first never took --out's lock"
+    refused = second[0].stderr
+    assert second[0].returncode == 2 and len(refused.splitlines()) == 1, refused
+    assert refused.startswith(f"ta-render-object: error: --out: {str(out)!r} is being written by another process")
+    assert rc == 130 and err == "ta-render-object: interrupted; nothing was written (start it again)\n", err
+    assert sorted(os.listdir(tmp_path)) == []
