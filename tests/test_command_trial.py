@@ -43,3 +43,29 @@ def test_render_object_refuses_a_second_process_and_ends_in_one_line_on_ctrl_c(t
     assert refused.startswith(f"ta-render-object: error: --out: {str(out)!r} is being written by another process")
     assert rc == 130 and err == "ta-render-object: interrupted; nothing was written (start it again)\n", err
     assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_ctrl_c_in_render_wood_volume_leaves_no_partial_folder(tmp_path):
+    """SIGINT to ta-render-wood-volume once it has written its first image: one line, exit 130, and the folder it
+    made is gone (it was a KeyboardInterrupt traceback and a folder without summary.json)."""
+    out = tmp_path / "v"
+    rc, _, err = interrupt_when(_cli("render_wood_volume", "--synthetic", "3", "--synthetic-size", "32", "40",
+                                     "--veneer-max-mm", "3", "--spp", "256", "--shade-spp", "256", "--threads", "1",
+                                     "--quiet", "--out", out),
+                                lambda: out.exists() and any(n.endswith(".png") for n in os.listdir(out)),
+                                env=_env(), wait_s=240)
+    assert rc == 130 and err == "ta-render-wood-volume: interrupted; nothing was written (start it again)\n", err
+    assert not out.exists()
+
+
+def test_ctrl_c_in_select_inks_is_one_line(tmp_path):
+    """SIGINT to ta-select-inks once its first set runs: one line saying how to resume, exit 130 (it was a
+    KeyboardInterrupt traceback)."""
+    out = tmp_path / "sel"
+    rc, _, err = interrupt_when(_cli("select_inks", "--target", "colorchecker", "--width-mm", "1.5", "--dpi", "100",
+                                     "--thickness-mm", "0.5", "--candidates", "cyan,yellow", "-k", "1",
+                                     "--iterations", "100000", "--spp", "2", "--eval-spp", "4", "--table-steps", "2",
+                                     "--threads", "1", "--quiet", "--out", out),
+                                lambda: (out / "inks.json").exists(), env=_env(), wait_s=240)
+    assert rc == 130 and err == (f"ta-select-inks: interrupted; finished sets are kept; run the same command again "
+                                 f"to resume the selection in {str(out)!r}\n"), err

@@ -55,7 +55,7 @@ from torch_appearance.fabrication.inks import INKS, InkSet
 from torch_appearance.pipelines.print import PrintConfig, build_target, optimize_print
 from torch_appearance.progress import LineProgress, progress_bar
 
-from .command import CommandParser, check_output_folder, fail
+from .command import CommandParser, check_output_folder, fail, interrupted
 from .optimize_print import add_optimization_arguments, add_target_arguments, config_from_args
 
 DEFAULT_CANDIDATES = ("cyan", "cyan2", "magenta", "magenta2", "yellow", "yellow2", "orange")
@@ -491,6 +491,9 @@ def main(argv=None):
         run(args)
     except SelectionError as error:
         return fail(PROG, error)
+    except KeyboardInterrupt:  # finished sets keep their summary.json, the running one its checkpoint
+        return interrupted(PROG, f"finished sets are kept; run the same command again to resume the selection in "
+                                 f"{args.out!r}")
     return 0
 
 
