@@ -336,7 +336,7 @@ def _record(command, case, args, out, rc, err, before=None, note=""):
             "pass": not problems, "problems": problems}
 
 
-def run_case(command, case, args, out, timeout_s=600, preexec=None, wrap=None):
+def run_case(command, case, args, out, timeout_s=240, preexec=None, wrap=None):
     before = _listing(out)
     argv = _argv(command, args)
     if wrap:
@@ -481,8 +481,8 @@ def trial(commands, work, jobs=2, log=print):
 
     cases = [(c, case, args, out) for c in wanted for case, args, out in bad_cases(c, p, w)]
     with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-        for rec in pool.map(lambda c: run_case(*c), cases):
-            add(rec)
+        for future in concurrent.futures.as_completed([pool.submit(run_case, *c) for c in cases]):
+            add(future.result())  # as they end: one slow case does not hold back the log
 
     ready = {"ta-optimize-print": "checkpoint.pt", "ta-voxelize": "summary.json"}
     for command in wanted:
