@@ -378,3 +378,15 @@ def test_cli_section_mode(tmp_path, run_inproc):
         rc, _, err = run_inproc("detect_rings", img, "--mode", "section", "--out", out, "--overlay", ovl, *args)
         assert rc not in (0, None) and msg in err, (args, err)
         assert not out.exists() and not ovl.exists()
+
+
+def test_split_modules_keep_the_old_imports():
+    """Section mode and the scoring moved out of rings.dendro (issue 49's clean rooms): the old names still import
+    from there and are the same objects."""
+    from torch_appearance.rings import dendro, evaluation, section
+    assert dendro.detect_section_boundaries is section.detect_section_boundaries
+    assert dendro.SectionBoundary is section.SectionBoundary
+    for name in ("match_boundaries", "boundary_f_measure", "mask_centerline", "resample_polyline"):
+        assert getattr(dendro, name) is getattr(evaluation, name)
+    with pytest.raises(AttributeError):
+        dendro.no_such_name

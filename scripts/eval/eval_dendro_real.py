@@ -22,8 +22,9 @@ import time
 import numpy as np
 
 from torch_appearance.io import atomic_write_bytes, read_image, read_mask
-from torch_appearance.rings.dendro import (boundary_f_measure, detect_core_boundaries, detect_section_boundaries,
-                                           mask_centerline, match_boundaries)
+from torch_appearance.rings.dendro import detect_core_boundaries
+from torch_appearance.rings.evaluation import boundary_f_measure, mask_centerline, match_boundaries
+from torch_appearance.rings.section import detect_section_boundaries
 
 PROG = "eval_dendro_real.py"
 DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "..", "shared", "data")

@@ -41,7 +41,7 @@ import numpy as np
 
 from torch_appearance import io as ta_io
 from torch_appearance.cli.fit_wood import add_fit_arguments, config_from_args
-from torch_appearance.rings.dendro import boundary_f_measure
+from torch_appearance.rings.evaluation import boundary_f_measure
 
 PROG = "eval_wood_faces.py"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

@@ -40,8 +40,8 @@ import cv2
 import numpy as np
 
 from torch_appearance.io import atomic_write_bytes, read_image, write_csv
-from torch_appearance.rings.dendro import (detect_core_boundaries, detect_section_boundaries,
-                                           detect_transect_boundaries)
+from torch_appearance.rings.dendro import detect_core_boundaries, detect_transect_boundaries
+from torch_appearance.rings.section import detect_section_boundaries
 from torch_appearance.rings.coorecorder import write_pos
 from torch_appearance.rings.disc import detect_disc_boundaries
 from torch_appearance.rings.tucson import RingSeries, write_rwl
