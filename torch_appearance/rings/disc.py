@@ -236,6 +236,29 @@ def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, hue_deg=90.0, tai
     return a - 1 + int(np.argmin(fall))
 
 
+def _dark_bark_start(rows, *, dark=0.45, min_px=4, sigma=1.5):
+    """Where a dark bark band begins on a transect whose wood mask ran up to the background (``rows`` ``(S, L, 3)``,
+    the central rows up to the last wood-or-bark column): the bark is not background, so the mask counts it as
+    wood. When the last columns are dark (smoothed HSV V below ``dark`` times the median of the inner 60 %) in one
+    run of at least ``min_px`` reaching to within 5 px of the end, the wood ends before the steepest fall of brightness at the run's
+    start; else None."""
+    v = ndimage.gaussian_filter1d(rows.mean(0).max(1), sigma, mode="nearest")
+    L = len(v)
+    if L < 20:
+        return None
+    is_dark = v < dark * np.median(v[:int(0.6 * L)])
+    darks = np.nonzero(is_dark)[0]
+    if not len(darks) or darks[-1] < L - 6:  # the run must reach the end (its last columns blend with background)
+        return None
+    stop = int(darks[-1])
+    light = np.nonzero(~is_dark[:stop])[0]
+    start = int(light[-1]) + 1 if len(light) else 0
+    if stop + 1 - start < min_px or start < 0.6 * L:
+        return None
+    a, b = max(1, start - 6), min(L - 1, start + 3)
+    return a - 1 + int(np.argmin(np.diff(v)[a - 1:b - 1]))
+
+
 def _detrend(v):
     """The strip's V with its slow brightness trend along the radius removed (heartwood / sapwood, stains)."""
     return v - ndimage.gaussian_filter1d(v, max(32.0, v.shape[1] / 20.0), axis=1, mode="nearest")
@@ -356,6 +379,45 @@ def _narrow_ring_boundaries(coarse, fine, *, period, fine_period, end, narrow_ga
     return np.sort(np.r_[coarse, add])
 
 
+def _bark_zone_boundaries(pos, v_prof, end, *, min_rel=0.2, min_gap_px=2.0, sigma=0.7, n_ref=5):
+    """Ring boundaries in the bark zone (issue 48): the rings just inside the bark are often narrower (3 - 6 px)
+    than even the fine pass's scale resolves, so the Gabor phase runs over them and the transect ends some rings
+    short of the bark. Between the last boundary ``pos[-1]`` and the wood's edge ``end`` (column positions on the
+    strip), every local maximum of the profile's outward rise ``dV/dr`` (``v_prof`` smoothed with sigma ``sigma``
+    px) is a boundary when the rise is at least ``min_rel`` of the median rise at the ``n_ref`` outermost boundaries
+    already found (those rings' own latewood -> earlywood steps set the scale: faint outer rings are judged against
+    their neighbours, not against the strong juvenile rings), it lies at least ``min_gap_px`` from the boundaries
+    beside it and the edge, and the zone holds room for a ring (it is wider than 1.5 times the last ring). Returns
+    the added positions (sorted)."""
+    pos = np.asarray(pos, np.float64)
+    if len(pos) < 3 or end is None:
+        return np.zeros(0)
+    gaps = np.diff(pos[-(n_ref + 1):])
+    last = float(pos[-1])
+    if end - last < 1.5 * max(float(np.median(gaps[-3:])), min_gap_px):
+        return np.zeros(0)
+    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
+    L = len(dv)
+    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, L - 1)]
+    ref = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
+    if ref <= 0:
+        return np.zeros(0)
+    lo, hi = int(math.floor(last + min_gap_px)), int(math.ceil(end - min_gap_px))
+    cand = [i for i in range(max(lo, 1), min(hi, L - 1)) if dv[i] >= dv[i - 1] and dv[i] > dv[i + 1]
+            and dv[i] >= min_rel * ref]
+    out, prev = [], last
+    for i in sorted(cand, key=lambda i: -dv[i]):  # strongest first, spacing kept
+        if all(abs(i - x) >= min_gap_px for x in out + [prev, end]):
+            out.append(i)
+    out = np.sort(np.asarray(out, np.float64))
+    if len(out):  # sub-pixel: a parabola through the derivative peak
+        i = out.astype(int)
+        y0, y1, y2 = dv[i - 1], dv[i], dv[i + 1]
+        den = y0 - 2 * y1 + y2
+        out = out + np.clip(np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0), -0.5, 0.5)
+    return out
+
+
 def _merge_close(pos, v_prof, min_gap):
     """Drop boundaries closer than ``min_gap`` to the previous kept one (keep the one with the larger V rise)."""
     if len(pos) < 2 or min_gap <= 0:
@@ -379,7 +441,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            min_rel_rise: float = 0.1, edge_level: float = 1.0, tilt_sigma: float = 2.0,
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
-                           narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, device="cpu",
+                           narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
+                           bark_zone: bool = True,
+                           device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -417,6 +481,10 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         link: follow every boundary's ring curve to the neighbouring transects and infer the rings that two
             neighbours' curves agree on (module docstring, step 6; :mod:`~torch_appearance.rings.consistency`).
             Needs three transects or more, helpers included.
+        bark_zone: look for the narrow rings just inside the bark, between the last boundary and the wood's edge,
+            as steps of the profile (:func:`_bark_zone_boundaries`); only where the edge is found.
+        closed: with ``link``, also trace the rings near the pith as closed curves round the disc (module docstring,
+            step 6); False: only the curves between neighbouring transects.
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.
@@ -456,8 +524,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         _number(fine_scale, "fine_scale", 0.05, 0.95)
     _number(narrow_gap, "narrow_gap", 0.0, 10.0)
     _number(helpers, "helpers", 0, 16, integer=True)
-    if not isinstance(link, bool):
-        raise TypeError(f"link must be a bool; got {type(link).__name__}")
+    for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone)):
+        if not isinstance(flag, bool):
+            raise TypeError(f"{name}: expected a bool, got {type(flag).__name__}")
     if not isinstance(include_edge, bool):
         raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
     a = np.asarray(image)
@@ -548,6 +617,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 last = end
                 frac = frac.copy()
                 frac[end + 1:] = 0.0
+        elif bg is not None and strip.shape[2] >= 3:  # a dark bark between the wood and the background
+            end = _dark_bark_start(strip[max(0, yc - S // 4):yc + S // 4 + 1, :last + 1])
+            if end is not None and end < last:
+                last = end
+                frac = frac.copy()
+                frac[end + 1:] = 0.0
         if last < L - 3:  # the wood ends before the transect does: the disc edge
             nxt = min(last + 1, L - 1)
             a_, b_ = frac[last], frac[nxt]
@@ -593,6 +668,10 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                                               end=end, narrow_gap=narrow_gap)
                 sinfo.update(fine_period_px=fine_period, fine_p=finfo["p"], fine_q=finfo["q"],
                              narrow_added=len(pos) - n_coarse)
+            if bark_zone and edge is not None:
+                extra = _bark_zone_boundaries(pos, sinfo["profile_v"], edge)
+                sinfo["bark_zone_added"] = len(extra)
+                pos = np.sort(np.r_[pos, extra])
             pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
         found.append((pos, sinfo))
         if progress is not None:
@@ -611,7 +690,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
         lengths = [prepared[k][4] if prepared[k][4] is not None else prepared[k][5] - 1 for k in usable]
         linked = link_transects(value, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable], lengths,
-                                period_px=found[usable[0]][1]["period_px"])
+                                period_px=found[usable[0]][1]["period_px"], closed_px=None if closed else 0.0)
         for k, lk in zip(usable, linked):
             found[k] = (lk["radius_px"], found[k][1])
             inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
@@ -628,13 +707,17 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             ends_out.append(c.copy())
             continue
         kinds = ["inferred" if f else "ring" for f in inferred[k]]
+        conf, clos = np.asarray(confirmed[k], bool), np.asarray(closed[k], bool)
         if include_edge and edge is not None:
-            kinds = kinds + ["edge"]
-            pos = np.r_[pos, edge]
+            # the wood's edge is the last ring's outer boundary; a boundary within 3 px inside it (a ring step or
+            # an inferred ring found there) is that same boundary and takes its place
+            near = pos > edge - 3.0
+            kinds = [k_ for k_, n_ in zip(kinds, near) if not n_] + ["edge"]
+            pos, conf, clos = np.r_[pos[~near], edge], conf[~near], clos[~near]
         pts = c[None, :] + pos[:, None] * u[None, :]
         wpx, wmm = ring_widths_mm(pts, ps)
         sinfo.update(kind=kinds, radius_px=pos.copy(), angle_deg=deg, edge_px=edge, length_px=float(Lc - 1),
-                     confirmed=confirmed[k].tolist(), moved_px=list(moved[k]), closed=closed[k].tolist(),
+                     confirmed=conf.tolist(), moved_px=list(moved[k]), closed=clos.tolist(),
                      closed_crossings_px=closed_x[k].copy(), dropped_px=list(dropped[k]))
         out.append(RingBoundaries(points=pts.reshape(-1, 2), widths_px=wpx, widths_mm=wmm, pixel_size_mm=ps,
                                   info=sinfo))
