@@ -3,6 +3,7 @@ discs with known rings, filtering only polar strips (once per transect), the CSV
 CooRecorder .pos reader (hand-written fixture in tests/data/coorecorder, CC0) and eval_rings.py with .pos labels
 and transect columns; the automatic pith (``--pith auto``) on synthetic discs."""
 import csv
+import json
 import math
 import os
 import re
@@ -338,6 +339,19 @@ def test_cli_disc_mode(disc_png, tmp_path):
         assert math.isclose(float(mine[1]["width_mm"]), float(mine[1]["width_px"]) * 0.1, rel_tol=1e-3)
     img = cv2.imread(str(ovl))
     assert img is not None and img.shape[:2] == (320, 300)
+    # the whole rings beside the CSV: labelme polygons, each on one true ring all the way round
+    with open(tmp_path / "disc_rings.json") as f:
+        rings = json.load(f)
+    assert rings["imageHeight"] == 320 and rings["imageWidth"] == 300 and rings["center"] == [160.0, 150.0]
+    assert len(rings["shapes"]) >= 4 and "whole rings closed round the disc" in stdout
+    for shape in rings["shapes"]:
+        assert shape["shape_type"] == "polygon"
+        q = np.asarray(shape["points"]) - np.array(PITH)
+        r, phi = np.hypot(q[:, 0], q[:, 1]), np.arctan2(q[:, 1], q[:, 0])
+        true = np.array([radius(a) for a in phi])                 # (N, K)
+        k = np.argmin(np.abs(true - r[:, None]).mean(0))
+        assert np.abs(true[:, k] - r).max() <= 3.0, shape["label"]
+        assert np.ptp(np.unwrap(np.sort(phi))) > 1.9 * math.pi  # round the whole disc
     # eval_rings.py: the CSV against itself as labels (transect columns on both sides: matched per transect)
     rc, stdout, err = _run("eval_rings", out, out, "--tolerance-px", 1)
     assert rc == 0 and "F1 1.0000" in stdout, (stdout, err)
@@ -356,7 +370,8 @@ def test_cli_disc_bad_inputs(disc_png, tmp_path):
              (("--transect", "1,1,50,1", "--transect", "1,1,1,50"), "--pith"),
              (("--angles", "0,90", "--mode", "core"), "do not combine with --mode core"),
              (("--pith", "auto", "--mode", "section"), "do not combine with --mode section"),
-             (("--pith", "150,160", "--bark", "left"), "--pith")]
+             (("--pith", "150,160", "--bark", "left"), "--pith"),
+             (("--rings", "r.json", "--mode", "core"), "--rings is disc mode")]
     for args, msg in cases:
         rc, _, err = _run("detect_rings", path, *args, "--out", out, "--overlay", ovl)
         assert rc not in (0, None) and msg in err, (args, err)
@@ -500,3 +515,24 @@ def test_cli_disc_mode_finds_the_pith(disc_png, tmp_path):
     assert re.search(r"pith \(auto\): 1[45]\d\.\d,1[56]\d\.\d px, standard error \d+\.\d px", err), err
     rows = list(csv.DictReader(open(out, newline="")))
     assert {int(r["transect"]) for r in rows} == {0, 1}
+
+
+def test_ring_polygons_close_round_the_disc(disc):
+    """Whole rings chained from the linked transects' curves: each polygon follows one true ring all the way round;
+    a result that is not a disc's is refused; without linking there is none."""
+    from torch_appearance.rings.ring_polygons import labelme_json, ring_polygons
+    rgb, radius = disc
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES)
+    polys = ring_polygons(res)
+    assert len(polys) >= 6
+    for p in polys:
+        q = p["points"] - np.array(PITH)
+        r, phi = np.hypot(q[:, 0], q[:, 1]), np.arctan2(q[:, 1], q[:, 0])
+        true = np.array([radius(a) for a in phi])
+        k = np.argmin(np.abs(true - r[:, None]).mean(0))
+        assert np.abs(true[:, k] - r).max() <= 3.0
+    blob = json.loads(labelme_json(polys, "disc.png", rgb.shape, pith=PITH))
+    assert len(blob["shapes"]) == len(polys) and blob["shapes"][0]["label"] == "0"
+    assert ring_polygons(detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES, link=False)) == []
+    with pytest.raises(ValueError, match="res"):
+        ring_polygons(object())

@@ -18,8 +18,9 @@ Each ring boundary is then followed round the disc to the neighbouring transects
 transects between them); a ring that the curves from both neighbours agree on and that the transect missed is
 added as inferred (torch_appearance.rings.consistency; --no-link to turn this off).
 Writes one CSV with columns transect,angle_deg,index,kind,x_px,y_px,radius_px,width_px,width_mm (kind: ring,
-inferred, or edge for the disc edge with --edge) and one overlay with all transects (inferred boundaries: a tick
-with a dot).
+inferred, or edge for the disc edge with --edge), the whole rings that close round the disc as labelme-style JSON
+polygons (--rings, default NAME_rings.json beside --out; torch_appearance.rings.ring_polygons) and one overlay with
+all transects (inferred boundaries: a tick with a dot) and the rings' polygons.
 Section mode (--mode section): a stained microscopy cross-section; writes the boundary polyline (index,x_px,y_px,
 about 1 px apart; header only if none was found); --cell-px is the typical cell diameter in pixels.
 
@@ -44,6 +45,7 @@ from torch_appearance.rings.dendro import detect_core_boundaries, detect_transec
 from torch_appearance.rings.section import detect_section_boundaries
 from torch_appearance.rings.coorecorder import write_pos
 from torch_appearance.rings.disc import detect_disc_boundaries
+from torch_appearance.rings.ring_polygons import draw_ring_polygons, labelme_json, ring_polygons
 from torch_appearance.rings.tucson import RingSeries, write_rwl
 
 from .command import CommandParser, check_output_file, fail
@@ -71,6 +73,9 @@ def parse_args(argv=None):
                         "screen: 0 right, 90 down); default 0,90,180,270 when no --transect is given")
     p.add_argument("--edge", action="store_true",
                    help="disc mode: report the disc edge (outer end of the last ring) as the last boundary")
+    p.add_argument("--rings", default=None,
+                   help="disc mode: the whole rings (closed curves chained round the disc from the linked transects) "
+                        "as labelme-style JSON polygons (default: beside --out, NAME_rings.json); drawn on --overlay")
     p.add_argument("--no-link", action="store_true",
                    help="disc mode: do not follow the rings between transects (no inferred rings)")
     p.add_argument("--helpers", type=int, default=1,
@@ -104,6 +109,7 @@ def parse_args(argv=None):
     check_output_file(p, "--overlay", args.overlay)
     check_output_file(p, "--pos", args.pos)
     check_output_file(p, "--rwl", args.rwl)
+    check_output_file(p, "--rings", args.rings)
     return args
 
 
@@ -195,11 +201,12 @@ _COLOURS = [(0, 0, 255), (0, 200, 0), (255, 128, 0), (255, 0, 255), (0, 200, 255
             (0, 128, 255)]
 
 
-def disc_overlay_png(rgb, res):
-    """PNG bytes of the disc with each transect (its own colour), a tick across it at every boundary (with a dot
-    when inferred from the neighbouring transects, a circle at the edge) and its number at the outer end; the pith
-    is a white cross."""
+def disc_overlay_png(rgb, res, polygons=()):
+    """PNG bytes of the disc with the whole rings' polygons (yellow and magenta in turn), each transect (its own
+    colour), a tick across it at every boundary (with a dot when inferred from the neighbouring transects, a circle
+    at the edge) and its number at the outer end; the pith is a white cross."""
     img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    draw_ring_polygons(img, polygons)
     h, w = img.shape[:2]
     thick = max(1, int(round(max(h, w) / 1500)))
     tick = 4 * thick + 2
@@ -259,7 +266,8 @@ def run_disc(args, rgb):
             res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
                                          half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,
                                          link=not args.no_link, helpers=args.helpers, progress=progress)
-            png = disc_overlay_png(rgb, res) if args.overlay else None
+            polygons = ring_polygons(res)
+            png = disc_overlay_png(rgb, res, polygons) if args.overlay else None
         except ValueError as e:
             return fail(PROG, str(e))
     found = res.info["pith"]
@@ -276,6 +284,9 @@ def run_disc(args, rgb):
                              width_mm="" if not np.isfinite(wm) else f"{wm:.4f}"))
     write_csv(args.out, rows, ["transect", "angle_deg", "index", "kind", "x_px", "y_px", "radius_px", "width_px",
                                "width_mm"])
+    rings_path = args.rings if args.rings is not None else os.path.splitext(args.out)[0] + "_rings.json"
+    atomic_write_bytes(rings_path, labelme_json(polygons, os.path.basename(args.image), rgb.shape,
+                                                pith=res.pith).encode())
     if png is not None:
         atomic_write_bytes(args.overlay, png)
     try:
@@ -289,7 +300,7 @@ def run_disc(args, rgb):
               + "; ".join(f"transect {k}: {v}" for k, v in enumerate(inferred) if v), file=sys.stderr)
     print(f"{len(rows)} boundaries on {len(res.transects)} transects ({counts}); filtered "
           f"{res.info['filtered_px']} px ({100.0 * res.info['filtered_px'] / res.info['image_px']:.1f} % of the "
-          f"image) -> {', '.join([args.out] + extra)}")
+          f"image); {len(polygons)} whole rings closed round the disc -> {', '.join([args.out, rings_path] + extra)}")
     return 0
 
 
@@ -299,7 +310,9 @@ def main(argv=None):
         return fail(PROG, f"--dpi must be > 0; got {args.dpi}")
     if args.pixel_size_mm is not None and not args.pixel_size_mm > 0:
         return fail(PROG, f"--pixel-size-mm must be > 0; got {args.pixel_size_mm}")
-    implied = args.pith is not None or args.angles is not None or args.edge
+    if args.rings is not None and args.mode in ("core", "section"):
+        return fail(PROG, f"--rings is disc mode; it does not combine with --mode {args.mode}")
+    implied = args.pith is not None or args.angles is not None or args.edge or args.rings is not None
     if implied and args.mode in ("core", "section"):
         return fail(PROG, f"--pith / --angles / --edge are disc mode; they do not combine with --mode {args.mode}")
     disc = implied or args.mode == "disc"

@@ -682,7 +682,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     closed = [np.zeros(len(f[0]), bool) for f in found]
     closed_x = [np.zeros(0) for _ in found]
     dropped = [[] for _ in found]
-    link_s = None
+    link_s, rings_polar = None, None
     usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
     if link and len(usable) >= 3:
         from .consistency import link_transects
@@ -695,6 +695,10 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             found[k] = (lk["radius_px"], found[k][1])
             inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
             closed[k], closed_x[k], dropped[k] = lk["closed"], lk["closed_crossings"], lk["dropped"]
+        # the traced curves between neighbouring transects (helpers included), for whole rings
+        # (:func:`~torch_appearance.rings.ring_polygons.ring_polygons`)
+        rings_polar = dict(angles_deg=[dirs[k][0] for k in usable], radii=[lk["radius_px"] for lk in linked],
+                           curves=[lk["curves"] for lk in linked], period_px=found[usable[0]][1]["period_px"])
         link_s = time.perf_counter() - t0
     out, ends_out = [], []
     for k in range(n_req):
@@ -724,7 +728,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         ends_out.append(c + (Lc - 1) * u)
     info = dict(filtered_px=int(sum(s[0] * s[1] for s in calls)), filter_calls=len(calls), background=bg,
                 image_px=H * W, pith=pith_info or dict(auto=False, xy=c.copy(), sigma_px=None),
-                helpers_deg=np.array([d for d, _ in dirs[n_req:]]), link_seconds=link_s)
+                helpers_deg=np.array([d for d, _ in dirs[n_req:]]), link_seconds=link_s,
+                rings_polar=rings_polar)
     return DiscBoundaries(pith=c, transects=out, ends=np.array(ends_out).reshape(-1, 2),
                           angles_deg=np.array([d for d, _ in dirs[:n_req]]), info=info)
 
