@@ -19,7 +19,8 @@ are always printed. Prints per transect and pooled
 sensitivity, precision and F1, the misses by ring index counted from the pith and from the bark, the signed offset
 of matched boundaries along the transect (positive: on the bark side of the human point), the detection time, and
 writes JSON plus one overlay PNG per disc (human points green on one side of the transect, detections red on the
-other, the pith as a white cross, the human pith as a green one).
+other, the pith as a white cross, the human pith as a green one, the whole rings that close round the disc as
+yellow and magenta polygons).
 
 Example:
     python scripts/eval/eval_disc_human.py --out /tmp/human.json --overlay-dir /tmp/human
@@ -38,6 +39,7 @@ from torch_appearance.io import atomic_write_bytes, read_image
 from torch_appearance.rings.coorecorder import read_pos
 from torch_appearance.rings.dendro import match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries
+from torch_appearance.rings.ring_polygons import draw_ring_polygons, ring_polygons
 
 PROG = "eval_disc_human.py"
 DEFAULT_DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "..",
@@ -100,6 +102,7 @@ def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
     angles = [math.degrees(math.atan2(*(b[-1] - pith)[::-1])) % 360.0 for _, b in labels.values()]
     res = detect_disc_boundaries(rgb, pith, angles_deg=angles, **kw)
     seconds = time.perf_counter() - t0
+    rings = ring_polygons(res)
     rows = []
     for side, tr, deg in zip(SIDES, res.transects, angles):
         lab = labels[side][1]
@@ -130,7 +133,8 @@ def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
                                   for x in tr.info.get("dropped_px", [])]
                 row["moved_px"] = [list(map(float, m)) for m in tr.info.get("moved_px", [])]
         rows.append(row)
-    return dict(disc=disc, rgb=rgb, res=res, labels=labels, rows=rows, pith=pith, pith_sigma_px=sigma,
+    return dict(disc=disc, rgb=rgb, res=res, labels=labels, rows=rows, pith=pith, pith_sigma_px=sigma, rings=rings,
+                n_rings_closed=len(rings),
                 human_pith=human_pith, pith_error_px=float(np.linalg.norm(pith - human_pith)), radius_px=radius,
                 seconds=seconds, pith_seconds=t_pith)
 
@@ -138,6 +142,7 @@ def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
 def overlay(ev):
     img = np.ascontiguousarray((np.clip(ev["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
     res, c = ev["res"], ev["res"].pith
+    draw_ring_polygons(img, ev["rings"])
     t = max(1, round(max(img.shape[:2]) / 1200))
     for side, tr, end, deg in zip(SIDES, res.transects, res.ends, res.angles_deg):
         th = math.radians(deg)
@@ -170,6 +175,8 @@ def main(argv=None):
                         "outer edge of the last ring, at the bark)")
     p.add_argument("--no-link", action="store_true",
                    help="do not link the transects (no rings inferred from the neighbouring transects)")
+    p.add_argument("--no-closed", action="store_true",
+                   help="do not trace the rings near the pith as closed curves (detect_disc_boundaries(closed=False))")
     p.add_argument("--helpers", type=int, default=1,
                    help="helper transects between neighbouring transects when linking (default: %(default)s)")
     p.add_argument("--match", choices=("2d", "radial"), default="2d",
@@ -189,7 +196,7 @@ def main(argv=None):
         try:
             evs.append(evaluate_disc(args.data, disc, args.pith, args.match, half_width=args.half_width,
                                      edge_level=args.edge_level, include_edge=args.include_edge,
-                                     link=not args.no_link, helpers=args.helpers))
+                                     link=not args.no_link, helpers=args.helpers, closed=not args.no_closed))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
             return 2
@@ -248,14 +255,15 @@ def main(argv=None):
         print(f"{ev['disc']}: pith {ev['pith'][0]:.1f},{ev['pith'][1]:.1f} ({args.pith}; standard error "
               f"{ev['pith_sigma_px']:.1f} px), human {ev['human_pith'][0]:.1f},{ev['human_pith'][1]:.1f}: error "
               f"{ev['pith_error_px']:.1f} px = {100 * ev['pith_error_px'] / ev['radius_px']:.2f} % of the radius "
-              f"{ev['radius_px']:.0f} px; {ev['seconds']:.1f} s for 4 transects (pith {ev['pith_seconds']:.1f} s)")
+              f"{ev['radius_px']:.0f} px; {ev['seconds']:.1f} s for 4 transects (pith {ev['pith_seconds']:.1f} s); "
+              f"{ev['n_rings_closed']} whole rings closed round the disc")
         if args.overlay_dir is not None:
             atomic_write_bytes(os.path.join(args.overlay_dir, f"{ev['disc']}_overlay.png"), overlay(ev))
     blob = dict(pith=args.pith, match=args.match, pooled_other={other: total_other}, half_width=args.half_width,
                 edge_level=args.edge_level, include_edge=args.include_edge,
                 pooled=total, transects=rows,
                 discs=[{k: ev[k] for k in ("disc", "pith", "pith_sigma_px", "human_pith", "pith_error_px", "radius_px",
-                                           "seconds", "pith_seconds")} for ev in evs])
+                                           "seconds", "pith_seconds", "n_rings_closed")} for ev in evs])
     atomic_write_bytes(args.out, json.dumps(blob, indent=1, default=lambda o: np.asarray(o).tolist()).encode())
     print(f"-> {args.out}")
     return 0

@@ -34,7 +34,7 @@ from torch_appearance.rings.coorecorder import read_pos
 
 PROG = "eval_disc_lodo.py"
 TOLERANCES = (3.0, 5.0)
-# group -> {label: detector options}; the first label of each group is the default
+# group -> {label: detector options}; the first label of each group is the default the run is measured against
 # ("bark_edge" is scored from the same runs: every run reports the wood's edge, and "off" drops it)
 CANDIDATES = {
     "bark_edge": {"off": dict(edge=False), "on": dict(edge=True)},
@@ -42,7 +42,7 @@ CANDIDATES = {
     "link": {"on": {}, "off": dict(link=False)},
     "closed_rings": {"on": {}, "off": dict(closed=False)},
     "fine_pass": {"0.5": {}, "off": dict(fine_scale=None)},
-    "narrow_gap": {"0.8": {}, "0.6": dict(narrow_gap=0.6)},
+    "narrow_gap": {"0.8": dict(narrow_gap=0.8), "0.6": dict(narrow_gap=0.6)},  # 0.8 the default until this run
 }
 
 

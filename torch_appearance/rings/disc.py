@@ -15,7 +15,9 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    beside a ruler and a label) gives no background. The disc edge along the transect is where the wood fraction of
    the strip's central rows last drops below one half; without a background, where the wood's colour ends beyond
    60 % of the transect (the first 20 px of bark darker than 0.45 of the wood, or a rest that is mostly dark, grey,
-   or bright and of another hue, like a tinted ruler against a light bark: :func:`_wood_colour_end`). The strip is
+   or bright and of another hue, like a tinted ruler against a light bark: :func:`_wood_colour_end`); with a
+   background, a dark bark band between the wood and it (which the background mask counts as wood) ends the wood
+   where it starts (:func:`_dark_bark_start`). The strip is
    cut there, and the edge is never a ring boundary. Non-wood pixels are replaced by the mean of the wood pixels of
    their column (i.e. filled *along the ring*), so a crack along the transect does not hide the rings.
 3. **Filter.** The strip's HSV value is filtered with the curved Gabor filter (normal oriented pith -> bark), as in
@@ -41,11 +43,18 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    pith is not a ring boundary). Ring width changes several-fold along a radius: where one cycle at the ring
    period spans two or more narrow rings (towards the bark), the phase skips them. A second pass at ``fine_scale P``
    (default P / 2) adds its boundaries where two neighbouring first-pass boundaries are less than ``narrow_gap P``
-   (0.8) apart and the new one lies at least a quarter of that gap from both (``_narrow_ring_boundaries``); in wide
-   rings the fine pass's extra cycles (earlywood texture) fall in wider gaps and are not taken. Boundaries closer
-   than ``min_ring_px`` to the previous one are merged (the weaker is dropped). With
-   ``include_edge`` the disc edge (outer end of the last ring, where CooRecorder users and CS-TRD put the last
-   boundary) is appended as a boundary of kind ``"edge"`` when the transect reaches it.
+   (0.6; chosen leave-one-disc-out on the TRAS discs C13C / C17C, where 0.6 beat the former 0.8 on both,
+   ``scripts/eval/measured/disc_lodo.json``) apart and the new one lies at least a quarter of that gap from both (``_narrow_ring_boundaries``); in wide
+   rings the fine pass's extra cycles (earlywood texture) fall in wider gaps and are not taken. The fine pass
+   filters the strip only from two of its filter lengths before the first such narrow gap outwards
+   (:func:`_fine_pass_start`). The last rings before the bark are often narrower still (3 - 6 px), below what
+   either pass resolves: between the last boundary and the disc edge (``bark_zone``), the profile's own sharp rises
+   are boundaries when they reach 0.2 of the rises at the outermost boundaries found (:func:`_bark_zone_boundaries`;
+   on the independent synthetic discs of :mod:`~torch_appearance.rings.synthetic_discs` this finds most of the
+   3 - 4 px rings the passes skip). Boundaries closer than ``min_ring_px`` to the previous one are merged (the
+   weaker is dropped). With ``include_edge`` the disc edge (outer end of the last ring, where CS-TRD, and CooRecorder
+   users at a clean bark, put the last boundary) is appended as a boundary of kind ``"edge"`` when the transect
+   reaches it; a boundary within 3 px inside it is the same boundary and gives way to it.
 6. **Consistency across transects** (``link``). The transects cross the same years: every boundary is followed
    along its ring's ridge in a polar edge map to the neighbouring transects
    (:func:`~torch_appearance.rings.consistency.link_transects`), with ``helpers`` helper transects (default one)
@@ -356,7 +365,16 @@ def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_
                      local_period_px=1.0 / f_prof)
 
 
-def _narrow_ring_boundaries(coarse, fine, *, period, fine_period, end, narrow_gap=0.8, same=0.15, margin=0.25):
+def _fine_pass_start(coarse, end, narrow_px, margin_px):
+    """First strip column the fine pass needs: ``margin_px`` before the first gap narrower than ``narrow_px`` among
+    the coarse boundaries (the pith at 0 and ``end`` close the list); ``end`` when there is none."""
+    edges = np.r_[0.0, np.asarray(coarse, np.float64), float(end)]
+    narrow = np.nonzero(np.diff(edges) < narrow_px)[0]
+    start = edges[narrow[0]] if len(narrow) else float(end)
+    return int(max(0, math.floor(start - margin_px)))
+
+
+def _narrow_ring_boundaries(coarse, fine, *, period, fine_period, end, narrow_gap=0.6, same=0.15, margin=0.25):
     """Boundaries of the fine pass that the coarse one missed where the rings are narrow (both ``(K,)`` sorted
     column positions; ``end`` the strip's outer end). A fine boundary is added when no coarse boundary lies within
     ``same fine_period`` of it, the two coarse boundaries around it (the pith at 0 and ``end`` close the list) are
@@ -441,7 +459,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            min_rel_rise: float = 0.1, edge_level: float = 1.0, tilt_sigma: float = 2.0,
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
-                           narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
+                           narrow_gap: float = 0.6, link: bool = True, helpers: int = 1, closed: bool = True,
                            bark_zone: bool = True,
                            device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
@@ -661,8 +679,16 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 pos = pos[pos < edge - 2.0]
             if fine_scale is not None and p is None and q is None:
                 fine_period = fine_scale * sinfo["period_px"]
-                fpos, finfo = _strip_boundaries(v, wd, period=fine_period, p=None, q=None, **common)
-                fpos = fpos[(fpos >= max(3.0, 0.25 * fine_period)) & (fpos < end - 2.0)]
+                # the fine pass only adds boundaries inside gaps narrower than narrow_gap P: it filters the strip
+                # from two filter lengths before the first such gap on (the same responses there, less work)
+                c0 = _fine_pass_start(pos, end, sinfo["period_px"] * narrow_gap,
+                                      2 * int(np.clip(round(p_periods * fine_period), 8, 150)))
+                fcommon = dict(common, theta=common["theta"][:, c0:])
+                fpos, finfo = _strip_boundaries(v[:, c0:], wd[:, c0:], period=fine_period, p=None, q=None,
+                                                **fcommon) if Lc - c0 >= 16 else (np.zeros(0), dict(p=None, q=None))
+                fpos = fpos + c0
+                fpos = fpos[(fpos >= max(3.0, 0.25 * fine_period, c0 + (0.0 if c0 == 0 else 2 * fine_period)))
+                            & (fpos < end - 2.0)]
                 n_coarse = len(pos)
                 pos = _narrow_ring_boundaries(pos, fpos, period=sinfo["period_px"], fine_period=fine_period,
                                               end=end, narrow_gap=narrow_gap)
