@@ -138,19 +138,42 @@ def test_local_ring_period_follows_the_rings():
 
 def test_narrow_ring_boundaries_come_from_the_fine_pass_only_between_close_coarse_ones():
     """The fine pass's boundaries are added where one coarse cycle spans narrow rings (a coarse gap below
-    0.8 P), not in wide rings (its extra cycles there are earlywood texture), and not twice."""
+    narrow_gap P, here 0.8 P), not in wide rings (its extra cycles there are earlywood texture), and not twice."""
     coarse = np.array([100.0, 140.0, 300.0, 330.0])
     fine = np.array([101.0, 121.0, 140.5, 220.0, 302.0, 307.0, 323.0])
-    out = disc_mod._narrow_ring_boundaries(coarse, fine, period=80.0, fine_period=40.0, end=400.0)
+    out = disc_mod._narrow_ring_boundaries(coarse, fine, period=80.0, fine_period=40.0, end=400.0,
+                                           narrow_gap=0.8)
     # 121 splits the 40 px gap 100-140; 220 lies in a 160 px gap (a wide ring); 101 / 140.5 / 302 repeat coarse
     # ones; 307 and 323 sit within a quarter of the 30 px gap 300-330 of its ends
     np.testing.assert_array_equal(out, [100.0, 121.0, 140.0, 300.0, 330.0])
     # the pith (0) and the strip's end close the list: a narrow first or last ring is found too
     out = disc_mod._narrow_ring_boundaries(np.array([40.0]), np.array([20.0, 70.0]), period=80.0, fine_period=40.0,
-                                           end=100.0)
+                                           end=100.0, narrow_gap=0.8)
     np.testing.assert_array_equal(out, [20.0, 40.0, 70.0])
     np.testing.assert_array_equal(disc_mod._narrow_ring_boundaries(coarse, np.zeros(0), period=80.0,
-                                                                   fine_period=40.0, end=400.0), coarse)
+                                                                   fine_period=40.0, end=400.0, narrow_gap=0.8),
+                                  coarse)
+
+
+def test_fine_pass_starts_before_the_first_narrow_gap():
+    """The fine pass filters from two filter lengths before the first coarse gap narrower than narrow_gap P (the pith
+    at 0 and the strip's end close the list), from 0 when that is the first ring, near the end when none is."""
+    assert disc_mod._fine_pass_start([100.0, 200.0, 260.0, 300.0], 400.0, 50.0, 40) == 220  # gap 260-300
+    assert disc_mod._fine_pass_start([30.0, 200.0], 400.0, 50.0, 40) == 0
+    assert disc_mod._fine_pass_start([100.0, 200.0, 300.0], 400.0, 50.0, 40) == 360
+
+
+def test_bark_zone_finds_the_narrow_rings_before_the_edge():
+    """Between the last boundary and the wood's edge, steps of the profile as strong as a fifth of the outer rings'
+    own steps are boundaries (4 px rings the Gabor passes skip); a flat zone adds none."""
+    x = np.arange(200, dtype=np.float64)
+    B = np.r_[np.arange(20.0, 150.0, 20.0), np.arange(144.0, 171.0, 4.0)]  # rings of 20 px, then seven of 4 px
+    edges = np.r_[0.0, B, 200.0]
+    k = np.searchsorted(edges, x, side="right") - 1
+    v = 1.0 - 0.5 * (x - edges[k]) / np.diff(edges)[k]                 # sawtooth: darkening, then a sharp rise
+    add = disc_mod._bark_zone_boundaries(B[B <= 140], v, end=172.0)
+    assert match_boundaries(add, B[B > 140], 1.0)["f1"] == 1.0, add
+    assert len(disc_mod._bark_zone_boundaries(B[B <= 140], np.where(x > 141, v[141], v), end=172.0)) == 0
 
 
 def _disc_on_a_cloth(bark_rgb, bark_px):
