@@ -559,3 +559,23 @@ def test_ring_polygons_close_round_the_disc(disc):
     assert ring_polygons(detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES, link=False)) == []
     with pytest.raises(ValueError, match="res"):
         ring_polygons(object())
+
+
+def test_closed_switch_reaches_the_linking(disc, monkeypatch):
+    """closed=False traces no closed rings (link_transects gets closed_px=0); the default lets it choose."""
+    from torch_appearance.rings import consistency
+    seen = []
+    real = consistency.link_transects
+
+    def spy(*args, **kw):
+        seen.append(kw.get("closed_px"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(consistency, "link_transects", spy)
+    rgb, _ = disc
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:3], closed=False, helpers=0)
+    assert seen == [0.0] and not any(any(tr.info["closed"]) or tr.info["dropped_px"] for tr in res.transects)
+    detect_disc_boundaries(rgb, PITH, angles_deg=ANGLES[:3], helpers=0)
+    assert seen[1] is None
+    with pytest.raises(TypeError, match="closed"):
+        detect_disc_boundaries(rgb, PITH, closed="no")

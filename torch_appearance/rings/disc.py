@@ -545,6 +545,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone)):
         if not isinstance(flag, bool):
             raise TypeError(f"{name}: expected a bool, got {type(flag).__name__}")
+    trace_closed = closed  # (the name ``closed`` holds the per-transect flags below)
     if not isinstance(include_edge, bool):
         raise TypeError(f"include_edge must be a bool; got {type(include_edge).__name__}")
     a = np.asarray(image)
@@ -716,7 +717,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
         lengths = [prepared[k][4] if prepared[k][4] is not None else prepared[k][5] - 1 for k in usable]
         linked = link_transects(value, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable], lengths,
-                                period_px=found[usable[0]][1]["period_px"], closed_px=None if closed else 0.0)
+                                period_px=found[usable[0]][1]["period_px"], closed_px=None if trace_closed else 0.0)
         for k, lk in zip(usable, linked):
             found[k] = (lk["radius_px"], found[k][1])
             inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
