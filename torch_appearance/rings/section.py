@@ -1,4 +1,5 @@
-"""Ring boundaries on stained microscopy cross-sections (section mode; split out of :mod:`~torch_appearance.rings.dendro`).
+"""Ring boundaries on stained microscopy cross-sections (section mode, split out of
+:mod:`~torch_appearance.rings.dendro`).
 
 Section mode (:func:`detect_section_boundaries`): stained *microscopy* cross-sections (cell-level detail, a few
 hundred pixels, typically one boundary) have no Gabor-scale ring signal; the boundary is where small, flattened,
