@@ -3,8 +3,8 @@
 :func:`~torch_appearance.rings.consistency.link_transects` follows every boundary of every transect (helper
 transects included) along its ring's ridge to both neighbouring transects. Chaining those curves round the disc
 gives whole rings (the representation of CS-TRD): from a boundary on the first transect, the curve towards the next
-transect (in angle order) arrives near one of that transect's boundaries (within ``tol_rings`` of the narrower ring
-beside it, at least 3 px), whose own curve continues to the next, and so on; the ring *closes* when the chain comes
+transect (in angle order) arrives near one of the boundaries that transect's own curves start from (within 0.3 of
+the narrower ring beside it, at least 3 px), whose curve continues to the next, and so on; the ring *closes* when the chain comes
 back to the boundary it started from. A boundary whose chain breaks or comes back on another ring closes nowhere
 and gives no polygon. The polygon is the concatenation of the curves (one vertex per traced ray).
 
@@ -52,36 +52,32 @@ def ring_polygons(res) -> list[dict]:
     ang = np.asarray(rp["angles_deg"], np.float64) % 360.0
     order = [int(i) for i in np.argsort(ang, kind="stable")]
     T = len(order)
-    radii = [np.asarray(r, np.float64) for r in rp["radii"]]
     pith = np.asarray(res.pith, np.float64)
-    first = order[0]
+    # the curves leave each transect from its own (1D) boundaries: the ring is followed from curve start to curve
+    # start (a boundary inferred or moved by the linking has no curve of its own)
+    starts = []
+    for step in range(T):
+        k, nxt = order[step], order[(step + 1) % T]
+        c = rp["curves"][k].get(nxt)
+        if c is None:  # a sector was not traced (two transects at one angle): no ring goes round
+            return []
+        starts.append(np.asarray(c[1][:, 0] if len(c[1]) else np.zeros(0), np.float64))
     out = []
-    for i0, r0 in enumerate(radii[first]):
-        k, idx, thetas, rs, ok = first, i0, [], [], True
+    for i0, r0 in enumerate(starts[0]):
+        idx, thetas, rs, ok = i0, [], [], True
         for step in range(T):
-            nxt = order[(step + 1) % T]
-            curves = rp["curves"][k].get(nxt)
-            if curves is None:
-                ok = False
-                break
-            th, paths = curves
-            # the curves start from the transect's own (1D) boundaries: the one nearest this boundary
-            starts = paths[:, 0] if len(paths) else np.zeros(0)
-            j = int(np.argmin(np.abs(starts - radii[k][idx]))) if len(starts) else -1
-            if j < 0 or abs(starts[j] - radii[k][idx]) > 2.0:
-                ok = False
-                break
+            k, nxt = order[step], order[(step + 1) % T]
+            th, paths = rp["curves"][k][nxt]
             th = np.asarray(th, np.float64)
             if step + 1 == T and th[-1] < th[0]:
                 th = th + 2 * math.pi
             thetas.append(th[:-1])
-            rs.append(paths[j, :-1])
-            idx = _match(radii[nxt], float(paths[j, -1]))
+            rs.append(paths[idx, :-1])
+            idx = _match(starts[(step + 1) % T], float(paths[idx, -1]))
             if idx < 0:
                 ok = False
                 break
-            k = nxt
-        if not ok or k != first or idx != i0:
+        if not ok or idx != i0:
             continue
         th, r = np.concatenate(thetas), np.concatenate(rs)
         pts = pith[None, :] + r[:, None] * np.stack([np.cos(th), np.sin(th)], 1)
