@@ -60,10 +60,34 @@ def inpaint_red_lines(rgb):
     return bgr[..., ::-1].astype(np.float32) / 255.0, int(mask.sum())
 
 
-def load_disc(data, disc):
-    """``(rgb inpainted, {side: (pith (2,), boundaries (K, 2))})`` in pixels."""
+def inpaint_dark_dots(rgb, *, level=60, max_area=150, around=120):
+    """The photo with small near-black blobs on the wood inpainted: max(R, G, B) < ``level`` of 255, at most
+    ``max_area`` px, their 4 px surroundings brighter than ``around`` on average (the dark cloth is left alone),
+    dilated by 1 px. The photos are the east transect's copies, which carry CooRecorder's measurement points as black
+    dots of about 3 px exactly on the human boundaries, and a black dot of about 5 px radius on the pith."""
+    from scipy import ndimage
+    u8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    v = u8.max(axis=2)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats((v < level).astype(np.uint8), connectivity=8)
+    small = np.zeros(n, bool)
+    small[1:] = stats[1:, cv2.CC_STAT_AREA] <= max_area
+    near = ndimage.grey_dilation(np.where(small[lab], lab, 0), size=9)
+    ring = (near > 0) & (lab == 0)
+    mean = np.bincount(near[ring], weights=v[ring].astype(np.float64), minlength=n) / np.maximum(
+        np.bincount(near[ring], minlength=n), 1)
+    keep = small & (mean > around)
+    mask = cv2.dilate(keep[lab].astype(np.uint8), np.ones((3, 3), np.uint8))
+    bgr = cv2.inpaint(np.ascontiguousarray(u8[..., ::-1]), mask, 3, cv2.INPAINT_TELEA)
+    return bgr[..., ::-1].astype(np.float32) / 255.0, int(mask.sum())
+
+
+def load_disc(data, disc, dots=False):
+    """``(rgb inpainted, {side: (pith (2,), boundaries (K, 2))})`` in pixels (``dots``: the black measurement dots
+    inpainted too, :func:`inpaint_dark_dots`)."""
     folder = os.path.join(data, FOLDER)
     rgb, _ = inpaint_red_lines(read_image(os.path.join(folder, disc + ".jpg"), space="srgb", name="image"))
+    if dots:
+        rgb, _ = inpaint_dark_dots(rgb)
     labels = {}
     for side in SIDES:
         pos = read_pos(os.path.join(folder, f"{disc}_{side}.pos"))
@@ -87,8 +111,8 @@ def _match(det, lab, tol, pith, mode):
     return match_boundaries(det, lab, tol)
 
 
-def evaluate_disc(data, disc, pith_mode="auto", match="2d", **kw):
-    rgb, labels = load_disc(data, disc)
+def evaluate_disc(data, disc, pith_mode="auto", match="2d", dots=False, **kw):
+    rgb, labels = load_disc(data, disc, dots)
     human_pith = np.mean([p for p, _ in labels.values()], axis=0)
     radius = float(np.mean([np.linalg.norm(b[-1] - human_pith) for _, b in labels.values()]))
     t0 = time.perf_counter()
@@ -175,6 +199,9 @@ def main(argv=None):
                         "outer edge of the last ring, at the bark)")
     p.add_argument("--no-link", action="store_true",
                    help="do not link the transects (no rings inferred from the neighbouring transects)")
+    p.add_argument("--inpaint-dots", action="store_true",
+                   help="also inpaint the black measurement dots burned into the photos on the east transect's human "
+                        "points and on the pith (a label leak; inpaint_dark_dots)")
     p.add_argument("--no-closed", action="store_true",
                    help="do not trace the rings near the pith as closed curves (detect_disc_boundaries(closed=False))")
     p.add_argument("--helpers", type=int, default=1,
@@ -194,7 +221,8 @@ def main(argv=None):
     evs = []
     for disc in DISCS:
         try:
-            evs.append(evaluate_disc(args.data, disc, args.pith, args.match, half_width=args.half_width,
+            evs.append(evaluate_disc(args.data, disc, args.pith, args.match, args.inpaint_dots,
+                                     half_width=args.half_width,
                                      edge_level=args.edge_level, include_edge=args.include_edge,
                                      link=not args.no_link, helpers=args.helpers, closed=not args.no_closed))
         except (OSError, ValueError) as e:
@@ -259,7 +287,8 @@ def main(argv=None):
               f"{ev['n_rings_closed']} whole rings closed round the disc")
         if args.overlay_dir is not None:
             atomic_write_bytes(os.path.join(args.overlay_dir, f"{ev['disc']}_overlay.png"), overlay(ev))
-    blob = dict(pith=args.pith, match=args.match, pooled_other={other: total_other}, half_width=args.half_width,
+    blob = dict(pith=args.pith, match=args.match, inpaint_dots=args.inpaint_dots, pooled_other={other: total_other},
+                half_width=args.half_width,
                 edge_level=args.edge_level, include_edge=args.include_edge,
                 pooled=total, transects=rows,
                 discs=[{k: ev[k] for k in ("disc", "pith", "pith_sigma_px", "human_pith", "pith_error_px", "radius_px",
