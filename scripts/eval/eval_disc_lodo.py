@@ -46,11 +46,13 @@ CANDIDATES = {
 }
 
 
-def load(data, disc, cache):
-    """Inpainted photo, human labels and the automatic pith of one disc (cached as .npy under ``cache``)."""
+def load(data, disc, cache, dots=False):
+    """Inpainted photo, human labels and the automatic pith of one disc (cached as .npy under ``cache``); ``dots``:
+    the black measurement dots inpainted too (``eval_disc_human.inpaint_dark_dots``)."""
     from torch_appearance.rings.pith import detect_pith
-    rgb_path = os.path.join(cache, f"ta_lodo_{disc}_inpainted.npy")
-    pith_path = os.path.join(cache, f"ta_lodo_{disc}_pith.npy")
+    tag = "_dots" if dots else ""
+    rgb_path = os.path.join(cache, f"ta_lodo_{disc}{tag}_inpainted.npy")
+    pith_path = os.path.join(cache, f"ta_lodo_{disc}{tag}_pith.npy")
     labels = {}
     for side in human.SIDES:
         pos = read_pos(os.path.join(data, human.FOLDER, f"{disc}_{side}.pos"))
@@ -58,7 +60,7 @@ def load(data, disc, cache):
     if os.path.isfile(rgb_path):
         rgb = np.load(rgb_path)
     else:
-        rgb, _ = human.load_disc(data, disc)
+        rgb, _ = human.load_disc(data, disc, dots)
         np.save(rgb_path, rgb)
     if os.path.isfile(pith_path):
         auto = np.load(pith_path)
@@ -118,13 +120,15 @@ def main(argv=None):
     p.add_argument("--data", default=human.DEFAULT_DATA, help="folder holding disc_tras_coorecorder_dev/")
     p.add_argument("--cache", default="/tmp", help="folder for the inpainted photos and automatic piths")
     p.add_argument("--groups", default=",".join(CANDIDATES), help="comma-separated groups (default: all)")
+    p.add_argument("--inpaint-dots", action="store_true",
+                   help="also inpaint the black measurement dots (a label leak on the east transects and the pith)")
     p.add_argument("--out", default="disc_lodo.json", help="output JSON (default: %(default)s)")
     args = p.parse_args(argv)
     groups = args.groups.split(",")
     bad = [g for g in groups if g not in CANDIDATES]
     if bad:
         p.error(f"--groups: expected names from {list(CANDIDATES)}, got {bad}")
-    discs = {d: load(args.data, d, args.cache) for d in human.DISCS}
+    discs = {d: load(args.data, d, args.cache, args.inpaint_dots) for d in human.DISCS}
     # 1. every candidate on every disc, human pith
     grid = {}
     for disc, (rgb, labels, _) in discs.items():
