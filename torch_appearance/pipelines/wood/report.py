@@ -88,7 +88,7 @@ def figures(folder, rows, rgb, fit_rgb, err):
     s1 = [r for r in rows if r["stage"] == 1]
     s2 = [r for r in rows if r["stage"] == 2]
     s3 = [r for r in rows if r["stage"] == 3]
-    fig = Figure(figsize=(15 if s3 else 10, 3.6))
+    fig = Figure(figsize=(15 if s3 else 10, 3.6), layout="constrained")
     ax = fig.subplots(1, 3 if s3 else 2)
     ax[0].plot([r["wall_s"] for r in s1], [r["phase_loss"] for r in s1])
     ax[0].set(xlabel="wall-clock time [s]", ylabel="cyclic phase loss [rad²]", yscale="log", title="stage 1: geometry")
@@ -98,10 +98,12 @@ def figures(folder, rows, rgb, fit_rgb, err):
         ax[2].plot([r["wall_s"] for r in s3], [r["photometric_loss"] for r in s3], color="C2")
         ax[2].set(xlabel="wall-clock time [s]", ylabel="weighted ΔE²/100 + phase anchor + prior", yscale="log",
                   title="stage 3: photometric (reparameterised)")
-    fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "convergence.png"), dpi=110)
 
-    fig = Figure(figsize=(12, 4))
+    # constrained layout places the titles after the images' aspect is applied (tight_layout left them clipped at
+    # the top edge); the height follows the photo's aspect
+    aspect = rgb.shape[0] / max(rgb.shape[1], 1)
+    fig = Figure(figsize=(12, 0.8 + 3.6 * min(max(aspect, 0.3), 3.0)), layout="constrained")
     ax = fig.subplots(1, 3)
     ax[0].imshow(np.clip(rgb, 0, 1) ** (1 / 2.2))
     ax[0].set_title("photo")
@@ -112,6 +114,5 @@ def figures(folder, rows, rgb, fit_rgb, err):
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     for a in ax:
         a.axis("off")
-    fig.tight_layout()
     ta_io.save_figure(fig, os.path.join(folder, "fit_vs_photo.png"), dpi=110)
     save_gray(os.path.join(folder, "phase_error.png"), np.abs(err), 0, math.pi, cmap="magma")
