@@ -118,7 +118,7 @@ def main(argv=None):
                                                           "%(default)s)")
     p.add_argument("--size", type=int, default=256, help="board size in px, square (default: %(default)s)")
     p.add_argument("--pixel-size-mm", type=float, default=0.1, help="pixel pitch in mm (default: %(default)s)")
-    add_fit_arguments(p, ["epochs", "color_epochs"])
+    add_fit_arguments(p, ["epochs", "color_epochs", "lobe_shape", "lobe_radius_rings"])
     p.add_argument("--label", default="", help="a name for this run in the JSON (e.g. before, after)")
     p.add_argument("--measured", default=None, help="also write the JSON here")
     p.add_argument("--out", default="results/wood_generators", help="output folder (default: %(default)s)")
@@ -144,6 +144,7 @@ def main(argv=None):
         commit = ""
     result = {"label": args.label, "commit": commit, "size": args.size, "pixel_size_mm": args.pixel_size_mm,
               "epochs": args.epochs, "color_epochs": args.color_epochs, "cases": args.cases,
+              "lobe_shape": args.lobe_shape, "lobe_radius_rings": args.lobe_radius_rings,
               "medians": medians(rows), "rows": rows}
     print(ta_io.markdown_table(rows, FIELDS))
     for gen, m in result["medians"].items():

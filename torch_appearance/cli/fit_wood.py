@@ -41,6 +41,11 @@ FIT_FLAGS = {
     "coarse_to_fine": ("--coarse-to-fine", dict(type=int),
                        "stage-1 distortion levels, coarse first (1: full texture from the start; "
                        "default: %(default)s)"),
+    "lobe_shape": ("--lobe-shape", dict(type=int, nargs=2, metavar=("HTHETA", "HP")),
+                   "texels (azimuth, radius) of the lobes of the innermost rings near the pith; 0 0: none "
+                   "(default: %(default)s)"),
+    "lobe_radius_rings": ("--lobe-radius-rings", dict(type=float),
+                          "radius of the lobe texture round the pith, in ring widths (default: %(default)s)"),
     "color_bins": ("--color-bins", dict(type=int), "lateness samples of the colour map (default: %(default)s)"),
     "contrast_match": ("--contrast-match", dict(action="store_true"),
                        "after stage 2, remap the colour map's luminance so that the fit's luminance histogram is the "
@@ -92,6 +97,8 @@ def config_from_args(args, **fields):
     values = {name: getattr(args, name) for name in FIT_FLAGS if hasattr(args, name)}
     if "photometric_levels" in values:
         values["photometric_levels"] = tuple(values["photometric_levels"])
+    if "lobe_shape" in values and values["lobe_shape"] is not None:
+        values["lobe_shape"] = None if list(values["lobe_shape"]) == [0, 0] else tuple(values["lobe_shape"])
     values.update(fields)
     return WoodFitConfig(**values)
 

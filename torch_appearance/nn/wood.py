@@ -12,6 +12,12 @@ With ``pith_taper_mm = t > 0`` both displacements fade at the pith, m ← m·(1 
 a millimetre round cannot be displaced by a millimetre, so the pith stays at G = 0 and the innermost rings stay
 closed ovals (the wood fit uses one ring width).
 
+Lobes (``lobe_shape=(Hθ, Hp)``, ``lobe_radius_mm = R_p``): the innermost rings of a stem are rarely circles; they bulge
+into lobes that fade within a few rings. m_r over (z, r) cannot draw them (it has no azimuth), so a third texture
+``m_p`` over (θ_t, r ∈ [0, R_p]) (rows periodic in θ_t as the azimuthal texture, columns over r, constant along the
+stem) adds the radial displacement ω(r)·m_p(θ_t, r), with the window ω(r) = (1 − exp(−(r/t_p)²))·(1 − (r/R_p)²)²
+for r < R_p (0 beyond; t_p = R_p/4): 0 at the pith, where the rings stay closed, and 0 from R_p outwards.
+
 The *growth field* G = r' / s_r counts rings from the pith (s_r: mean ring width, mm). Its integer part is the ring
 index (the year), its fractional part the *lateness* ℓ ∈ [0, 1) (early wood → late wood) and φ = 2π·ℓ the phase
 that the phase loss of §3.6 compares against the curved-Gabor phase of a photograph. Colour comes from a per-ring
@@ -167,6 +173,9 @@ class WoodModel(nn.Module):
         color_bins: K, number of lateness samples per ring in ``color_map`` (>= 2), at ℓ = k/(K − 1).
         pith_taper_mm: t (mm, >= 0): the displacements are multiplied by ``1 − exp(−(r/t)²)`` (0 at the pith,
             above 0.98 beyond 2 t); 0 (the default, and the models saved before it existed): no taper.
+        lobe_shape: ``(Hθ, Hp)`` texels (Hθ >= 4, Hp >= 2) of the lobe texture ``m_p`` near the pith, or ``None``
+            (the default: no lobes).
+        lobe_radius_mm: R_p (mm, > 0), the radius within which lobes act; default 3 ring widths.
 
     Parameters (``nn.Parameter``):
         rotation: ``(3,)`` axis-angle (rad) of the board→tree rotation R.
@@ -174,6 +183,7 @@ class WoodModel(nn.Module):
         log_ring_scale: ``()`` log of s_r in mm.
         m_r: ``(1, 1, Hd, Wd)`` mm, radial displacement texture (absent, ``None``, if ``distortion=None``).
         m_t: ``(1, 1, Hd, Wd)`` mm, tangential displacement texture (``None`` unless ``tangential=True``).
+        m_p: ``(1, 1, Hθ, Hp)`` mm, lobe texture near the pith (``None`` unless ``lobe_shape`` is given).
         color_map: ``(n_rings, K, 3)`` linear RGB per ring and lateness sample.
 
     Raises:
@@ -182,7 +192,7 @@ class WoodModel(nn.Module):
 
     def __init__(self, ring_scale_mm=2.0, n_rings=64, distortion="radial", distortion_shape=(32, 64),
                  r_max_mm=None, z_range_mm=(-50.0, 50.0), tangential=False, dtype=torch.float32, *,
-                 color_bins=16, pith_taper_mm=0.0):
+                 color_bins=16, pith_taper_mm=0.0, lobe_shape=None, lobe_radius_mm=None):
         super().__init__()
         ring_scale_mm = check_positive("ring_scale_mm", ring_scale_mm)
         n_rings = check_int("n_rings", n_rings, lo=1)
@@ -213,6 +223,20 @@ class WoodModel(nn.Module):
                 or not math.isfinite(pith_taper_mm) or pith_taper_mm < 0):
             raise ValueError(f"pith_taper_mm: expected a finite number >= 0, got {pith_taper_mm!r}")
 
+        if lobe_shape is not None:
+            if (not isinstance(lobe_shape, (tuple, list)) or len(lobe_shape) != 2
+                    or any(isinstance(v, bool) or not isinstance(v, numbers.Integral) for v in lobe_shape)):
+                raise TypeError(f"lobe_shape: expected None or a pair of integers (Htheta, Hp), got {lobe_shape!r}")
+            if int(lobe_shape[0]) < 4 or int(lobe_shape[1]) < 2:
+                raise ValueError(f"lobe_shape: expected (Htheta, Hp) with Htheta >= 4 and Hp >= 2, "
+                                 f"got {tuple(lobe_shape)}")
+            lobe_shape = (int(lobe_shape[0]), int(lobe_shape[1]))
+            lobe_radius_mm = (3.0 * ring_scale_mm if lobe_radius_mm is None
+                              else check_positive("lobe_radius_mm", lobe_radius_mm))
+        elif lobe_radius_mm is not None:
+            lobe_radius_mm = check_positive("lobe_radius_mm", lobe_radius_mm)
+        self.lobe_shape = lobe_shape
+        self.lobe_radius_mm = None if lobe_radius_mm is None else float(lobe_radius_mm)
         self.n_rings = n_rings
         self.distortion = distortion
         self.distortion_shape = (hd, wd)
@@ -233,6 +257,10 @@ class WoodModel(nn.Module):
             self.m_t = nn.Parameter(torch.zeros(1, 1, hd, wd, dtype=dtype))
         else:
             self.register_parameter("m_t", None)
+        if lobe_shape is not None:
+            self.m_p = nn.Parameter(torch.zeros((1, 1) + lobe_shape, dtype=dtype))
+        else:
+            self.register_parameter("m_p", None)
         late = torch.linspace(0.0, 1.0, color_bins, dtype=torch.float64)
         ramp = late * late * (3 - 2 * late)  # smoothstep: early wood → late wood
         early = torch.tensor(_EARLY_RGB, dtype=torch.float64)
@@ -264,12 +292,14 @@ class WoodModel(nn.Module):
                 "distortion": self.distortion, "distortion_shape": list(self.distortion_shape),
                 "r_max_mm": self.r_max_mm, "z_range_mm": list(self.z_range_mm), "tangential": self.tangential,
                 "dtype": str(self.dtype).replace("torch.", ""), "color_bins": self.color_bins,
-                "pith_taper_mm": self.pith_taper_mm}
+                "pith_taper_mm": self.pith_taper_mm,
+                "lobe_shape": None if self.lobe_shape is None else list(self.lobe_shape),
+                "lobe_radius_mm": self.lobe_radius_mm}
 
     def extra_repr(self) -> str:
         return (f"n_rings={self.n_rings}, distortion={self.distortion!r}, distortion_shape={self.distortion_shape}, "
                 f"r_max_mm={self.r_max_mm:g}, z_range_mm={self.z_range_mm}, tangential={self.tangential}, "
-                f"color_bins={self.color_bins}, pith_taper_mm={self.pith_taper_mm:g}")
+                f"color_bins={self.color_bins}, pith_taper_mm={self.pith_taper_mm:g}, lobe_shape={self.lobe_shape}")
 
     def rotation_matrix(self) -> torch.Tensor:
         """``(3, 3)`` board→tree rotation R(rotation) (differentiable)."""
@@ -277,7 +307,7 @@ class WoodModel(nn.Module):
 
     @torch.no_grad()
     def set_parameters(self, *, rotation=None, translation=None, ring_scale_mm=None, m_r=None, m_t=None,
-                       color_map=None) -> "WoodModel":
+                       color_map=None, m_p=None) -> "WoodModel":
         """Overwrite parameters in place (no gradient), with shape checks; returns ``self``.
 
         Args:
@@ -286,6 +316,7 @@ class WoodModel(nn.Module):
             ring_scale_mm: s_r > 0 (mm).
             m_r: ``(Hd, Wd)`` or ``(1, 1, Hd, Wd)`` mm (requires a distortion texture).
             m_t: same for the tangential texture (requires ``tangential=True``).
+            m_p: ``(Hθ, Hp)`` or ``(1, 1, Hθ, Hp)`` mm, the lobe texture (requires ``lobe_shape``).
             color_map: ``(n_rings, K, 3)`` linear RGB.
 
         Raises:
@@ -317,6 +348,10 @@ class WoodModel(nn.Module):
                 raise ValueError(f"{name}: this model has no {name} texture (distortion={self.distortion!r}, "
                                  f"tangential={self.tangential}), got a value")
             assign(name, param, value, (1, 1) + self.distortion_shape)
+        if m_p is not None:
+            if self.m_p is None:
+                raise ValueError("m_p: this model has no lobe texture (lobe_shape=None), got a value")
+            assign("m_p", self.m_p, m_p, (1, 1) + self.lobe_shape)
         if color_map is not None:
             assign("color_map", self.color_map, color_map, tuple(self.color_map.shape))
         return self
@@ -441,6 +476,10 @@ class WoodModel(nn.Module):
             if "m_t" in values:
                 m_t = values["m_t"]
                 gb = grads["m_t"]
+        if self.m_p is not None:
+            lobe, (d_r, d_t) = self._lobes(r, xs, ys, rs)
+            m_r = m_r + lobe
+            ga = [ga[0] + d_r, ga[1] + d_t, ga[2]]
         a = r + m_r
         if self.tangential:
             r2 = a * a + m_t * m_t
@@ -461,6 +500,28 @@ class WoodModel(nn.Module):
         f_r, f_t, f_z = -g_z * g_r / denom, -g_z * g_t / denom, h2 / denom
         fiber = torch.stack([f_r * cos_t - f_t * sin_t, f_r * sin_t + f_t * cos_t, f_z], -1)
         return G, m_r, fiber
+
+    def _lobes(self, r, xs, ys, rs):
+        """Lobe displacement ω(r)·m_p(θ_t, r) (N,) and its gradient's (r̂, θ̂) components."""
+        hp_t, hp_r = self.lobe_shape
+        big = self.lobe_radius_mm
+        theta = torch.atan2(ys, xs)
+        tex = torch.cat([self.m_p, self.m_p[:, :, :1]], dim=2)           # θ = π wraps onto row 0
+        rc = r.clamp(max=big)
+        gx = 2.0 * rc / big - 1.0                                         # columns over r ∈ [0, R_p]
+        gy = theta / math.pi
+        value = self._sample(tex, gx, gy)
+        d_dx, d_dy = _bilinear_derivatives(tex[0], (gx + 1.0) * (0.5 * (hp_r - 1)),
+                                           (theta + math.pi) * (hp_t / (2 * math.pi)))
+        dv_dr, dv_dt = d_dx[0] * ((hp_r - 1) / big), d_dy[0] * (hp_t / (2 * math.pi)) / rs
+        t = big / 4.0
+        u = r / t
+        e = torch.exp(-u * u)
+        x = (r / big).clamp(max=1.0)
+        win = (1.0 - x * x) ** 2
+        omega = (1.0 - e) * win
+        d_omega = 2.0 * u / t * e * win + (1.0 - e) * (-4.0 * x * (1.0 - x * x) / big)
+        return omega * value, (d_omega * value + omega * dv_dr, omega * dv_dt)
 
     def evaluate(self, points: torch.Tensor, board: bool = False) -> dict:
         """Evaluate the growth field and colour at points.

@@ -53,6 +53,29 @@ def _texture_weights(model, q):
     return sparse.csr_matrix((vals, (rows, cols)), shape=(n, hd * wd))
 
 
+def _lobe_weights(model, q):
+    """Sparse (N, Hθ·Hp) weights of the model's lobe texture m_p at tree points q (N, 3): its bilinear lookup over
+    (θ_t periodic, r ∈ [0, R_p]) times the window ω(r) (WoodModel._lobes)."""
+    ht, hp = model.lobe_shape
+    big = model.lobe_radius_mm
+    r = np.hypot(q[:, 0], q[:, 1])
+    ix = np.clip(r / big, 0, 1) * (hp - 1)
+    iy = (np.arctan2(q[:, 1], q[:, 0]) + math.pi) * (ht / _TWO_PI)
+    x0 = np.minimum(np.floor(ix).astype(np.int64), hp - 2)
+    fx = ix - x0
+    y0 = np.floor(iy).astype(np.int64)
+    fy = iy - y0
+    y0 %= ht
+    y1 = (y0 + 1) % ht
+    x = np.minimum(r / big, 1.0)
+    omega = (1.0 - np.exp(-(r / (big / 4.0)) ** 2)) * (1.0 - x * x) ** 2
+    n = len(q)
+    rows = np.repeat(np.arange(n), 4)
+    cols = np.stack([y0 * hp + x0, y0 * hp + x0 + 1, y1 * hp + x0, y1 * hp + x0 + 1], 1).ravel()
+    vals = (np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], 1) * omega[:, None]).ravel()
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(n, ht * hp))
+
+
 def _laplacian(hd, wd, periodic_rows):
     """Graph Laplacian of the texel grid (smoothness prior)."""
     idx = np.arange(hd * wd).reshape(hd, wd)
@@ -71,7 +94,8 @@ def _laplacian(hd, wd, periodic_rows):
 
 def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=None, distortion="radial",
                        distortion_shape=(32, 64), n_rings=64, smoothness=1e-3, dense_refine=True,
-                       dtype=None, return_info=False, color_bins=16, pith_taper_rings=1.0):
+                       dtype=None, return_info=False, color_bins=16, pith_taper_rings=1.0, lobe_shape=None,
+                       lobe_radius_rings=4.0):
     """Initial WoodModel (board transform, ring scale, radial distortion) from a board estimate (paper §3.5).
 
     The distortion starts from the paper's recipe, the difference between the observed traced rings and their
@@ -91,6 +115,9 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
         rings: ring polylines; default ``estimate.rings`` (with ``estimate.ring_index``).
         distortion, distortion_shape, n_rings, color_bins: passed to ``WoodModel``.
         pith_taper_rings: the model's ``pith_taper_mm`` in ring widths (0: no taper).
+        lobe_shape: ``(Hθ, Hp)`` of the model's lobe texture near the pith (``WoodModel(lobe_shape=...)``), fitted
+            with the distortion in the dense refinement; ``None``: no lobes. lobe_radius_rings: its radius R_p in
+            ring widths (> 0).
         smoothness: weight of the Laplacian prior relative to the mean data weight per texel.
         dense_refine: add the wrapped dense phase residual (recommended).
         dtype: torch dtype of the model (default float32).
@@ -116,6 +143,10 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     from .tracing import _as_field
 
     phase = _as_field("phase", phase, tuple(estimate.image_shape))
+    if lobe_shape is not None:
+        from ..checks import check_positive
+
+        lobe_radius_rings = check_positive("lobe_radius_rings", lobe_radius_rings)
     mag = None if magnitude is None else _as_field("magnitude", magnitude, phase.shape)
     dtype = torch.float32 if dtype is None else dtype
     h, w = estimate.image_shape
@@ -131,7 +162,8 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     r_max = float(r.max() + 2 * s_r)
     model = WoodModel(ring_scale_mm=s_r, n_rings=n_rings, distortion=distortion, distortion_shape=distortion_shape,
                       r_max_mm=r_max, z_range_mm=z_range, dtype=dtype, color_bins=color_bins,
-                      pith_taper_mm=pith_taper_rings * s_r)
+                      pith_taper_mm=pith_taper_rings * s_r, lobe_shape=lobe_shape,
+                      lobe_radius_mm=None if lobe_shape is None else lobe_radius_rings * s_r)
     model.set_parameters(rotation=torch.as_tensor(estimate.rotation, dtype=torch.float64),
                          translation=torch.as_tensor(estimate.translation, dtype=torch.float64))
 
@@ -164,12 +196,17 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     hd, wd = model.distortion_shape
     lap = _laplacian(hd, wd, periodic_rows=distortion == "azimuthal")
 
-    def solve(a_mat, values, weights):
-        wmat = sparse.diags(weights)
-        ata = (a_mat.T @ wmat @ a_mat).tocsr()
+    def solve(a_mat, values, weights, a_lobe=None):
+        """Weighted least squares of the texture (and, with ``a_lobe``, the lobe texture beside it)."""
         lam = smoothness * max(float(weights.sum()) / (hd * wd), 1e-12)
-        lhs = ata + lam * lap + 1e-9 * lam * sparse.identity(hd * wd)
-        return sparse_linalg.spsolve(lhs.tocsc(), a_mat.T @ (weights * values))
+        prior = lam * lap + 1e-9 * lam * sparse.identity(hd * wd)
+        if a_lobe is not None:   # the lobes: the same smoothness per texel, and a ridge that keeps unseen ones at 0
+            a_mat = sparse.hstack([a_mat, a_lobe]).tocsr()
+            prior = sparse.block_diag([prior, lam * lap_lobe + 1e-3 * lam * sparse.identity(lap_lobe.shape[0])])
+        wmat = sparse.diags(weights)
+        lhs = (a_mat.T @ wmat @ a_mat).tocsr() + prior
+        x = sparse_linalg.spsolve(lhs.tocsc(), a_mat.T @ (weights * values))
+        return x if a_lobe is None else (x[: hd * wd], x[hd * wd:])
 
     # ring displacements are sparse in (z, r): fit them with a stronger smoothness so that texels between rings
     # interpolate; then add the offset that matches the dense resolved phase
@@ -181,18 +218,38 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
     offset = np.angle((weight * np.exp(1j * resid)).sum())
     tex = tex + s_r * offset / _TWO_PI
+    # the lobe texture takes part only where the pith region (r < R_p) is on the board
+    a_lobe = lobe = None
+    if lobe_shape is not None:
+        a_lobe = _lobe_weights(model, q)
+        lobe = np.zeros(a_lobe.shape[1])
+        if a_lobe.nnz == 0 or not np.any(a_lobe.sum(axis=0) > 0):
+            a_lobe = None
+        else:
+            lap_lobe = _laplacian(*model.lobe_shape, periodic_rows=True)
+
+    def displacement():
+        return a_pix @ tex + (0.0 if a_lobe is None else a_lobe @ lobe)
+
     if dense_refine:
-        m_pix = a_pix @ tex
+        m_pix = displacement()
         resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
         # unwrapped: a wrapped residual jumps by 2π where it crosses ±π, and a texture fitted to it puts a whole
         # ring's displacement step there (the blocky 2π slips along texel cells that the cyclic loss cannot undo)
         resid = unwrap_phase(resid.reshape(h, w), weight.reshape(h, w)).ravel()
-        tex = solve(a_pix, m_pix + s_r * resid / _TWO_PI, weight + 1e-12)
+        if a_lobe is None:
+            tex = solve(a_pix, m_pix + s_r * resid / _TWO_PI, weight + 1e-12)
+        else:
+            tex, lobe = solve(a_pix, m_pix + s_r * resid / _TWO_PI, weight + 1e-12, a_lobe)
         # then the small remainder the smooth texture could not follow, only where it is below π/2 (no 2π cut)
-        m_pix = a_pix @ tex
+        m_pix = displacement()
         resid = wrap_angle(resolved.ravel() - _TWO_PI * (r + m_pix) / s_r)
         near = np.abs(resid) < math.pi / 2
-        tex = solve(a_pix, m_pix + s_r * np.where(near, resid, 0.0) / _TWO_PI, weight * near + 1e-12)
+        if a_lobe is None:
+            tex = solve(a_pix, m_pix + s_r * np.where(near, resid, 0.0) / _TWO_PI, weight * near + 1e-12)
+        else:
+            tex, lobe = solve(a_pix, m_pix + s_r * np.where(near, resid, 0.0) / _TWO_PI, weight * near + 1e-12,
+                              a_lobe)
     # A constant displacement c only shifts the model phase by 2π c / s_r away from the pith, so it is carried as a
     # shift of the target phase: left in the texture (about −0.35 ring on pith-inside boards) it made G negative at
     # the pith, and the taper there would fight it
@@ -201,6 +258,8 @@ def initial_wood_model(estimate: BoardEstimate, phase, *, magnitude=None, rings=
     phase_offset = _TWO_PI * c / s_r
     resolved = np.mod(resolved - phase_offset, _TWO_PI)
     model.set_parameters(m_r=torch.as_tensor(tex.reshape(hd, wd), dtype=torch.float64))
+    if lobe is not None:
+        model.set_parameters(m_p=torch.as_tensor(lobe.reshape(model.lobe_shape), dtype=torch.float64))
     if not return_info:
         return model
     with torch.no_grad():

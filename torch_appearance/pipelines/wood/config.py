@@ -32,6 +32,10 @@ class WoodFitConfig:
     smoothness: float = 1.0  # weight of the distortion prior (squared texel-to-texel change, in ring widths)
     color_bins: int = 32  # lateness samples of the colour map (a thin latewood line needs a few of its own)
     coarse_to_fine: int = 3  # stage-1 distortion levels (1: the full texture from the start, as before)
+    # lobes of the innermost rings: a (θ, r) texture of lobe_shape texels within lobe_radius_rings ring widths of the
+    # pith (WoodModel(lobe_shape=...)); None: no lobe texture (the growth field is m_r(z, r) alone)
+    lobe_shape: Optional[tuple] = (16, 8)
+    lobe_radius_rings: float = 4.0
     # after stage 2: remap the colour map's luminance so that the fit's luminance histogram is the photo's (the
     # per-bin photo means blur latewood into earlywood wherever the fitted phase is off by a fraction of a ring)
     contrast_match: bool = False
@@ -92,6 +96,14 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v > 0):
                 raise ValueError(f"{name}: expected > 0, got {v!r}")
+        if self.lobe_shape is not None and (
+                not isinstance(self.lobe_shape, (tuple, list)) or len(self.lobe_shape) != 2
+                or any(isinstance(v, bool) or not isinstance(v, int) for v in self.lobe_shape)
+                or self.lobe_shape[0] < 4 or self.lobe_shape[1] < 2):
+            raise ValueError(f"lobe_shape: expected None or (Htheta >= 4, Hp >= 2), got {self.lobe_shape!r}")
+        if not (isinstance(self.lobe_radius_rings, (int, float)) and not isinstance(self.lobe_radius_rings, bool)
+                and math.isfinite(self.lobe_radius_rings) and self.lobe_radius_rings > 0):
+            raise ValueError(f"lobe_radius_rings: expected a finite value > 0, got {self.lobe_radius_rings!r}")
         if self.distortion not in ("radial", "azimuthal"):
             raise ValueError(f"distortion: expected 'radial' or 'azimuthal', got {self.distortion!r}")
         if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):

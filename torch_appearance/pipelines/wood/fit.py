@@ -70,7 +70,9 @@ def detect_board(cfg, rgb, gray):
     estimate, pith_info = choose_pith_side(estimate, gab.phase, gray, magnitude=gab.magnitude, rings=rings)
     model, info = initial_wood_model(estimate, gab.phase, magnitude=gab.magnitude, rings=rings,
                                      distortion=cfg.distortion, distortion_shape=tuple(cfg.distortion_shape),
-                                     dtype=torch.float32, return_info=True, color_bins=cfg.color_bins)
+                                     dtype=torch.float32, return_info=True, color_bins=cfg.color_bins,
+                                     lobe_shape=None if cfg.lobe_shape is None else tuple(cfg.lobe_shape),
+                                     lobe_radius_rings=cfg.lobe_radius_rings)
     timings["board_estimate_s"] = time.perf_counter() - t0
     return gab, rings, estimate, pith_info, model, info, timings
 

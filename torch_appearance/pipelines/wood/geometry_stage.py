@@ -55,10 +55,15 @@ class _DistortionPyramid:
 def distortion_prior(model, m_r=None):
     """Smoothness prior of the radial distortion texture: mean squared change between neighbouring texels, in
     ring widths² (dimensionless). It keeps m_r from imitating a different ring scale or axis distance (a
-    distortion growing with r is indistinguishable from a ring-scale change) and from fitting noise.
+    distortion growing with r is indistinguishable from a ring-scale change) and from fitting noise. The lobe
+    texture near the pith (``model.m_p``), when the model has one, is held smooth the same way.
     ``m_r`` (``(1, 1, Hd, Wd)`` mm) replaces the model's own texture when given."""
     m = (model.m_r if m_r is None else m_r) / model.ring_scale
-    return (m[..., 1:, :] - m[..., :-1, :]).pow(2).mean() + (m[..., :, 1:] - m[..., :, :-1]).pow(2).mean()
+    prior = (m[..., 1:, :] - m[..., :-1, :]).pow(2).mean() + (m[..., :, 1:] - m[..., :, :-1]).pow(2).mean()
+    if getattr(model, "m_p", None) is not None:   # the lobe texture: rows periodic in θ_t, columns over r
+        p = model.m_p / model.ring_scale
+        prior = prior + (p - torch.roll(p, 1, dims=2)).pow(2).mean() + (p[..., 1:] - p[..., :-1]).pow(2).mean()
+    return prior
 
 
 def _phase_normalised_groups(model, h, w, cfg):
@@ -74,7 +79,7 @@ def _phase_normalised_groups(model, h, w, cfg):
         g_mean = float(model.render_board(h, w, cfg.pixel_size_mm)["G"].abs().mean().clamp_min(1.0))
     s_r = float(model.ring_scale.detach())
     r_mean = g_mean * s_r
-    scale = {"translation": s_r, "rotation": s_r / r_mean, "log_ring_scale": 1.0 / g_mean, "m_r": s_r, "m_t": s_r}
+    scale = {"translation": s_r, "rotation": s_r / r_mean, "log_ring_scale": 1.0 / g_mean, "m_r": s_r, "m_t": s_r, "m_p": s_r}
     groups = []
     for name, param in model.named_parameters():
         if name == "color_map":
