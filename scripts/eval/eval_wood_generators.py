@@ -10,6 +10,10 @@ the pith inside) and the independent generator (``torch_appearance.testing.synth
 how much the boundaries' misplacement varies across the board) and the RMS over the two innermost rings. Knot
 pixels (no stem phase) are left out.
 
+Each run folder also gets ``overlay.png``: the photo with the true ring boundaries (white) and the fitted ones
+(red dashed: integer levels of the fitted G less the constant phase offset), beside the fit's phase error against
+the truth. ``--redraw`` rescores and redraws run folders that already hold a fitted model, without fitting.
+
 Outputs: ``OUT/generators.json`` (settings, rows, per-generator medians) and the table on stdout; ``--measured
 PATH`` also writes the JSON there (e.g. scripts/eval/measured/wood_generators.json).
 
@@ -68,11 +72,48 @@ def make_board(kind, seed, size, ps):
     return b["image"], b["G"], b["valid"], "independent (testing.synthetic_boards)"
 
 
-def evaluate(kind, seed, args, log):
+def overlay(folder, image, G_true, G_fit, offset, valid, title):
+    """``overlay.png``: true (white) and fitted (red dashed) ring boundaries on the photo, and |phase error|."""
+    import math
+
+    from matplotlib.figure import Figure
+
+    h, w = G_true.shape
+    fit_levels = G_fit - offset / (2 * math.pi)
+    err = np.angle(np.exp(1j * (2 * math.pi * (fit_levels - G_true))))
+    if valid is not None:
+        err = np.where(valid, err, np.nan)
+    fig = Figure(figsize=(11, 0.9 + 5.0 * h / w), layout="constrained")
+    ax = fig.subplots(1, 2)
+    ax[0].imshow(np.clip(image, 0, 1) ** (1 / 2.2))
+    ax[0].contour(G_true, levels=np.arange(np.ceil(G_true.min()), G_true.max() + 1), colors="white", linewidths=1.0)
+    ax[0].contour(fit_levels, levels=np.arange(np.ceil(fit_levels.min()), fit_levels.max() + 1), colors="red",
+                  linewidths=1.0, linestyles="--")
+    ax[0].set_title(f"{title}: true (white) and fitted (red) boundaries")
+    im = ax[1].imshow(np.abs(err), cmap="magma", vmin=0, vmax=math.pi)
+    ax[1].set_title("|fitted − true phase| (constant offset removed) [rad]")
+    fig.colorbar(im, ax=ax[1], fraction=0.046)
+    for a in ax:
+        a.axis("off")
+    ta_io.save_figure(fig, os.path.join(folder, "overlay.png"), dpi=110)
+
+
+def score_folder(folder, case, image, G, valid, n, ps):
+    """Scores and overlay of the fitted model in ``folder``."""
     import torch
     from torch_appearance.nn.wood import WoodModel
-    from torch_appearance.pipelines.wood import fit_wood
     from torch_appearance.testing.synthetic_boards import phase_scores
+
+    model = WoodModel.load(os.path.join(folder, "model"))
+    with torch.no_grad():
+        out = model.render_board(n, n, ps)
+    scores = phase_scores(out["phase"].double().numpy(), G, valid)
+    overlay(folder, image, G, out["G"].double().numpy(), scores["offset"], valid, case)
+    return scores
+
+
+def evaluate(kind, seed, args, log):
+    from torch_appearance.pipelines.wood import fit_wood
 
     n, ps = args.size, args.pixel_size_mm
     image, G, valid, generator = make_board(kind, seed, n, ps)
@@ -83,6 +124,11 @@ def evaluate(kind, seed, args, log):
     ta_io.write_png(photo, image)
     np.save(os.path.join(folder, "G_true.npy"), G)
     row = {"case": case, "generator": generator, "run_folder": os.path.abspath(folder)}
+    if args.redraw:
+        if not os.path.exists(os.path.join(folder, "model.json")):
+            row.update(status="no fitted model")
+            return row
+        return dict(row, status="redrawn", **score_folder(folder, case, image, G, valid, n, ps))
     cfg = config_from_args(args, photo=photo, out=folder, pixel_size_mm=ps, preview=False, seed=0)
     t0 = time.perf_counter()
     try:
@@ -90,10 +136,7 @@ def evaluate(kind, seed, args, log):
     except ValueError as exc:
         row.update(status=f"refused: {exc}", wall_s=time.perf_counter() - t0)
         return row
-    model = WoodModel.load(os.path.join(folder, "model"))
-    with torch.no_grad():
-        fit_phase = model.render_board(n, n, ps)["phase"].double().numpy()
-    row.update(phase_scores(fit_phase, G, valid), status="ok" if summary["fit_ok"] else "poor fit",
+    row.update(score_folder(folder, case, image, G, valid, n, ps), status="ok" if summary["fit_ok"] else "poor fit",
                wall_s=time.perf_counter() - t0, fit_phase_rms_vs_gabor=summary["final_phase_rms"],
                ssim_fit_vs_photo=summary["ssim_fit_vs_photo"])
     return row
@@ -120,6 +163,7 @@ def main(argv=None):
     p.add_argument("--pixel-size-mm", type=float, default=0.1, help="pixel pitch in mm (default: %(default)s)")
     add_fit_arguments(p, ["epochs", "color_epochs", "lobe_shape", "lobe_radius_rings"])
     p.add_argument("--label", default="", help="a name for this run in the JSON (e.g. before, after)")
+    p.add_argument("--redraw", action="store_true", help="rescore and redraw run folders that hold a fitted model")
     p.add_argument("--measured", default=None, help="also write the JSON here")
     p.add_argument("--out", default="results/wood_generators", help="output folder (default: %(default)s)")
     args = p.parse_args(argv)

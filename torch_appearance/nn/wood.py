@@ -15,8 +15,10 @@ closed ovals (the wood fit uses one ring width).
 Lobes (``lobe_shape=(Hθ, Hp)``, ``lobe_radius_mm = R_p``): the innermost rings of a stem are rarely circles; they bulge
 into lobes that fade within a few rings. m_r over (z, r) cannot draw them (it has no azimuth), so a third texture
 ``m_p`` over (θ_t, r ∈ [0, R_p]) (rows periodic in θ_t as the azimuthal texture, columns over r, constant along the
-stem) adds the radial displacement ω(r)·m_p(θ_t, r), with the window ω(r) = (1 − exp(−(r/t_p)²))·(1 − (r/R_p)²)²
-for r < R_p (0 beyond; t_p = R_p/4): 0 at the pith, where the rings stay closed, and 0 from R_p outwards.
+stem) adds the radial displacement ω(r)·m_p(θ_t, r), with the window ω(r) = (1 − exp(−r/t_p))·(1 − (r/R_p)²)²
+for r < R_p (0 beyond; t_p = R_p/4): 0 at the pith, where the rings stay closed, and 0 from R_p outwards. Unlike
+the pith taper of m_r (quadratic at the pith, so the first ring keeps the width s_r), ω grows linearly from the
+pith: the innermost ring may be wider or narrower than s_r, and differently so in every direction (a lobed cone).
 
 The *growth field* G = r' / s_r counts rings from the pith (s_r: mean ring width, mm). Its integer part is the ring
 index (the year), its fractional part the *lateness* ℓ ∈ [0, 1) (early wood → late wood) and φ = 2π·ℓ the phase
@@ -516,11 +518,11 @@ class WoodModel(nn.Module):
         dv_dr, dv_dt = d_dx[0] * ((hp_r - 1) / big), d_dy[0] * (hp_t / (2 * math.pi)) / rs
         t = big / 4.0
         u = r / t
-        e = torch.exp(-u * u)
+        e = torch.exp(-u)
         x = (r / big).clamp(max=1.0)
         win = (1.0 - x * x) ** 2
         omega = (1.0 - e) * win
-        d_omega = 2.0 * u / t * e * win + (1.0 - e) * (-4.0 * x * (1.0 - x * x) / big)
+        d_omega = e / t * win + (1.0 - e) * (-4.0 * x * (1.0 - x * x) / big)
         return omega * value, (d_omega * value + omega * dv_dr, omega * dv_dt)
 
     def evaluate(self, points: torch.Tensor, board: bool = False) -> dict:

@@ -68,7 +68,7 @@ def _lobe_weights(model, q):
     y0 %= ht
     y1 = (y0 + 1) % ht
     x = np.minimum(r / big, 1.0)
-    omega = (1.0 - np.exp(-(r / (big / 4.0)) ** 2)) * (1.0 - x * x) ** 2
+    omega = (1.0 - np.exp(-r / (big / 4.0))) * (1.0 - x * x) ** 2
     n = len(q)
     rows = np.repeat(np.arange(n), 4)
     cols = np.stack([y0 * hp + x0, y0 * hp + x0 + 1, y1 * hp + x0, y1 * hp + x0 + 1], 1).ravel()
