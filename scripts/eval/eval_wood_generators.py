@@ -128,7 +128,14 @@ def evaluate(kind, seed, args, log):
         if not os.path.exists(os.path.join(folder, "model.json")):
             row.update(status="no fitted model")
             return row
-        return dict(row, status="redrawn", **score_folder(folder, case, image, G, valid, n, ps))
+        import json
+
+        summary = json.load(open(os.path.join(folder, "summary.json"), encoding="utf-8"))
+        timings = summary.get("timings_s", {})
+        return dict(row, status="ok (redrawn)" if summary["fit_ok"] else "poor fit (redrawn)",
+                    wall_s=sum(v for v in timings.values() if isinstance(v, (int, float))),
+                    fit_phase_rms_vs_gabor=summary["final_phase_rms"], ssim_fit_vs_photo=summary["ssim_fit_vs_photo"],
+                    **score_folder(folder, case, image, G, valid, n, ps))
     cfg = config_from_args(args, photo=photo, out=folder, pixel_size_mm=ps, preview=False, seed=0)
     t0 = time.perf_counter()
     try:
@@ -177,19 +184,20 @@ def main(argv=None):
               f"{args.pixel_size_mm}", file=sys.stderr)
         return 2
     os.makedirs(args.out, exist_ok=True)
-    rows = []
-    for kind, seed in cases:
-        rows.append(ta_io.nan_to_none(evaluate(kind, seed, args, log=print)))
-        print(ta_io.markdown_table(rows[-1:], FIELDS).splitlines()[-1], flush=True)
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip()
     except OSError:
         commit = ""
-    result = {"label": args.label, "commit": commit, "size": args.size, "pixel_size_mm": args.pixel_size_mm,
-              "epochs": args.epochs, "color_epochs": args.color_epochs, "cases": args.cases,
-              "lobe_shape": args.lobe_shape, "lobe_radius_rings": args.lobe_radius_rings,
-              "medians": medians(rows), "rows": rows}
+    rows = []
+    for kind, seed in cases:
+        rows.append(ta_io.nan_to_none(evaluate(kind, seed, args, log=print)))
+        print(ta_io.markdown_table(rows[-1:], FIELDS).splitlines()[-1], flush=True)
+        result = {"label": args.label, "commit": commit, "size": args.size, "pixel_size_mm": args.pixel_size_mm,
+                  "epochs": args.epochs, "color_epochs": args.color_epochs, "cases": args.cases,
+                  "lobe_shape": args.lobe_shape, "lobe_radius_rings": args.lobe_radius_rings,
+                  "medians": medians(rows), "rows": rows}
+        ta_io.write_json(os.path.join(args.out, "generators.json"), ta_io.nan_to_none(result))   # after every board
     print(ta_io.markdown_table(rows, FIELDS))
     for gen, m in result["medians"].items():
         print(f"{gen}: median phase RMS {m['median_phase_rms']}, boundary circ. std {m['median_boundary_circular_std']}")
