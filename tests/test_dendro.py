@@ -321,7 +321,7 @@ def test_real_patch_2_within_3px(real_results):
 
 def test_real_patches_1_3_near_the_label(real_results):
     # measured at 6 px: patch 1 F1 0.77 (mean 3.6 px), patch 3 F1 0.70 (mean 5.7 px); at 3 px only 0.37 / 0.37.
-    # Patches 4 and 5 are not asserted: the curve found runs parallel to the label 8 and 14 px away (scripts/bench/README.md).
+    # Patches 4 and 5 are not asserted: the curve found runs parallel to the label 8 and 14 px away (docs/bench_log.md).
     for k, (f1_min, mean_max) in {1: (0.6, 5.0), 3: (0.55, 7.5)}.items():
         _, m6 = real_results[k]
         assert m6["f1"] >= f1_min and m6["mean_error_px"] <= mean_max, (k, m6)

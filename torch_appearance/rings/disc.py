@@ -45,7 +45,8 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    (default P / 2) adds its boundaries where two neighbouring first-pass boundaries are less than ``narrow_gap P``
    (0.8; leave-one-disc-out on the TRAS discs C13C / C17C 0.6 gained about one boundary per disc on both, but it
    lost 0.014 on the independent synthetic discs whose rings shrink 10x to the bark - the unseen discs' failure -
-   so 0.8 stays: ``scripts/eval/measured/disc_lodo.json``, ``scripts/bench/README.md``) apart and the new one lies at least a quarter of that gap from both
+   so 0.8 stays: ``scripts/eval/measured/disc_lodo.json``, ``docs/bench_log.md``) apart and the new one lies at
+   least a quarter of that gap from both
    (``_narrow_ring_boundaries``); in wide rings the fine pass's extra cycles (earlywood texture) fall in wider gaps
    and are not taken. The fine pass
    filters the strip only from two of its filter lengths before the first such narrow gap outwards
