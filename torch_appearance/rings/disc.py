@@ -253,8 +253,8 @@ def _dark_bark_start(rows, *, dark=0.45, min_px=4, sigma=1.5):
     """Where a dark bark band begins on a transect whose wood mask ran up to the background (``rows`` ``(S, L, 3)``,
     the central rows up to the last wood-or-bark column): the bark is not background, so the mask counts it as
     wood. When the last columns are dark (smoothed HSV V below ``dark`` times the median of the inner 60 %) in one
-    run of at least ``min_px`` reaching to within 5 px of the end, the wood ends before the steepest fall of brightness at the run's
-    start; else None."""
+    run of at least ``min_px`` reaching to within 5 px of the end, the wood ends before the steepest fall of
+    brightness at the run's start; else None."""
     v = ndimage.gaussian_filter1d(rows.mean(0).max(1), sigma, mode="nearest")
     L = len(v)
     if L < 20:
