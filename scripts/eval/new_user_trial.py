@@ -541,7 +541,6 @@ def main(argv=None):
     if unknown:
         p.error(f"--commands: unknown {unknown}; expected some of {list(COMMANDS)}")
     os.makedirs(args.out, exist_ok=True)
-    sys.path.insert(0, ROOT) if ROOT not in sys.path else None
     work = tempfile.mkdtemp(prefix="ta-trial-")
     t0 = time.monotonic()
     try:
