@@ -290,17 +290,17 @@ def test_ctrl_c_in_fit_wood_leaves_no_partial_fit(tmp_path):
 
 
 def test_an_interrupted_fit_over_an_earlier_one_drops_its_summary(tmp_path):
-    from torch_appearance.cli.fit_wood import _listing, _undo_partial_fit
+    from torch_appearance.cli.command import folder_listing, undo_partial
 
     folder = tmp_path / "fit"
     folder.mkdir()
     for name in ("summary.json", "phase.npy", "notes.txt"):
         (folder / name).write_text("earlier")
-    before = _listing(str(folder))
-    assert _undo_partial_fit(str(folder), before) == f"{str(folder)!r} is as it was (start it again)"
+    before = folder_listing(str(folder))
+    assert undo_partial(str(folder), before, "fit") == f"{str(folder)!r} is as it was (start it again)"
     (folder / "orientation.png").write_text("new")  # added by the interrupted fit: removed
     os.remove(folder / "phase.npy")
     (folder / "phase.npy").write_text("replaced")   # replaced: the earlier fit is no longer whole
-    message = _undo_partial_fit(str(folder), before)
+    message = undo_partial(str(folder), before, "fit")
     assert "partly replaced (phase.npy)" in message and "summary.json is removed" in message
     assert sorted(os.listdir(folder)) == ["notes.txt", "phase.npy"]

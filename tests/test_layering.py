@@ -13,7 +13,7 @@ PACKAGE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 #: bottom to top; a unit is a subpackage or a top-level module of torch_appearance
 LAYERS = [
     {"_buildinfo", "_ext", "_C", "checks", "color"},   # build guard, input checks, colour science
-    {"io", "metrics", "print_error", "progress"},       # files in and out, error metrics, progress bars
+    {"io", "metrics", "print_error", "progress", "interrupts"},  # files, error metrics, progress bars, Ctrl-C
     {"autograd", "render"},                             # the tracer: scene pieces, entry points, autograd Function
     {"geometry", "fabrication"},                        # meshes → voxels, inks, quantisation, printer export
     {"nn", "rings"},                                    # models and losses, ring detection

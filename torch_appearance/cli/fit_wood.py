@@ -17,14 +17,12 @@ Examples:
     ta-fit-wood board.jpg --dpi 600 --epochs 300 --out results/board600
     ta-fit-wood board.png --photometric --out results/board_photo
 """
-import contextlib
-import os
-import shutil
 import sys
 
 from ..pipelines.wood.config import WoodFitConfig
 from ..pipelines.wood.fit import fit_wood
-from .command import CommandParser, check_output_folder, fail, flag_names, interrupted
+from .command import (CommandParser, check_output_folder, fail, flag_names, folder_listing, interrupted,
+                      undo_partial)
 
 __all__ = ["add_fit_arguments", "config_from_args", "parser", "main", "FIT_FLAGS"]
 
@@ -130,50 +128,15 @@ def main(argv=None, prog=PROG):
     if args.dpi is not None and args.dpi <= 0:
         p.error(f"--dpi: expected > 0, got {args.dpi}")
     cfg = config_from_args(args, photo=args.photo, out=args.out, pixel_size_mm=pixel, preview=not args.no_preview)
-    before = _listing(args.out)
+    before = folder_listing(args.out)
     try:
         fit_wood(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         return fail(prog, error, flag_names(p), vars(args))
     except KeyboardInterrupt:
-        return interrupted(prog, _undo_partial_fit(args.out, before))
+        return interrupted(prog, undo_partial(args.out, before, "fit"))
     return 0
 
-
-def _listing(folder):
-    """``{name: (inode, size, mtime_ns)}`` of the files in ``folder``; None when it does not exist."""
-    if not os.path.isdir(folder):
-        return None
-    entries = {}
-    for entry in os.scandir(folder):
-        if entry.is_file(follow_symlinks=False):
-            stat = entry.stat(follow_symlinks=False)
-            entries[entry.name] = (stat.st_ino, stat.st_size, stat.st_mtime_ns)
-    return entries
-
-
-def _undo_partial_fit(folder, before):
-    """After Ctrl-C: no partial fit is left as if it were one. A folder the fit created is removed; in an existing
-    one the files the fit added are removed, and when it had already replaced files of an earlier fit, that fit's
-    ``summary.json`` goes too (a folder holds a whole fit exactly when it holds summary.json). Returns what was kept,
-    for the one line."""
-    if before is None:
-        shutil.rmtree(folder, ignore_errors=True)
-        return "nothing was written (start it again)"
-    after = _listing(folder) or {}
-    for name in set(after) - set(before):
-        with contextlib.suppress(OSError):
-            os.remove(os.path.join(folder, name))
-    replaced = sorted(name for name in set(after) & set(before) if after[name] != before[name])
-    if not replaced:
-        return f"{folder!r} is as it was (start it again)"
-    dropped = ""
-    if "summary.json" in before and "summary.json" not in replaced:
-        with contextlib.suppress(OSError):
-            os.remove(os.path.join(folder, "summary.json"))
-        dropped = ": its summary.json is removed"
-    return (f"the earlier fit in {folder!r} was partly replaced ({', '.join(replaced[:3])}"
-            f"{', ...' if len(replaced) > 3 else ''}) and is incomplete{dropped}; start the fit again to redo it")
 
 if __name__ == "__main__":
     sys.exit(main())

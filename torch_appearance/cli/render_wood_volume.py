@@ -15,14 +15,11 @@ Examples:
     ta-render-wood-volume --synthetic 3 --out results/wood_volume
     ta-render-wood-volume results/board --out results/board_volume --spp 64 --passes 8
 """
-import contextlib
-import os
-import shutil
 import sys
 
 from torch_appearance.pipelines.wood_volume_render import LampshadeGeometry, WoodVolumeConfig, render_wood_volume
 
-from .command import CommandParser, check_output_folder, fail, interrupted
+from .command import CommandParser, check_output_folder, fail, folder_listing, interrupted, undo_partial
 
 PROG = "ta-render-wood-volume"
 
@@ -75,7 +72,7 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
-    before = _listing(args.out)
+    before = folder_listing(args.out)
     try:
         shade = LampshadeGeometry(*args.shade, voxel_mm=args.shade_voxel_mm)
         cfg = WoodVolumeConfig(out=args.out, fit_dir=args.fit_dir, synthetic_seed=args.synthetic,
@@ -91,35 +88,8 @@ def main(argv=None):
     except (ValueError, TypeError) as error:
         return fail(PROG, error)
     except KeyboardInterrupt:
-        return interrupted(PROG, _undo_partial(args.out, before))
+        return interrupted(PROG, undo_partial(args.out, before, "render"))
     return 0
-
-
-def _undo_partial(folder, before):
-    """After Ctrl-C: a folder this run made is removed, the files it added to an existing one are removed, and when
-    it had replaced files there, that folder's summary.json goes too (a whole render holds summary.json, written
-    last). Returns the rest of the one line."""
-    if before is None:
-        shutil.rmtree(folder, ignore_errors=True)
-        return "nothing was written (start it again)"
-    after = _listing(folder) or {}
-    for name in set(after) - set(before):
-        with contextlib.suppress(OSError):
-            os.remove(os.path.join(folder, name))
-    replaced = sorted(name for name in set(after) & set(before) if after[name] != before[name])
-    if not replaced:
-        return f"{folder!r} is as it was (start it again)"
-    with contextlib.suppress(OSError):
-        os.remove(os.path.join(folder, "summary.json"))
-    return f"{folder!r} was partly replaced ({', '.join(replaced[:3])}) and its summary.json removed; start it again"
-
-
-def _listing(folder):
-    """``{name: (inode, size, mtime_ns)}`` of the files in ``folder``; None when it does not exist."""
-    if not os.path.isdir(folder):
-        return None
-    return {entry.name: (entry.stat().st_ino, entry.stat().st_size, entry.stat().st_mtime_ns)
-            for entry in os.scandir(folder) if entry.is_file(follow_symlinks=False)}
 
 
 if __name__ == "__main__":

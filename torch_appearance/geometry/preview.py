@@ -17,16 +17,15 @@ import contextlib
 import math
 import os
 import re
-import signal
 import subprocess
 import sys
-import threading
 import time
 import uuid
 
 import numpy as np
 
 from ..checks import is_int
+from ..interrupts import sigint_deferred
 
 __all__ = ["texel_rgb8", "render_texels", "render_texels_pyvista", "render_texels_matplotlib", "sdf_slice",
            "write_previews", "offscreen_rendering"]
@@ -349,26 +348,6 @@ def render_texels_matplotlib(obj, values, path, *, views=3, size=(1200, 400), ti
     return "matplotlib"
 
 
-@contextlib.contextmanager
-def _sigint_held():
-    """Hold Ctrl-C back while VTK renders: a ``KeyboardInterrupt`` raised between two of pyvista's calls into VTK
-    leaves its objects half made, and VTK then crashes on them (exit 139); the interruption is raised once the
-    plotter is closed. Only in the main thread (elsewhere Python delivers no signals). (The same as
-    :func:`torch_appearance.pipelines.runs.sigint_deferred`, which this layer cannot import.)"""
-    previous = signal.getsignal(signal.SIGINT)
-    if threading.current_thread() is not threading.main_thread() or not callable(previous):  # ignored, default
-        yield
-        return
-    pending = []
-    signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if pending:
-        raise KeyboardInterrupt
-
-
 def render_texels(obj, values, path, *, views=3, size=(1200, 400), title=None, shading=1.0, backend="auto"):
     """:func:`render_texels_pyvista` where it works, else :func:`render_texels_matplotlib` (with a one-line warning on
     stderr saying why; once per reason). Never raises because of the pyvista rendering.
@@ -385,7 +364,7 @@ def render_texels(obj, values, path, *, views=3, size=(1200, 400), title=None, s
     _check_render_args(obj, values, views, size)  # the caller's mistakes are no reason to fall back
     if backend != "matplotlib":
         try:
-            with _sigint_held():  # Ctrl-C raised inside VTK's Python wrapping could crash it (exit 139)
+            with sigint_deferred():  # Ctrl-C raised inside VTK's Python wrapping could crash it (exit 139)
                 return render_texels_pyvista(obj, values, path, views=views, size=size, title=title,
                                              shading=shading)
         except Exception as error:  # noqa: BLE001  (any rendering failure falls back)

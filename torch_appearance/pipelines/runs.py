@@ -8,9 +8,10 @@ it when it is damaged (:func:`check_checkpoint`, :func:`load_checkpoint`)."""
 import contextlib
 import os
 import pickle
-import signal
 import threading
 import zipfile
+
+from ..interrupts import sigint_deferred  # noqa: F401  (part of this module's API)
 
 __all__ = ["RunInterrupted", "lock_run_folder", "lock_output", "available_memory_bytes", "memory_limits", "check_memory",
            "trace_buffer_bytes", "sigint_deferred", "check_checkpoint", "load_checkpoint"]
@@ -331,25 +332,6 @@ def trace_buffer_bytes(spp, elements, threads=None):
         import torch
         threads = torch.get_num_threads()
     return int(threads) * min(TRACE_BATCH, max(1, int(elements))) * int(spp) * 3 * 8
-
-
-@contextlib.contextmanager
-def sigint_deferred():
-    """Hold Ctrl-C back while the block runs (an optimiser step and its bookkeeping: a checkpoint written after an
-    interruption must not see half of them) and raise the ``KeyboardInterrupt`` when it ends. Only in the main thread
-    (elsewhere Python delivers no signals)."""
-    previous = signal.getsignal(signal.SIGINT)
-    if threading.current_thread() is not threading.main_thread() or previous is None:  # None: not set from Python
-        yield
-        return
-    pending = []
-    signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if pending:
-        raise KeyboardInterrupt
 
 
 #: the entries of a print run's checkpoint (pipelines/print/loop.py, ``_Run.checkpoint``)

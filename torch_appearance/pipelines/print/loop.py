@@ -269,9 +269,8 @@ class _Run:
         """(K, *texels) evaluation renders of the current continuous mixture."""
         with torch.no_grad():
             s, a = self.model()
-            if self.eval_scene is None:
-                return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed))
-            return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed, scene=self.eval_scene))
+            subset = {} if self.eval_scene is None else {"scene": self.eval_scene}
+            return self.renders(lambda spp, seed: self.target.render(s, a, spp, seed, **subset))
 
     def score(self, renders, texels=False, against=None):
         """The scores (:func:`.run_folder.score`) of evaluation ``renders`` (K, *texels) on the target's scored
