@@ -15,6 +15,7 @@ from torch_appearance.geometry import VoxelObject, voxelize
 from torch_appearance.nn import AppearanceLoss
 from torch_appearance.pipelines import PrintConfig, optimize_print
 from torch_appearance.pipelines.print import ObjectTarget
+from torch_appearance.pipelines.print.config import auto_eval_texels
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -51,6 +52,10 @@ def test_object_run_folder_shell_void_and_resume(sphere_ply, tmp_path):
     obj = VoxelObject.load(str(folder / "object.npz"))
     n_texels, shell = len(obj.texel_voxels), obj.shell
     assert summary["kind"] == "object" and summary["texels"] == n_texels
+    # eval_texels "auto" (the object default): the subset the rule sizes by the training, here every texel
+    resolved = config(sphere_ply, tmp_path / "run", views=2, init="white").resolved()
+    assert resolved.eval_texels == "auto" and auto_eval_texels(n_texels, resolved) == 0
+    assert summary["evaluation"]["texels"] == n_texels
     assert np.load(folder / "final.npy").shape == (n_texels, 3)
     # only the shell carries parameters; deeper voxels hold the core ink exactly
     inks = InkSet.from_names()

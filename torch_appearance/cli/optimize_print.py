@@ -55,6 +55,16 @@ def float_tuple(n, name=None):
     return parse
 
 
+def _eval_texels(text):
+    """``--eval-texels``: 'auto' or an int."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto', 0 (every texel) or an int >= 1024, got {text!r}") from None
+
+
 def add_target_arguments(p, d=None, *, fixed=True):
     """What is printed: a slab target image or a textured mesh, its size, shell, core ink, lighting (and, with
     ``fixed``, the ``--fixed INK=FRACTION:MASK`` constraints). ``d``: the PrintConfig giving the defaults."""
@@ -102,9 +112,9 @@ def add_optimization_arguments(p, d=None):
                    help=f"samples per texel of evaluation renders {default('eval_spp')}")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"evaluate every k iterations {default('eval_every')}")
-    p.add_argument("--eval-texels", type=int, default=d.eval_texels,
-                   help=f"texels an evaluation scores, a random subset fixed for the run; 0: all "
-                        f"{default('eval_texels')}")
+    p.add_argument("--eval-texels", type=_eval_texels, default=d.eval_texels,
+                   help=f"texels an evaluation scores, a random subset fixed for the run; 0: all; 'auto': a third "
+                        f"of the iterations' texel samples, 2048 to 8192 {default('eval_texels')}")
     p.add_argument("--iterations", type=int, default=d.iterations, help=default("iterations"))
     p.add_argument("--table-steps", type=int, default=d.table_steps,
                    help="naive-extrusion baseline: mixtures in steps of 1/N (default: %(default)s)")

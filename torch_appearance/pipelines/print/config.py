@@ -3,7 +3,7 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass, fields
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple, Union
 
 from ...fabrication.inks import DEFAULT_INKS, Ink, InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
@@ -11,7 +11,8 @@ from ...fabrication.quantize import HALFTONES, PRINTER_DPI
 from ...print_error import EVAL_RENDERS
 from .fixed_fractions import parse_fixed
 
-__all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts", "SCHEDULES"]
+__all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts", "SCHEDULES",
+           "auto_eval_texels", "evaluation_count"]
 
 #: the settings a resumed run may change: where it is, that it resumes, how long it runs and how often it saves
 RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
@@ -29,13 +30,19 @@ RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
 #: every print of the run, so that comparisons are paired) at 128 spp: at 32 spp on all texels the estimate still
 #: read 0.85 high on Spot at 10 mm (0.17 at 128) and the evaluations took 27 % of a 25 mm job. With 12,288 texels
 #: they took 17.7 % of the default Spot 25 mm job (751 of 4,244 s; final print 8.56 ± 0.06, docs/bench_log.md); the
-#: cost is linear in the texels, so 8,192 take about 12.5 %, at a sampling error of about 0.08 ΔE00 (in the SE).
-#: Camera views of the quantised object render at ``view_spp``. ``eval_texels`` 0: every texel.
+#: cost is linear in the texels, so 8,192 take about 12.5 % at 25 mm, at a sampling error of about 0.08 ΔE00 (in the
+#: SE). But a smaller object's iterations are cheaper while its evaluations are not: 8,192 texels took 22 % of the
+#: default Spot 10 mm job (318 of 1,435 s; 22,882 texels). So ``"auto"`` (:func:`auto_eval_texels`) sizes the subset
+#: by the training: the evaluations render at most a third of the texel samples of the iterations, 2,048 to 8,192
+#: texels. Camera views of the quantised object render at ``view_spp``. ``eval_texels`` 0: every texel.
 SCHEDULES = {
     "slab": {"spp": 32, "iterations": 300, "eval_spp": 128, "eval_every": 50, "eval_texels": 0, "view_spp": 32},
-    "object": {"spp": 8, "iterations": 45, "eval_spp": 128, "eval_every": 25, "eval_texels": 8192,
+    "object": {"spp": 8, "iterations": 45, "eval_spp": 128, "eval_every": 25, "eval_texels": "auto",
                "view_spp": 32},
 }
+#: bounds of ``eval_texels="auto"`` (:func:`auto_eval_texels`) and its share of the training's texel samples
+AUTO_EVAL_TEXELS = (2048, 8192)
+AUTO_EVAL_SAMPLE_SHARE = 1 / 3
 
 
 #: the least time an iteration takes (the mixture, a render, the loss and the optimiser step of the smallest slab
@@ -70,7 +77,7 @@ class PrintConfig:
     eval_spp: Optional[int] = None
     eval_every: Optional[int] = None
     iterations: Optional[int] = None
-    eval_texels: Optional[int] = None  # texels an evaluation scores, a random subset (0: all; objects: 8192)
+    eval_texels: Union[int, str, None] = None  # texels an evaluation scores, a random subset (0: all; objects: "auto")
     view_spp: Optional[int] = None  # objects: samples per pixel of the camera views (default 32)
     optimizer: str = "adagrad"
     lr: float = 1.0
@@ -116,10 +123,10 @@ class PrintConfig:
             if getattr(self, name) is not None or name not in SCHEDULES["slab"]:
                 positive(name, getattr(self, name), integer=True)
         texels = self.eval_texels
-        if texels is not None and (isinstance(texels, bool) or not isinstance(texels, int) or texels < 0 or
-                                   0 < texels < 1024):
-            raise ValueError(f"eval_texels: expected 0 (every texel) or an int >= 1024 (a random subset large "
-                             f"enough for the mean's sampling error), got {texels!r}")
+        if texels is not None and texels != "auto" and (isinstance(texels, bool) or not isinstance(texels, int) or
+                                                         texels < 0 or 0 < texels < 1024):
+            raise ValueError(f"eval_texels: expected 'auto', 0 (every texel) or an int >= 1024 (a random subset "
+                             f"large enough for the mean's sampling error), got {texels!r}")
         if self.iterations is not None and self.iterations * MIN_ITERATION_S > MAX_JOB_S:
             raise ValueError(f"iterations: {self.iterations} iterations take at least "
                              f"{self.iterations * MIN_ITERATION_S / (365.25 * 86400):.3g} years (an iteration takes "
@@ -227,6 +234,30 @@ class PrintConfig:
         """The Henyey–Greenstein g of the run: ``g`` when set, else the inks' common g (ValueError if they
         disagree)."""
         return inks.g if self.g is None else self.g
+
+
+def evaluation_count(cfg):
+    """The evaluations of a run of resolved ``cfg``: the start, one every ``eval_every`` iterations and the last,
+    the naive baseline, the 2.5D remapped baseline and the final print (quantised)."""
+    within = cfg.iterations // cfg.eval_every + (1 if cfg.iterations % cfg.eval_every else 0)
+    return 1 + within + int(bool(cfg.naive_baseline)) + int(bool(cfg.remap_baseline)) + 1
+
+
+def auto_eval_texels(texels, cfg):
+    """The texels an evaluation of a resolved ``cfg`` with ``eval_texels="auto"`` scores, for an object of
+    ``texels`` texels: as many as keep the evaluations' texel samples (:func:`evaluation_count` × M × ``eval_spp``)
+    at :data:`AUTO_EVAL_SAMPLE_SHARE` of the iterations' (``iterations`` × ``texels`` × ``spp``), within
+    :data:`AUTO_EVAL_TEXELS`; 0 (every texel) when that is all of them.
+
+    Example:
+        >>> cfg = PrintConfig(mesh="spot.obj", height_mm=10).resolved()
+        >>> auto_eval_texels(22882, cfg), auto_eval_texels(145615, cfg), auto_eval_texels(1500, cfg)
+        (4290, 8192, 0)
+    """
+    low, high = AUTO_EVAL_TEXELS
+    budget = AUTO_EVAL_SAMPLE_SHARE * cfg.iterations * texels * cfg.spp / (evaluation_count(cfg) * cfg.eval_spp)
+    count = int(min(high, max(low, round(budget))))
+    return 0 if count >= texels else count
 
 
 def load_inks(spec):

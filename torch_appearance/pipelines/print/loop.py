@@ -29,7 +29,7 @@ from ...fabrication.printer import load_printer
 from ...nn.losses import AppearanceLoss
 from ...nn.mixture import MaterialMixture
 from .baselines import quantize
-from .config import PrintConfig, config_conflicts, iteration_seed, load_inks
+from .config import PrintConfig, auto_eval_texels, config_conflicts, iteration_seed, load_inks
 from .fixed_fractions import fixed_fractions
 from .object_target import ObjectTarget
 from .remap25d import MAX_SLAB_TEXELS, prepare_uv_slab, wrap_slab_weights
@@ -225,7 +225,12 @@ class _Run:
         self.eval_seconds = 0.0  # spent on evaluations (renders and scores) by this call: the summary's evaluation
         self.picture_seconds = 0.0  # spent on whole pictures of prints scored on a subset (:meth:`picture`)
         # an object's evaluations score a fixed random subset of its texels (None: all), the same for every print
-        self.subset = target.evaluation_subset(cfg.eval_texels, iteration_seed(cfg.seed, -3))
+        count = cfg.eval_texels
+        if count == "auto":
+            count = auto_eval_texels(len(target.target), cfg)
+            log(f"optimize_print: evaluations score {'every texel' if not count else f'{count} random texels'} of "
+                f"{len(target.target)} (eval_texels 'auto': a third of the iterations' texel samples at most)")
+        self.subset = target.evaluation_subset(count, iteration_seed(cfg.seed, -3))
         self.eval_scene = None if self.subset is None else target.subset_scene(self.subset)
         self.quant_seed = iteration_seed(cfg.seed, -2)
         self.evaluation_s = None  # seconds of the start's evaluation (renders and scores), when this call made it
