@@ -100,6 +100,32 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("scene_forward_indexed", &ta::volpath::scene_forward_indexed_cpu, py::arg("index"),
         py::arg("sigma_t_table"), py::arg("albedo_table"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
         "General-scene radiance of a palette medium (uint8 index volume, (3, P) tables) and ForwardCounts.");
+  py::class_<ta::volpath::SceneLayout>(m, "SceneLayout")
+      .def_readonly("size", &ta::volpath::SceneLayout::size)
+      .def_readonly("align", &ta::volpath::SceneLayout::align)
+      .def_readonly("pointers", &ta::volpath::SceneLayout::pointers)
+      .def_readonly("fields", &ta::volpath::SceneLayout::fields);
+  m.def("scene_to_device", &ta::volpath::scene_to_device, py::arg("sigma_t"), py::arg("albedo"),
+        py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("options"), py::arg("sigma_t_floor"),
+        py::arg("albedo_floor"), py::arg("replay"), py::arg("device"),
+        py::call_guard<py::gil_scoped_release>(),
+        "The scene of a render (the forward's, or with replay=True the gradient replay's) relocated onto `device`: "
+        "(the bytes of core::Scene<T> as a CPU uint8 tensor, the tensors it points into).");
+  m.def("scene_to_device_indexed", &ta::volpath::scene_to_device_indexed, py::arg("index"),
+        py::arg("sigma_t_table"), py::arg("albedo_table"), py::arg("options"), py::arg("device"),
+        py::call_guard<py::gil_scoped_release>(),
+        "The palette medium's scene relocated onto `device`: (scene bytes, the tensors it points into).");
+  m.def("scene_layout", &ta::volpath::scene_layout, py::arg("dtype"),
+        "sizeof/alignof of core::Scene<T> and the byte offsets of its pointer members and a few others.");
+  m.def("_relocate_scene", &ta::volpath::relocate_scene_for_test, py::arg("sigma_t"), py::arg("albedo"),
+        py::arg("ref_sigma_t"), py::arg("ref_albedo"), py::arg("options"), py::arg("replay") = false,
+        py::arg("sigma_t_floor") = 0.0, py::arg("albedo_floor") = 0.0, py::arg("skip") = "",
+        py::call_guard<py::gil_scoped_release>(),
+        "Test hook: the scene relocated into fresh CPU buffers, every original (the grids too) then overwritten "
+        "with poison and kept alive; `skip` leaves one pointer member behind. (scene bytes, kept tensors).");
+  m.def("_scene_forward_from_bytes", &ta::volpath::scene_forward_from_bytes_cpu, py::arg("scene_bytes"),
+        py::arg("dtype"), py::arg("ratio"), py::arg("options"), py::call_guard<py::gil_scoped_release>(),
+        "Test hook: the CPU forward of a scene given as its bytes (host pointers): (image, ForwardCounts).");
   m.def("_set_simd", &ta::volpath::set_simd, py::arg("mode"),
         "Test hook: the SIMD walks (slab and object), -1 automatic (the CPU and TA_SIMD), 0 scalar, 1 AVX2, 2 AVX-512; "
         "returns the one before.");

@@ -2,6 +2,7 @@
 // walks of every sample (core::trace_path, or the SIMD slab or object walk where it serves), summed in sample order.
 #include <ATen/Parallel.h>
 
+#include <cstring>
 #include <mutex>
 #include <type_traits>
 #include <vector>
@@ -190,6 +191,39 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
     dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
       counts = forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
                                                                                       opt.part_world));
+    });
+  });
+  interrupt.throw_if_interrupted();
+  return {out, counts};
+}
+
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_from_bytes_cpu(const torch::Tensor& scene_bytes,
+                                                                      at::ScalarType dtype, bool ratio,
+                                                                      const SceneOptions& opt) {
+  TORCH_CHECK_VALUE(dtype == at::kFloat || dtype == at::kDouble, "dtype: expected float32 or float64, got ", dtype);
+  TORCH_CHECK_VALUE(scene_bytes.defined() && scene_bytes.device().is_cpu() && scene_bytes.scalar_type() == at::kByte &&
+                        scene_bytes.dim() == 1 && scene_bytes.is_contiguous(),
+                    "scene_bytes: expected a contiguous CPU uint8 tensor (N,)");
+  TORCH_CHECK_VALUE(opt.lanes == 1 || opt.lanes == 3, "options.lanes: expected 1 or 3, got ", opt.lanes);
+  torch::Tensor out;
+  ForwardCounts counts;
+  const InterruptScope interrupt;
+  AT_DISPATCH_FLOATING_TYPES(dtype, "volpath_forward_from_bytes", [&] {
+    using T = scalar_t;
+    TORCH_CHECK_VALUE(scene_bytes.numel() == int64_t(sizeof(Scene<T>)), "scene_bytes: expected ", sizeof(Scene<T>),
+                      " bytes (core::Scene<", dtype, ">), got ", scene_bytes.numel());
+    Scene<T> S;
+    std::memcpy(&S, scene_bytes.data_ptr(), sizeof(S));
+    TORCH_CHECK_VALUE(S.sensor.kind == opt.sensor.kind && (S.sdf.sdf != nullptr) == (opt.boundary.kind == 1) &&
+                          S.spp == opt.spp && S.tally == nullptr,
+                      "scene_bytes: expected the scene of `options` (sensor, boundary, spp), got another");
+    auto shape = image_shape(opt, S.medium.H, S.medium.W);
+    out = opt.part_world > 1 ? torch::zeros(shape, torch::TensorOptions().dtype(dtype))
+                             : torch::empty(shape, torch::TensorOptions().dtype(dtype));
+    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
+      const Share share(S.elements(), opt.part_rank, opt.part_world);
+      counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
+                     : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
     });
   });
   interrupt.throw_if_interrupted();

@@ -37,7 +37,9 @@
 
 #include <torch/extension.h>
 
+#include <string>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 namespace ta {
@@ -132,6 +134,43 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
                                                                    const torch::Tensor& sigma_t_table,
                                                                    const torch::Tensor& albedo_table,
                                                                    const SceneOptions& opt);
+
+// ---- another device (scene_device.cpp; the CUDA launcher, torch_appearance/render/cuda_launch.py): the scene of a
+// render built on the host as the CPU entry points build it, relocated (relocate.h) into tensors on `device`.
+// Returns (the bytes of the core::Scene<T>: a CPU uint8 tensor of sizeof(Scene<T>), the tensors its pointers point
+// into: keep them alive while the scene is used). Grids already on `device` are used in place; the scene's own
+// tensors (SDF, texels, map) are copied there. `replay`: the gradient replay's scene (the sampling medium
+// max(ref, floor), the homogeneous core outside grad_support's voxels, as scene_backward_cpu); else the forward's.
+std::tuple<torch::Tensor, std::vector<torch::Tensor>> scene_to_device(
+    const torch::Tensor& sigma_t, const torch::Tensor& albedo, const torch::Tensor& ref_sigma_t,
+    const torch::Tensor& ref_albedo, const SceneOptions& opt, double sigma_t_floor, double albedo_floor, bool replay,
+    const torch::Device& device);
+// The palette medium's scene (as scene_forward_indexed_cpu's) on `device`.
+std::tuple<torch::Tensor, std::vector<torch::Tensor>> scene_to_device_indexed(const torch::Tensor& index,
+                                                                              const torch::Tensor& sigma_t_table,
+                                                                              const torch::Tensor& albedo_table,
+                                                                              const SceneOptions& opt,
+                                                                              const torch::Device& device);
+// Test-only: scene_to_device on the CPU with every buffer copied (the grids too), then every original buffer
+// overwritten with poison (relocate.h; the caller's grids too, the options' tensors are copied first) and kept alive
+// in the returned list; `skip` names one pointer member left pointing at its (poisoned) original.
+std::tuple<torch::Tensor, std::vector<torch::Tensor>> relocate_scene_for_test(
+    const torch::Tensor& sigma_t, const torch::Tensor& albedo, const torch::Tensor& ref_sigma_t,
+    const torch::Tensor& ref_albedo, const SceneOptions& opt, bool replay, double sigma_t_floor, double albedo_floor,
+    const std::string& skip);
+// Test-only: the forward of scene_forward_cpu over a scene given as its bytes (a relocated scene whose pointers are
+// host memory): the kernel configuration of `opt` (lanes, hero, boundary, optics) and `ratio`, the image of the
+// scene's grid, the share of opt.part_rank / part_world.
+std::tuple<torch::Tensor, ForwardCounts> scene_forward_from_bytes_cpu(const torch::Tensor& scene_bytes,
+                                                                      at::ScalarType dtype, bool ratio,
+                                                                      const SceneOptions& opt);
+// The layout of core::Scene<T> on this host: its size and alignment, the byte offsets of its pointer members
+// (relocate.h's names) and of a few other members, for a check that the CUDA compiler lays it out alike.
+struct SceneLayout {
+  int64_t size = 0, align = 0;
+  std::vector<std::pair<std::string, int64_t>> pointers, fields;
+};
+SceneLayout scene_layout(at::ScalarType dtype);
 
 // Test-only: the initial per-thread tape capacity of the replay (segments; collisions get half). 0 makes every path
 // take the two-pass fallback, so tests can compare both replays. Returns the previous value.
