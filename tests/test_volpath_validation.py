@@ -64,16 +64,18 @@ def test_bad_input_named_error(overrides, exc, match):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device to build a CUDA tensor")
-def test_cuda_tensor_refused():
+def test_mixed_devices_refused():
     sigma, albedo = good()
-    with pytest.raises(ValueError, match="sigma_t: expected a CPU tensor"):
-        ta.render_texels(sigma.cuda(), albedo.cuda(), voxel_size=0.1)
+    with pytest.raises(ValueError, match=r"^albedo: expected the device of sigma_t \(cuda:0\), got cpu$"):
+        ta.render_texels(sigma.cuda(), albedo, voxel_size=0.1)
 
 
 def test_meta_tensor_refused():
     sigma, albedo = good()
-    with pytest.raises(ValueError, match="sigma_t: expected a CPU tensor"):
-        ta.render_texels(sigma.to("meta"), albedo, voxel_size=0.1)
+    with pytest.raises(ValueError, match="sigma_t: expected a CPU or CUDA tensor"):
+        ta.render_texels(sigma.to("meta"), albedo.to("meta"), voxel_size=0.1)
+    with pytest.raises(ValueError, match=r"albedo: expected the device of sigma_t \(cpu\), got meta"):
+        ta.render_texels(sigma, albedo.to("meta"), voxel_size=0.1)
 
 
 def test_non_contiguous_input_is_fine():

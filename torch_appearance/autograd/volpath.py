@@ -16,11 +16,21 @@ import warnings
 import torch
 from torch.autograd.function import once_differentiable
 
-from .._ext import _C, call_tracer
+from .._ext import call_tracer
 
-__all__ = ["VolumePathTrace", "VolumePathTraceWithAdjoint", "reference_medium", "sampling_lanes", "walk_options"]
+__all__ = ["VolumePathTrace", "VolumePathTraceWithAdjoint", "reference_medium", "sampling_lanes", "walk_options",
+           "tracer"]
 
 _TRUNCATION_WARN = 1e-3  # warn when more than this fraction of paths was cut by max_depth
+
+
+def tracer(*tensors, names=("sigma_t", "albedo", "sampling_sigma_t", "sampling_albedo")):
+    """The tracer's entry points for the device of ``tensors`` (None skipped): the C++ extension for CPU tensors, the
+    CUDA launcher (:mod:`torch_appearance.render.cuda_launch`) for CUDA tensors of one device. Mixed devices, or CUDA
+    tensors where no GPU can render them, are refused with a ValueError of one line."""
+    from ..render.cuda_launch import tracer_for  # render imports this module; looked up when used
+
+    return tracer_for(*tensors, names=list(names))
 
 
 def sampling_lanes(ref_sigma_t):
@@ -86,10 +96,11 @@ class VolumePathTrace(torch.autograd.Function):
             raise TypeError(f"job: expected a torch_appearance.render.TraceJob, got {type(job).__name__}")
         sigma_t = sigma_t.contiguous()
         albedo = albedo.contiguous()
+        entry = tracer(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
         ref_s, ref_a, ratio = reference_medium(sigma_t, albedo, sampling_sigma_t, sampling_albedo)
         options = walk_options(job, ref_s, job.seed, tuple(sigma_t.shape[1:]), sigma_t.dtype)
         start = time.perf_counter()
-        image, counts = call_tracer(_C.scene_forward, sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio,
+        image, counts = call_tracer(entry.scene_forward, sigma_t.detach(), albedo.detach(), ref_s, ref_a, ratio,
                                     options)
         if stats is not None:
             stats["forward_s"] = time.perf_counter() - start
@@ -149,8 +160,9 @@ def _gradient_walks(job, sigma_t, albedo, samp_s, samp_a):
 def _replay(job, sigma_t, albedo, samp_s, samp_a, grad_image, need_s, need_a, stats):
     """(grad_sigma_t, grad_albedo) of ``grad_image`` by path replay of ``job``'s gradient walks."""
     ref_s, floor_s, ref_a, floor_a, options = _gradient_walks(job, sigma_t, albedo, samp_s, samp_a)
+    entry = tracer(sigma_t, albedo, samp_s, samp_a)
     start = time.perf_counter()
-    grad_s, grad_a, events = call_tracer(_C.scene_backward, grad_image.to(sigma_t.dtype).contiguous(),
+    grad_s, grad_a, events = call_tracer(entry.scene_backward, grad_image.to(sigma_t.dtype).contiguous(),
                                          sigma_t.detach(), albedo.detach(), ref_s, ref_a, need_s, need_a, options,
                                          floor_s, floor_a)
     if stats is not None:
@@ -198,12 +210,14 @@ class VolumePathTraceWithAdjoint(torch.autograd.Function):
             raise TypeError(f"job: expected a torch_appearance.render.TraceJob, got {type(job).__name__}")
         sigma_t = sigma_t.contiguous()
         albedo = albedo.contiguous()
+        entry = tracer(sigma_t, albedo, sampling_sigma_t, sampling_albedo, adjoint,
+                       names=("sigma_t", "albedo", "sampling_sigma_t", "sampling_albedo", "adjoint"))
         adjoint = adjoint.detach().to(sigma_t.dtype).contiguous()
         ref_s, floor_s, ref_a, floor_a, options = _gradient_walks(job, sigma_t, albedo, sampling_sigma_t,
                                                                   sampling_albedo)
         need_s, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         start = time.perf_counter()
-        image, grad_s, grad_a, counts = call_tracer(_C.scene_forward_backward, adjoint, sigma_t.detach(),
+        image, grad_s, grad_a, counts = call_tracer(entry.scene_forward_backward, adjoint, sigma_t.detach(),
                                                     albedo.detach(), ref_s, ref_a, need_s, need_a, options,
                                                     floor_s, floor_a)
         if stats is not None:

@@ -4,7 +4,7 @@ The kernels are thin wrappers in ``csrc/cuda/`` around the same tracing core (``
 compiles: one thread per path, the CPU's random streams, atomic gradient deposits. This module compiles them with
 the NVRTC that torch's CUDA wheel brings (through NVIDIA's ``cuda-bindings``, module ``cuda.bindings.nvrtc``), for
 a virtual architecture (``compute_XY``: PTX) or a real one (``sm_XY``: cubin, for the GPU present), and caches the
-result on disk. Launching them is not here yet: CUDA tensors are still refused by the tracer's entry points.
+result on disk. :mod:`torch_appearance.render.cuda_launch` loads and launches them.
 
 A *program* is one source file for one dtype: ``forward`` (the forward walks and the image of their sums) or
 ``replay`` (the gradient replay, which with an image is also the one walk of the ``ema`` estimator), each for
@@ -28,7 +28,8 @@ import time
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
-__all__ = ["PROGRAMS", "DTYPES", "CompiledProgram", "NvrtcError", "kernel_names", "compile_program", "csrc_dir",
+__all__ = ["PROGRAMS", "DTYPES", "CompiledProgram", "NvrtcError", "kernel_names", "compile_program", "compile_source",
+           "csrc_dir",
            "cache_dir", "cuda_include_dirs", "default_arch"]
 
 #: program name -> source file under csrc/
@@ -250,6 +251,16 @@ def compile_program(program, dtype="f32", arch="compute_90", *, options: Sequenc
     with open(os.path.join(root, source_name), "rb") as handle:
         source = handle.read()
     start = time.perf_counter()
+    code, log = _compile(nvrtc, source, source_name, opts, kind, f"{program}, {dtype}, {arch}")
+    seconds = time.perf_counter() - start
+    if path is not None:
+        _write_atomic(path + ".log", log.encode())  # the log first: the code's presence marks a complete entry
+        _write_atomic(path, code)
+    return CompiledProgram(program, dtype, arch, code, kind, log, names, opts, seconds, False, path)
+
+
+def _compile(nvrtc, source, source_name, opts, kind, what):
+    """(code, log) of one NVRTC compilation of ``source`` (bytes) with the options ``opts``."""
     err, prog = nvrtc.nvrtcCreateProgram(source, source_name.encode(), 0, [], [])
     _ok(nvrtc, err, "nvrtcCreateProgram")
     try:
@@ -261,7 +272,7 @@ def compile_program(program, dtype="f32", arch="compute_90", *, options: Sequenc
         (err,) = nvrtc.nvrtcGetProgramLog(prog, raw)
         _ok(nvrtc, err, "nvrtcGetProgramLog")
         log = raw.rstrip(b"\0").decode(errors="replace").strip()
-        _ok(nvrtc, result, f"NVRTC compiling {source_name} ({program}, {dtype}, {arch})", log)
+        _ok(nvrtc, result, f"NVRTC compiling {source_name} ({what})", log)
         get_size, get = ((nvrtc.nvrtcGetCUBINSize, nvrtc.nvrtcGetCUBIN) if kind == "cubin"
                          else (nvrtc.nvrtcGetPTXSize, nvrtc.nvrtcGetPTX))
         err, size = get_size(prog)
@@ -271,8 +282,31 @@ def compile_program(program, dtype="f32", arch="compute_90", *, options: Sequenc
         _ok(nvrtc, err, get.__name__)
     finally:
         nvrtc.nvrtcDestroyProgram(prog)
-    seconds = time.perf_counter() - start
-    if path is not None:
-        _write_atomic(path + ".log", log.encode())  # the log first: the code's presence marks a complete entry
-        _write_atomic(path, code)
-    return CompiledProgram(program, dtype, arch, code, kind, log, names, opts, seconds, False, path)
+    return code, log
+
+
+def compile_source(source, name, arch="compute_90", *, options: Sequence[str] = ()):
+    """Compiles a CUDA source text with the options of the tracer's programs (the core's include path, C++17, no
+    fused multiply-add), without the cache: e.g. a check of how the device compiler lays out the core's structs.
+
+    Args:
+        source: the program's text (str).
+        name: its file name, for NVRTC's messages.
+        arch: ``compute_XY`` (PTX), ``sm_XY`` (cubin) or None (the current GPU).
+        options: further NVRTC options.
+
+    Returns:
+        the code (PTX or cubin bytes).
+
+    Raises:
+        NvrtcError: NVRTC did not compile it (the message holds its log).
+    """
+    if not isinstance(source, str) or not isinstance(name, str):
+        raise TypeError(f"source, name: expected str, got {type(source).__name__}, {type(name).__name__}")
+    arch = _check_arch(arch)
+    nvrtc, _ = _nvrtc()
+    root = csrc_dir()
+    opts = (BASE_OPTIONS + ("-DTA_CUDA_DTYPE=32", f"--gpu-architecture={arch}", f"-I{root}")
+            + tuple(f"-I{d}" for d in cuda_include_dirs()) + tuple(options))
+    code, _ = _compile(nvrtc, source.encode(), name, opts, "cubin" if arch.startswith("sm_") else "ptx", arch)
+    return code

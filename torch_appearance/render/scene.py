@@ -213,13 +213,18 @@ def voxel_edges(voxel_size):
 
 
 def check_grid(name, x, *, like=None, lo=0.0, hi=math.inf):
-    """Validate a medium grid: a float32/float64 CPU tensor of shape (3, D, H, W), finite, in [lo, hi].
+    """Validate a medium grid: a float32/float64 CPU or CUDA tensor of shape (3, D, H, W), finite, in [lo, hi].
 
     Raises:
         TypeError: not a tensor, or not a floating dtype.
-        ValueError: wrong shape, device, dtype or shape differing from ``like``, non-finite or out-of-range values.
+        ValueError: wrong shape, device, dtype or shape differing from ``like`` (or a device other than its), non-finite
+            or out-of-range values.
     """
-    check_tensor(name, x, "(3, D, H, W)", dtypes=(torch.float32, torch.float64), cpu=True)
+    check_tensor(name, x, "(3, D, H, W)", dtypes=(torch.float32, torch.float64))
+    if like is not None and x.device != like.device:
+        raise ValueError(f"{name}: expected the device of sigma_t ({like.device}), got {x.device}")
+    if x.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name}: expected a CPU or CUDA tensor (the tracer's devices), got device {x.device}")
     if x.dim() != 4 or x.shape[0] != 3 or min(x.shape) < 1:
         raise ValueError(f"{name}: expected shape (3, D, H, W) with D, H, W >= 1, got {tuple(x.shape)}")
     if like is not None:

@@ -15,17 +15,17 @@ __all__ = ["TraceJob", "check_grad_support", "check_partition"]
 
 
 def check_grad_support(grad_support):
-    """``grad_support``: None, or a CPU bool tensor (D, H, W) (the grid's shape is checked against the medium's
-    by :meth:`TraceJob.check_grid`), returned contiguous."""
+    """``grad_support``: None, or a CPU (or CUDA) bool tensor (D, H, W) (the grid's shape is checked against the
+    medium's by :meth:`TraceJob.check_grid`), returned contiguous on the CPU (the scene is built on the host)."""
     if grad_support is None:
         return None
     import torch
     if not isinstance(grad_support, torch.Tensor):
         raise TypeError(f"grad_support: expected a bool tensor (D, H, W) or None, got {type(grad_support).__name__}")
-    if grad_support.dtype != torch.bool or grad_support.dim() != 3 or grad_support.device.type != "cpu":
-        raise ValueError(f"grad_support: expected a CPU bool tensor (D, H, W), got {grad_support.dtype} "
+    if grad_support.dtype != torch.bool or grad_support.dim() != 3 or grad_support.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"grad_support: expected a CPU or CUDA bool tensor (D, H, W), got {grad_support.dtype} "
                          f"{tuple(grad_support.shape)} on {grad_support.device}")
-    return grad_support.detach().contiguous()
+    return grad_support.detach().cpu().contiguous()
 
 
 def check_partition(partition):

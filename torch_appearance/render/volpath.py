@@ -33,8 +33,9 @@ def render_texels(sigma_t, albedo, *, voxel_size, face="top", g=0.4, ior=1.5, en
     parameters and the backward is its exact derivative (``torch.autograd.gradcheck`` passes in float64).
 
     Args:
-        sigma_t: (3, D, H, W) extinction coefficient in mm⁻¹, >= 0, float32 or float64, CPU.
-        albedo: (3, D, H, W) single-scattering albedo in [0, 1], same dtype.
+        sigma_t: (3, D, H, W) extinction coefficient in mm⁻¹, >= 0, float32 or float64, on the CPU or a CUDA device
+            (the render runs there).
+        albedo: (3, D, H, W) single-scattering albedo in [0, 1], same dtype and device.
         voxel_size: voxel edge in mm, > 0, or the three edges (x, y, z) in mm for anisotropic voxels
             (e.g. a printer's native 600 × 300 × 940 DPI grid).
         face: "top" (z = D·s), "bottom" (z = 0) or "both".
@@ -126,8 +127,9 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
 
     Args:
         scene: a :class:`torch_appearance.render.Scene`.
-        sigma_t: (3, D, H, W) extinction coefficient in mm⁻¹, >= 0, float32 or float64, CPU.
-        albedo: (3, D, H, W) single-scattering albedo in [0, 1], same dtype.
+        sigma_t: (3, D, H, W) extinction coefficient in mm⁻¹, >= 0, float32 or float64, on the CPU or a CUDA device
+            (the render runs there: see the README's GPU section; the scene's own tensors follow).
+        albedo: (3, D, H, W) single-scattering albedo in [0, 1], same dtype and device.
         spp: samples per sensor element (per channel when σ_t is chromatic), >= 1.
         seed: 64-bit seed of the forward pass; results are reproducible for a seed, independent of threads.
         seed_grad: 64-bit seed of the gradient replay; default :func:`derive_seed_grad` (seed).
@@ -182,20 +184,21 @@ def render_scene(scene, sigma_t, albedo, *, spp=16, seed=0, seed_grad=None, samp
     job.check_grid(tuple(sigma_t.shape[1:]))
     samp_s, samp_a = _check_sampling(sigma_t, albedo, sampling_sigma_t, sampling_albedo, stats)
     if adjoint is not None:
-        _check_adjoint(adjoint, scene.output_shape(tuple(sigma_t.shape[1:])))
+        _check_adjoint(adjoint, scene.output_shape(tuple(sigma_t.shape[1:])), sigma_t.device)
         if torch.is_grad_enabled() and (sigma_t.requires_grad or albedo.requires_grad):
             return VolumePathTraceWithAdjoint.apply(sigma_t, albedo, samp_s, samp_a, adjoint, job, stats)
     return VolumePathTrace.apply(sigma_t, albedo, samp_s, samp_a, job, stats)
 
 
-def _check_adjoint(adjoint, shape):
+def _check_adjoint(adjoint, shape, device):
     if not isinstance(adjoint, torch.Tensor):
         raise TypeError(f"adjoint: expected a tensor of the image's shape {tuple(shape)}, got "
                         f"{type(adjoint).__name__}")
     if tuple(adjoint.shape) != tuple(shape):
         raise ValueError(f"adjoint: expected the image's shape {tuple(shape)}, got {tuple(adjoint.shape)}")
-    if not adjoint.dtype.is_floating_point or adjoint.device.type != "cpu":
-        raise ValueError(f"adjoint: expected a floating-point CPU tensor, got {adjoint.dtype} on {adjoint.device}")
+    if not adjoint.dtype.is_floating_point or adjoint.device != device:
+        raise ValueError(f"adjoint: expected a floating-point tensor on {device} (sigma_t's device), got "
+                         f"{adjoint.dtype} on {adjoint.device}")
     if not bool(torch.isfinite(adjoint).all()):
         raise ValueError("adjoint: expected finite values, got NaN or inf")
 
@@ -211,7 +214,8 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
 
     Args:
         scene: a :class:`torch_appearance.render.Scene` for a (D, H, W) grid.
-        index: (D, H, W) uint8 tensor or ndarray of palette entries (< P).
+        index: (D, H, W) uint8 tensor or ndarray of palette entries (< P), on the CPU or a CUDA device (the render
+            runs there; the tables on the same device).
         sigma_t_table: (P, 3) extinction coefficient of each entry in mm⁻¹, >= 0, float32 or float64.
         albedo_table: (P, 3) single-scattering albedo in [0, 1], the same dtype. The image has this dtype.
         spp, seed, partition: as for :func:`render_scene`.
@@ -221,7 +225,7 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
     """
     import numpy as np
 
-    from .._ext import _C
+    from ..autograd.volpath import tracer
 
     job = TraceJob(scene, spp=spp, seed=seed, seed_grad=seed, partition=partition, name="render_scene_indexed")
     if isinstance(index, np.ndarray):
@@ -236,6 +240,8 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
                             f"{getattr(table, 'dtype', type(table).__name__)}")
         if table.dim() != 2 or table.shape[1] != 3 or not 1 <= table.shape[0] <= 256:
             raise ValueError(f"{name}: expected shape (P, 3) with 1 <= P <= 256, got {tuple(table.shape)}")
+        if table.device != index.device:
+            raise ValueError(f"{name}: expected the device of index ({index.device}), got {table.device}")
         t = table.detach().cpu()
         if not bool((torch.isfinite(t) & (t >= 0) & (t <= hi)).all()):
             raise ValueError(f"{name}: expected finite values in [0, {hi}], got {t.tolist()}")
@@ -252,10 +258,11 @@ def render_scene_indexed(scene, index, sigma_t_table, albedo_table, *, spp=16, s
     used = torch.zeros(tables[0].shape[0], dtype=torch.bool)
     flat = index.view(-1)
     for start in range(0, flat.numel(), 1 << 24):
-        used |= torch.bincount(flat[start:start + (1 << 24)], minlength=len(used)).bool()
+        used |= torch.bincount(flat[start:start + (1 << 24)], minlength=len(used)).bool().cpu()
     st = tables[0][used]
     lanes = 3 if torch.equal(st[:, 0], st[:, 1]) and torch.equal(st[:, 0], st[:, 2]) else 1
     options = job.scene_options(lanes, job.seed, tuple(index.shape), tables[0].dtype)
-    image, _ = call_tracer(_C.scene_forward_indexed, index, tables[0].t().contiguous(), tables[1].t().contiguous(),
-                           options)
+    entry = tracer(index, names=("index",))
+    image, _ = call_tracer(entry.scene_forward_indexed, index, tables[0].t().contiguous().to(index.device),
+                           tables[1].t().contiguous().to(index.device), options)
     return image
