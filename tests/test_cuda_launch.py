@@ -109,6 +109,30 @@ def test_render_scene_refuses_mixed_devices():
         ta.render_scene(Scene.slab(0.1), sigma_t, torch.full((3, 2, 2, 2), 0.9, device="meta"))
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present")
+def test_the_device_option_of_the_commands(capsys):
+    from torch_appearance.cli.command import CommandParser, resolve_device
+    p = CommandParser("ta-x", "X.")
+    lines = []
+    assert resolve_device(p, "auto", log=lines.append) == torch.device("cpu")
+    assert lines == ["device: cpu (--device auto: no CUDA device is visible to torch (torch.cuda.is_available() is "
+                     "False))"]
+    assert resolve_device(p, "CPU") == torch.device("cpu")
+    for value, message in (("cuda:1", "--device: cuda:1 cannot be used here: no CUDA device is visible to torch"),
+                           ("gpu", "--device: expected auto, cpu, cuda or cuda:N, got 'gpu'")):
+        with pytest.raises(SystemExit) as info:
+            resolve_device(p, value)
+        assert info.value.code == 2
+        assert message in capsys.readouterr().err
+
+
+def test_the_wood_volume_config_checks_its_device():
+    from torch_appearance.pipelines.wood_volume_render import WoodVolumeConfig
+    assert WoodVolumeConfig(synthetic_seed=1, device="cuda:0").validate().device == "cuda:0"
+    with pytest.raises(ValueError, match="device: expected 'cpu', 'cuda' or 'cuda:N', got 'tpu'"):
+        WoodVolumeConfig(synthetic_seed=1, device="tpu").validate()
+
+
 def _recorded_launches(monkeypatch, paths_per_launch):
     """cuda_launch with its launches recorded instead of made (CPU tensors stand in for the device's)."""
     import contextlib

@@ -16,7 +16,7 @@ import sys
 import tempfile
 
 __all__ = ["CommandParser", "fail", "interrupted", "flag_names", "in_flags", "check_output_file",
-           "check_output_folder", "REFUSED", "INTERRUPTED"]
+           "check_output_folder", "add_device_argument", "resolve_device", "REFUSED", "INTERRUPTED"]
 
 #: exit status of refused input (one line on stderr), as argparse's
 REFUSED = 2
@@ -48,6 +48,55 @@ class CommandParser(argparse.ArgumentParser):
         flag) reads ``--x: ...``."""
         message = _one_prefix(re.sub(r"^argument ([^:]+): ", r"\1: ", str(message)))
         self.exit(REFUSED, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def add_device_argument(parser):
+    """``--device auto|cpu|cuda[:N]``: where the tracer runs (:func:`resolve_device` turns it into a device)."""
+    parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda[:N]",
+                        help="where the tracer runs: auto (a CUDA GPU when torch sees one that can render, else the "
+                             "CPU), cpu, cuda or cuda:N (default: %(default)s)")
+
+
+def resolve_device(parser, value, log=None):
+    """The ``torch.device`` of a ``--device`` value; bad or unusable values exit through ``parser.error`` (one line).
+
+    ``auto`` takes ``cuda`` when torch sees a GPU that can render (:func:`torch_appearance.render.cuda_launch.
+    cuda_unavailable` is None), else the CPU; ``log`` (a callable) receives one line saying which and why.
+
+    Example:
+        >>> str(resolve_device(CommandParser("ta-x", "X."), "cpu"))
+        'cpu'
+    """
+    import torch
+
+    from ..render.cuda_launch import cuda_unavailable
+
+    text = str(value).strip().lower()
+    if text == "auto":
+        missing = cuda_unavailable()
+        device = torch.device("cpu") if missing else torch.device("cuda", torch.cuda.current_device())
+        if log is not None:
+            log(f"device: {device} (--device auto: " + (f"{missing})" if missing else
+                                                         f"{torch.cuda.get_device_name(device)})"))
+        return device
+    if text == "cpu":
+        if log is not None:
+            log("device: cpu")
+        return torch.device("cpu")
+    match = re.fullmatch(r"cuda(?::(\d+))?", text)
+    if match is None:
+        parser.error(f"--device: expected auto, cpu, cuda or cuda:N, got {value!r}")
+    missing = cuda_unavailable()
+    if missing:
+        parser.error(f"--device: {value} cannot be used here: {missing}; use --device cpu or auto")
+    index = int(match.group(1)) if match.group(1) else torch.cuda.current_device()
+    if index >= torch.cuda.device_count():
+        parser.error(f"--device: expected cuda:0 ... cuda:{torch.cuda.device_count() - 1} (the GPUs torch sees), "
+                     f"got {value}")
+    device = torch.device("cuda", index)
+    if log is not None:
+        log(f"device: {device} ({torch.cuda.get_device_name(device)})")
+    return device
 
 
 def fail(prog, message, flags=None, values=None):

@@ -13,6 +13,7 @@ with one line and exit 130, and writes nothing (or, when it comes while the file
 
 Examples:
     ta-render-object --shape torus --size 256 --spp 64 --out results/render-object
+    ta-render-object --shape sphere --device cuda --out results/render-object-gpu
 """
 import json
 import math
@@ -29,7 +30,8 @@ from torch_appearance.pipelines.runs import check_memory, lock_output, sigint_de
 from torch_appearance.render import (BoxBoundary, DiscLight, EnvironmentMap, PerspectiveCamera, Scene,
                                      SDFBoundary)
 
-from .command import CommandParser, check_output_folder, fail, flag_names, interrupted
+from .command import (CommandParser, add_device_argument, check_output_folder, fail, flag_names, interrupted,
+                      resolve_device)
 
 PROG = "ta-render-object"
 
@@ -72,8 +74,10 @@ def main(argv=None):
     p.add_argument("--light-deg", type=float, default=25.0, help="angular radius of the disc light (default: %(default)s)")
     p.add_argument("--envmap", default=None, help="a lat-long linear EXR (z up) instead of the disc light")
     p.add_argument("--out", default="results/render-object", help="run folder (default: %(default)s)")
+    add_device_argument(p)
     args = p.parse_args(argv)
     check_output_folder(p, "--out", args.out)
+    args.device = str(resolve_device(p, args.device, log=print))
     for name in ("radius_mm", "voxel_size", "size", "spp"):
         if not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')}: expected > 0, got {getattr(args, name)}")
@@ -126,15 +130,18 @@ def _render(args, n, emitter, written):
                             resolution=(args.size, args.size))
     scene = Scene(voxel_size=h, origin=origin, boundary=SDFBoundary(sdf, ior=args.ior or None), sensor=cam,
                   emitter=emitter, g=0.4)
-    sigma_t.requires_grad_()
+    sigma_t = sigma_t.to(args.device).requires_grad_()
+    albedo = albedo.to(args.device)
     stats = {}
     start = time.perf_counter()
     image = torch_appearance.render_scene(scene, sigma_t, albedo, spp=args.spp, seed=args.seed, stats=stats)
     forward_s = time.perf_counter() - start
     image.mean().backward()
+    image = image.cpu()
     timings = {"forward_s": forward_s, "backward_s": stats.get("backward_s"), "grid_dhw": [n, n, n],
                "pixels": args.size ** 2, "spp": args.spp, "scatter_events": stats["scatter_events"],
-               "events_per_s": stats["scatter_events"] / forward_s, "threads": torch.get_num_threads()}
+               "events_per_s": stats["scatter_events"] / forward_s, "threads": torch.get_num_threads(),
+               "device": args.device}
     with sigint_deferred():
         os.makedirs(args.out, exist_ok=True)
         ta_io.write_png(os.path.join(args.out, "render.png"), image.detach())

@@ -14,12 +14,14 @@ lampshade.exr/.png, figure.png (side by side) and summary.json (settings, volume
 Examples:
     ta-render-wood-volume --synthetic 3 --out results/wood_volume
     ta-render-wood-volume results/board --out results/board_volume --spp 64 --passes 8
+    ta-render-wood-volume --synthetic 3 --device cuda --out results/wood_volume_gpu
 """
 import sys
 
 from torch_appearance.pipelines.wood_volume_render import LampshadeGeometry, WoodVolumeConfig, render_wood_volume
 
-from .command import CommandParser, check_output_folder, fail, folder_listing, interrupted, undo_partial
+from .command import (CommandParser, add_device_argument, check_output_folder, fail, folder_listing, interrupted,
+                      resolve_device, undo_partial)
 
 PROG = "ta-render-wood-volume"
 
@@ -63,10 +65,12 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--threads", type=int, default=d.threads, help="torch threads (0: torch's default)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_device_argument(p)
     args = p.parse_args(argv)
     if (args.fit_dir is None) == (args.synthetic is None):
         p.error("give either FIT_DIR or --synthetic SEED (exactly one)")
     check_output_folder(p, "--out", args.out)
+    args.device = str(resolve_device(p, args.device, log=print))
     return args
 
 
@@ -83,7 +87,7 @@ def main(argv=None):
                                shade_resolution=tuple(args.shade_resolution),
                                sigma_early=args.sigma_early, sigma_late=args.sigma_late, mapping=args.mapping,
                                spp=args.spp, shade_spp=args.shade_spp, passes=args.passes, seed=args.seed,
-                               threads=args.threads)
+                               threads=args.threads, device=args.device)
         render_wood_volume(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         return fail(PROG, error)

@@ -247,6 +247,7 @@ class WoodVolumeConfig:
     passes: int = 4
     seed: int = 0
     threads: int = 0
+    device: str = "cpu"  # where the tracer runs: "cpu", "cuda" or "cuda:N" (the images come back to the CPU)
 
     def validate(self):
         if (self.fit_dir is None) == (self.synthetic_seed is None):
@@ -257,17 +258,25 @@ class WoodVolumeConfig:
         check_int("shade_spp", self.shade_spp, lo=1)
         check_int("passes", self.passes, lo=1)
         check_int("threads", self.threads, lo=0)
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError) as error:
+            raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {self.device!r}") from error
+        if device.type not in ("cpu", "cuda"):
+            raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
         if self.mapping not in ("table", "elek"):
             raise ValueError(f"mapping: expected 'table' or 'elek', got {self.mapping!r}")
         return self
 
 
-def _render(scene, vol, spp, passes, seed, bar):
-    """Mean of ``passes`` renders of ``spp`` samples (independent seeds), advancing the progress bar."""
+def _render(scene, vol, spp, passes, seed, bar, device="cpu"):
+    """Mean of ``passes`` renders of ``spp`` samples (independent seeds) on ``device``, advancing the progress bar;
+    the image on the CPU."""
     acc, stats_all, t0 = None, [], time.perf_counter()
+    sigma_t, albedo = vol.sigma_t.to(device), vol.albedo.to(device)
     for k in range(passes):
         stats = {}
-        img = render_scene(scene, vol.sigma_t, vol.albedo, spp=spp, seed=seed + k, stats=stats)
+        img = render_scene(scene, sigma_t, albedo, spp=spp, seed=seed + k, stats=stats).cpu()
         acc = img if acc is None else acc + img
         stats_all.append(stats)
         bar.update(1)
@@ -384,11 +393,11 @@ def render_wood_volume(cfg: WoodVolumeConfig, progress=True, log=print):
     with progress_bar(total=5 * cfg.passes, desc="render_wood_volume", unit="pass", disable=not progress) as bar:
         for key in ("fit", "extruded"):
             renders["veneer_" + key], stats["veneer_" + key] = _render(front, vols[key], cfg.spp, cfg.passes,
-                                                                      cfg.seed, bar)
+                                                                      cfg.seed, bar, device=cfg.device)
             renders["side_" + key], stats["veneer_side_" + key] = _render(side, vols[key], cfg.spp, cfg.passes,
-                                                                         cfg.seed + 1000, bar)
+                                                                         cfg.seed + 1000, bar, device=cfg.device)
         renders["shade"], stats["lampshade"] = _render(shade_scene, vols["shade"], cfg.shade_spp, cfg.passes,
-                                                       cfg.seed + 2000, bar)
+                                                       cfg.seed + 2000, bar, device=cfg.device)
     exposures = {"veneer": _exposure(renders["veneer_fit"], renders["veneer_extruded"]),
                  "side": _exposure(renders["side_fit"], renders["side_extruded"]),
                  "shade": _exposure(renders["shade"], percentile=99.5)}
