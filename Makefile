@@ -9,7 +9,7 @@ BUILD_STAMP := .build-stamp
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: demo demo-object render-demo test build bench bench-peer clean venv
+.PHONY: demo demo-object render-demo test build bench bench-peer clean venv gpu-check gpu-wheels
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -59,6 +59,25 @@ bench-peer: build
 	$(PIP) install --quiet mitsuba==3.5.2 drjit==0.4.6
 	@ldconfig -p | grep -q 'libLLVM-15.so' || (apt-get update -q && apt-get install -y -q libllvm15)
 	DRJIT_LIBLLVM_PATH=$$(ldconfig -p | awk '/libLLVM-15.so/ {print $$NF; exit}') $(PY) scripts/bench/bench_peer.py
+
+# The prepared check of the CUDA path (issue 47) for a lent GPU machine, in one call: builds the extension with that
+# machine's own python3 and torch (its pins are not the project's), then runs scripts/bench/gpu_check.py (about 5
+# minutes with the build on 16 cores; the JSON lands in $$OUT). The package imports kornia and OpenEXR, which that
+# machine lacks: `make gpu-wheels` here puts their wheels in .whl/ (git-ignored); carry .whl with the call.
+GPU_PY ?= python3
+GPU_SITE ?= /tmp/ta-site
+GPU_CHECK_ARGS ?=
+gpu-check:
+	if ls .whl/*.whl >/dev/null 2>&1; then $(GPU_PY) -m pip install -q --no-index --no-deps --no-compile \
+		--no-cache-dir --upgrade --target $(GPU_SITE) .whl/*.whl; fi
+	PYTHONPATH=$(GPU_SITE) $(GPU_PY) setup.py --quiet build_ext --inplace
+	PYTHONUNBUFFERED=1 PYTHONPATH=$(CURDIR):$(GPU_SITE) $(GPU_PY) scripts/bench/gpu_check.py $(GPU_CHECK_ARGS)
+
+gpu-wheels:
+	f=$$(git rev-parse --git-path info/exclude); grep -qx '/.whl/' $$f 2>/dev/null || echo /.whl/ >> $$f
+	$(PY) -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+		--platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+		-d .whl kornia==0.9.0 kornia_rs==0.2.0 OpenEXR==3.5.3
 
 clean:
 	rm -rf build $(BUILD_STAMP) torch_appearance/_C*.so results
