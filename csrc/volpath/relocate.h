@@ -39,19 +39,13 @@ static_assert(sizeof(core::Scene<float>) == 632, "core::Scene<float> changed: up
 static_assert(sizeof(core::Scene<double>) == 784, "core::Scene<double> changed: update scene_pointers");
 #endif
 
-// One pointer member of a Scene<T>: its name (the member's path), its byte offset in the scene, the bytes of the
-// buffer it points to, and the byte that a test writes over an original buffer to poison it (tests only: a value
-// that changes what the walk does, kept in range where the byte is an index).
+// One pointer member of a Scene<T>: its name (the member's path), its byte offset in the scene and the bytes of the
+// buffer it points to.
 struct PointerSlot {
   const char* name;
   size_t offset;
   int64_t bytes;
-  uint8_t poison;
 };
-
-// The poison of a buffer of T: bytes 0x3F make every float 0.747 and every double 4.8e-4, finite, positive and
-// below 1, so a walk that reads them stays a valid walk (no NaN, no endless loop) of another scene.
-constexpr uint8_t kPoisonValue = 0x3F;
 
 // The pointer read from / written to a slot of the scene (memcpy: no type punning).
 inline const void* slot_pointer(const void* scene, const PointerSlot& s) {
@@ -74,9 +68,9 @@ std::vector<PointerSlot> scene_pointers(const core::Scene<T>& S) {
   const auto channels = [&](const char* data, const char* index, const char* palette, size_t off,
                             const core::Channels<T>& c) {
     using Ch = core::Channels<T>;
-    out.push_back({data, med + off + offsetof(Ch, data), c.data != nullptr ? 3 * N * t : 0, kPoisonValue});
-    out.push_back({index, med + off + offsetof(Ch, index), c.index != nullptr ? N : 0, 0});
-    out.push_back({palette, med + off + offsetof(Ch, palette), c.palette != nullptr ? 3 * c.entries * t : 0, kPoisonValue});
+    out.push_back({data, med + off + offsetof(Ch, data), c.data != nullptr ? 3 * N * t : 0});
+    out.push_back({index, med + off + offsetof(Ch, index), c.index != nullptr ? N : 0});
+    out.push_back({palette, med + off + offsetof(Ch, palette), c.palette != nullptr ? 3 * c.entries * t : 0});
   };
   using Med = core::Medium<T>;
   channels("medium.sigma_t.data", "medium.sigma_t.index", "medium.sigma_t.palette", offsetof(Med, sigma_t),
@@ -87,27 +81,26 @@ std::vector<PointerSlot> scene_pointers(const core::Scene<T>& S) {
   channels("medium.ref_albedo.data", "medium.ref_albedo.index", "medium.ref_albedo.palette",
            offsetof(Med, ref_albedo), M.ref_albedo);
   const int64_t core_bricks = M.core_bricks[0] * M.core_bricks[1] * M.core_bricks[2];
-  out.push_back({"medium.core", med + offsetof(Med, core), M.core != nullptr ? core_bricks : 0, 0xFF});
+  out.push_back({"medium.core", med + offsetof(Med, core), M.core != nullptr ? core_bricks : 0});
   using Sdf = core::SDFGrid<T>;
   const size_t sdf = offsetof(Sc, sdf);
   const int64_t corners = (M.D + 1) * (M.H + 1) * (M.W + 1);
   const int64_t skip_bricks = S.sdf.bricks[0] * S.sdf.bricks[1] * S.sdf.bricks[2];
-  out.push_back({"sdf.sdf", sdf + offsetof(Sdf, sdf), S.sdf.sdf != nullptr ? corners * t : 0, kPoisonValue});
-  out.push_back({"sdf.cell", sdf + offsetof(Sdf, cell), S.sdf.cell != nullptr ? N : 0, core::kCellOutside});
-  out.push_back({"sdf.skip", sdf + offsetof(Sdf, skip), S.sdf.skip != nullptr ? skip_bricks : 0, 0xFF});
+  out.push_back({"sdf.sdf", sdf + offsetof(Sdf, sdf), S.sdf.sdf != nullptr ? corners * t : 0});
+  out.push_back({"sdf.cell", sdf + offsetof(Sdf, cell), S.sdf.cell != nullptr ? N : 0});
+  out.push_back({"sdf.skip", sdf + offsetof(Sdf, skip), S.sdf.skip != nullptr ? skip_bricks : 0});
   using Sen = core::Sensor<T>;
   const size_t sen = offsetof(Sc, sensor);
-  out.push_back({"sensor.points", sen + offsetof(Sen, points), S.sensor.points != nullptr ? 3 * S.sensor.count * t : 0,
-                 kPoisonValue});
+  out.push_back({"sensor.points", sen + offsetof(Sen, points),
+                 S.sensor.points != nullptr ? 3 * S.sensor.count * t : 0});
   out.push_back({"sensor.normals", sen + offsetof(Sen, normals),
-                 S.sensor.normals != nullptr ? 3 * S.sensor.count * t : 0, kPoisonValue});
-  out.push_back({"sensor.radius", sen + offsetof(Sen, radius), S.sensor.radius != nullptr ? S.sensor.count * t : 0,
-                 kPoisonValue});
+                 S.sensor.normals != nullptr ? 3 * S.sensor.count * t : 0});
+  out.push_back({"sensor.radius", sen + offsetof(Sen, radius), S.sensor.radius != nullptr ? S.sensor.count * t : 0});
   using Em = core::Emitter<T>;
   out.push_back({"emitter.map", offsetof(Sc, emitter) + offsetof(Em, map),
-                 S.emitter.map != nullptr ? S.emitter.map_h * S.emitter.map_w * 3 * t : 0, kPoisonValue});
-  out.push_back({"tally_bin", offsetof(Sc, tally_bin), S.tally_bin != nullptr ? N : 0, 0});
-  out.push_back({"tally", offsetof(Sc, tally), 0, 0});
+                 S.emitter.map != nullptr ? S.emitter.map_h * S.emitter.map_w * 3 * t : 0});
+  out.push_back({"tally_bin", offsetof(Sc, tally_bin), S.tally_bin != nullptr ? N : 0});
+  out.push_back({"tally", offsetof(Sc, tally), 0});
   return out;
 }
 

@@ -5,6 +5,7 @@
 // The checks and the scene's derived buffers (the SDF's cell kinds and skip distances, the homogeneous core) are
 // computed on the host, from host copies of the grids when these live on the device (one device-to-host copy of the
 // four grids per call; the device's copies of the grids are used by the walk as they are, not copied back).
+#include <algorithm>
 #include <cstring>
 #include <memory>
 #include <string>
@@ -35,10 +36,25 @@ SceneOptions host_options(const SceneOptions& opt) {
   return o;
 }
 
+// Tests: overwrites every buffer a built scene may point into, found through the storage and the grids, not through
+// relocate.h's list of pointers (so a pointer missing from that list is left pointing at poison). Buffers of T get
+// bytes 0x3F (every float 0.747, every double 4.8e-4: finite, positive, below 1, so a walk that reads them stays a
+// valid walk of another scene, no NaN, no endless loop); cell kinds all outside; brick distances 255.
+void poison(SceneStorage& store, const std::vector<torch::Tensor>& grids) {
+  constexpr uint8_t kValue = 0x3F;
+  for (const torch::Tensor* x : {&store.sdf, &store.points, &store.normals, &store.radius, &store.map})
+    if (x->defined() && x->numel() > 0) std::memset(x->data_ptr(), kValue, x->nbytes());
+  for (const auto& x : grids)
+    if (x.defined() && x.numel() > 0) std::memset(x.data_ptr(), kValue, x.nbytes());
+  std::fill(store.cells.begin(), store.cells.end(), uint8_t(core::kCellOutside));
+  std::fill(store.skip.begin(), store.skip.end(), uint8_t(255));
+  std::fill(store.core.begin(), store.core.end(), uint8_t(255));
+}
+
 // How the relocation places the buffers: on `device`, copied from the host; a buffer listed in `given` (the host
 // copy of a grid that is on the device already) becomes that device buffer instead. Tests: `copy_all` copies the
-// grids too, `poison` overwrites every original buffer after the copy (they stay alive in the keep list), `skip`
-// leaves one pointer behind.
+// grids too, `poison` overwrites every original buffer after the copy (poison(); they stay alive in the keep list),
+// `skip` leaves one pointer behind.
 struct Placement {
   torch::Device device = torch::kCPU;
   std::map<const void*, const void*> given;
@@ -64,11 +80,6 @@ std::tuple<torch::Tensor, std::vector<torch::Tensor>> relocate(const core::Scene
   } catch (const std::invalid_argument& e) {
     TORCH_CHECK_VALUE(false, e.what());
   }
-  if (P.poison)
-    for (const auto& s : detail::scene_pointers(S)) {
-      const void* p = detail::slot_pointer(&S, s);
-      if (p != nullptr && s.bytes > 0 && !P.given.count(p)) std::memset(const_cast<void*>(p), s.poison, size_t(s.bytes));
-    }
   // the host storage (the originals) stays alive as long as the keep list: a pointer left behind (skip) reads poison,
   // never freed memory
   void* handle = store.get();
@@ -121,6 +132,7 @@ std::tuple<torch::Tensor, std::vector<torch::Tensor>> dense_scene(
       detail::build_core(S, *store, nullptr);
     }
     out = relocate(S, store, P);  // (the host copies h live until the relocation is done)
+    if (P.poison) poison(*store, h);
   });
   return out;
 }
