@@ -134,7 +134,8 @@ def test_the_replay_scene_and_the_palette_scene_relocate():
     sigma_t, albedo = _medium(shape, torch.float32, True)
     job = TraceJob(scene, spp=2, seed=4)
     options = walk_options(job, sigma_t, job.seed, shape, torch.float32)
-    scene_bytes, keep = _C.scene_to_device(sigma_t, albedo, sigma_t, albedo, options, 0.5, 0.05, True, torch.device("cpu"))
+    scene_bytes, keep = _C.scene_to_device(sigma_t, albedo, sigma_t, albedo, options, 0.5, 0.05, True,
+                                           torch.device("cpu"))
     assert scene_bytes.numel() == _C.scene_layout(torch.float32).size
     # the grids already on the target device are used in place, not copied
     words = dict(_C.scene_layout(torch.float32).pointers)

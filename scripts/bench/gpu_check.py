@@ -13,8 +13,8 @@ Steps, each recorded in the JSON (ok, figures, or the traceback):
                t-tests      --seeds independent seeds per device: max |t| of the per-element means against the
                             Bonferroni bound (alpha 0.01, 2k - 2 degrees of freedom), and the t of the sums over all
                             elements (power against a small bias: a 1 % albedo change fails it);
-               gradients    d(w . image)/d sigma_t and d albedo by replay, the same seed_grad: max |diff| over max |grad|,
-                            and the t-tests across seeds; with grad_support (compact buffers) on the object, and the
+               gradients    d(w . image)/d sigma_t and d albedo by replay, the same seed_grad: max |diff| over
+                            max |grad|, and the t-tests across seeds; with grad_support (compact buffers) on the object, and the
                             one walk of the ema estimator (render_scene(adjoint=...));
   gradcheck  torch.autograd.gradcheck in float64 on a tiny slab on the GPU;
   stiff      sigma_t 1e-6 ... 1e4 mm^-1 and albedo 0 and 1 on the GPU: finite image and gradients;

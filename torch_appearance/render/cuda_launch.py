@@ -29,8 +29,9 @@ from .._ext import _C
 from . import cuda_kernels
 
 __all__ = ["PATHS_PER_LAUNCH", "BLOCK", "DeviceCounts", "cuda_unavailable", "tracer_for", "forward_kernel_name",
-           "replay_kernel_name", "layout_probe_source", "layout_from_ptx", "layout_mismatches", "pack_launch", "kernel_params", "share_count", "image_shape", "scene_forward",
-           "scene_backward", "scene_forward_backward", "scene_forward_indexed"]
+           "replay_kernel_name", "layout_probe_source", "layout_from_ptx", "layout_mismatches", "pack_launch",
+           "kernel_params", "pointer", "share_count", "image_shape", "scene_forward", "scene_backward",
+           "scene_forward_backward", "scene_forward_indexed"]
 
 #: threads per block (csrc/cuda/launch.cuh kBlock)
 BLOCK = 128
