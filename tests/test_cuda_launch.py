@@ -141,6 +141,8 @@ def _recorded_launches(monkeypatch, paths_per_launch):
     monkeypatch.setattr(torch.cuda, "device", lambda device: contextlib.nullcontext())
     monkeypatch.setattr(cuda_launch, "_launch", lambda device, program, dtype, name, threads, args:
                         calls.append((program, dtype, name, threads, [bytes(a) for a in args])))
+    monkeypatch.setattr(cuda_launch, "check_device_memory", lambda device, needed, what:
+                        calls.append(("memory", what, needed)))
     return calls
 
 
@@ -159,7 +161,8 @@ def test_the_launcher_splits_a_job_into_consecutive_launches(monkeypatch):
     assert tuple(image.shape) == (2, 3, 4, 3) and counts.scatter_events == 0
     count = cuda_launch.share_count(24, 1, 3)
     total = count * 5 * 3
-    walks = [c for c in calls if c[2].startswith("ta_forward")]
+    assert calls[0] == ("memory", "render_scene", count * 3 * 8 + count * 3 * 4)  # box: no scene buffers
+    walks = [c for c in calls if c[0] != "memory" and c[2].startswith("ta_forward")]
     assert {c[2] for c in walks} == {"ta_forward_f32_l1_box_diel_plain"}
     first = 0
     for program, dtype, name, threads, args in walks:
@@ -187,7 +190,8 @@ def test_the_replay_launch_takes_the_compact_buffers_of_grad_support(monkeypatch
     gs, ga, events = cuda_launch.scene_backward(grad_out, sigma_t.double(), albedo.double(), sigma_t.double(),
                                                 albedo.double(), True, False, options, 0.5, 0.05)
     assert ga is None and tuple(gs.shape) == (3,) + shape and events == 0
-    (program, dtype, name, threads, args), = calls
+    memory, (program, dtype, name, threads, args) = calls
+    assert memory[:2] == ("memory", "render_scene backward") and memory[2] >= 2 * sigma_t.numel() * 8
     assert (program, dtype, name) == ("replay", "f64", "ta_replay_f64_l3_box_matched")
     assert threads == 12 * 2 and len(args) == 9
     assert struct.unpack("<q", args[5])[0] == int(support.sum())  # plane: the asked voxels
@@ -195,3 +199,13 @@ def test_the_replay_launch_takes_the_compact_buffers_of_grad_support(monkeypatch
     with pytest.raises(ValueError, match="grad_output: expected 36 values"):
         cuda_launch.scene_backward(grad_out[:2], sigma_t.double(), albedo.double(), sigma_t.double(),
                                    albedo.double(), True, False, options, 0.5, 0.05)
+
+
+def test_a_job_too_large_for_the_device_is_refused_before_it_is_built(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (3 << 30, 80 << 30))
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device: 1 << 30)
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device: 0)
+    cuda_launch.check_device_memory("cuda:0", 4 << 30, "render_scene")  # 3 GiB free + 1 GiB cached but unused
+    with pytest.raises(ValueError, match=r"^render_scene: needs 4\.50 GiB more on cuda:0, which has 4\.00 GiB free "
+                                         r"\(4831838208 > 4294967296 bytes\)"):
+        cuda_launch.check_device_memory("cuda:0", (4 << 30) + (1 << 29), "render_scene")

@@ -16,6 +16,7 @@ Steps, each recorded in the JSON (ok, figures, or the traceback):
                gradients    d(w . image)/d sigma_t and d albedo by replay, the same seed_grad: max |diff| over
                             max |grad|, and the t-tests across seeds; with grad_support (compact buffers) on the object, and the
                             one walk of the ema estimator (render_scene(adjoint=...));
+  memory     a job larger than the GPU's free memory refused before it is built (one line, bytes needed and free);
   gradcheck  torch.autograd.gradcheck in float64 on a tiny slab on the GPU;
   stiff      sigma_t 1e-6 ... 1e4 mm^-1 and albedo 0 and 1 on the GPU: finite image and gradients;
   timing     a moderate slab and object, forward + backward, CPU (all cores, its SIMD walks) against the GPU.
@@ -279,6 +280,16 @@ def _case(torch, ta, _C, build, shape, chromatic, estimator, palette, dtype, arg
     return out
 
 
+def _memory_refusal(torch):
+    """A job needing 1 PiB on the device is refused in one line naming the bytes, before anything is built."""
+    from torch_appearance.render import cuda_launch
+    try:
+        cuda_launch.check_device_memory(torch.device("cuda", 0), 1 << 50, "render_scene")
+    except ValueError as error:
+        return {"message": str(error), "ok": "needs" in str(error) and "free" in str(error)}
+    return {"ok": False, "message": "not refused"}
+
+
 def _gradcheck(torch, ta, device):
     scene = ta.render.Scene.slab(0.1, ior=1.4)
     gen = torch.Generator().manual_seed(2)
@@ -424,6 +435,8 @@ def main(argv=None):
                         grad_support=True))
     _step(record, log, "case object adjoint (ema walk) f32",
           lambda: _case(torch, ta, _C, build, shape, chromatic, estimator, False, torch.float32, args, adjoint=True))
+    if on_gpu:
+        _step(record, log, "memory refusal", lambda: _memory_refusal(torch))
     _step(record, log, "gradcheck f64", lambda: _gradcheck(torch, ta, args.device))
     _step(record, log, "stiff", lambda: _stiff(torch, ta, args.device))
     if not args.quick:

@@ -30,8 +30,8 @@ from . import cuda_kernels
 
 __all__ = ["PATHS_PER_LAUNCH", "BLOCK", "DeviceCounts", "cuda_unavailable", "tracer_for", "forward_kernel_name",
            "replay_kernel_name", "layout_probe_source", "layout_from_ptx", "layout_mismatches", "pack_launch",
-           "kernel_params", "pointer", "share_count", "image_shape", "scene_forward", "scene_backward",
-           "scene_forward_backward", "scene_forward_indexed"]
+           "kernel_params", "pointer", "share_count", "image_shape", "check_device_memory", "scene_forward",
+           "scene_backward", "scene_forward_backward", "scene_forward_indexed"]
 
 #: threads per block (csrc/cuda/launch.cuh kBlock)
 BLOCK = 128
@@ -317,9 +317,43 @@ def _elements(options, grid_shape):
     return n
 
 
+def _scene_bytes_on_device(options, grid_shape, dtype, cells):
+    """Bytes the relocated scene's own buffers take on the device (an upper bound): the SDF's corners, cell kinds
+    and brick distances (twice: skip and core), the texels' points, normals and radii, the environment map."""
+    item = 4 if dtype == torch.float32 else 8
+    D, H, W = grid_shape
+    total = 0
+    if options.boundary.kind == 1:
+        total += (D + 1) * (H + 1) * (W + 1) * item + cells + 2 * (-(-D // 4)) * (-(-H // 4)) * (-(-W // 4))
+    if options.sensor.kind == 1:
+        total += int(options.sensor.points.shape[0]) * 7 * item
+    if options.emitter.kind == 1:
+        total += int(options.emitter.map.numel()) * item
+    return total
+
+
+def check_device_memory(device, needed, what):
+    """Refuses a job whose new device buffers (``needed`` bytes) exceed what the device has free, counting the memory
+    torch's allocator holds but does not use, before anything is built or launched.
+
+    Raises:
+        ValueError: one line with the bytes needed and free.
+    """
+    free, _ = torch.cuda.mem_get_info(device)
+    free += torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
+    if needed > free:
+        raise ValueError(f"{what}: needs {needed / 2**30:.2f} GiB more on {device}, which has {free / 2**30:.2f} GiB "
+                         f"free ({needed} > {free} bytes); render on the CPU, or a smaller grid, fewer texels or "
+                         f"pixels")
+
+
 def scene_forward(sigma_t, albedo, ref_sigma_t, ref_albedo, ratio, options):
     """``_C.scene_forward`` on the grids' CUDA device: (image, :class:`DeviceCounts`)."""
     device = sigma_t.device
+    grid_shape = tuple(sigma_t.shape[1:])
+    count = share_count(_elements(options, grid_shape), options.part_rank, options.part_world)
+    check_device_memory(device, _scene_bytes_on_device(options, grid_shape, sigma_t.dtype, sigma_t.numel() // 3)
+                        + count * 3 * 8 + count * 3 * sigma_t.element_size(), "render_scene")
     with torch.cuda.device(device):  # the scene's buffers on the device's current stream, as the launches
         scene_bytes, keep = _C.scene_to_device(sigma_t, albedo, ref_sigma_t, ref_albedo, options, 0.0, 0.0, False,
                                                device)
@@ -329,6 +363,10 @@ def scene_forward(sigma_t, albedo, ref_sigma_t, ref_albedo, ratio, options):
 def scene_forward_indexed(index, sigma_t_table, albedo_table, options):
     """``_C.scene_forward_indexed`` on the index's CUDA device: (image, :class:`DeviceCounts`)."""
     device = index.device
+    grid_shape = tuple(index.shape)
+    count = share_count(_elements(options, grid_shape), options.part_rank, options.part_world)
+    check_device_memory(device, _scene_bytes_on_device(options, grid_shape, sigma_t_table.dtype, index.numel())
+                        + index.numel() + count * 3 * (8 + sigma_t_table.element_size()), "render_scene_indexed")
     with torch.cuda.device(device):
         scene_bytes, keep = _C.scene_to_device_indexed(index, sigma_t_table, albedo_table, options, device)
         return _forward(device, sigma_t_table.dtype, scene_bytes, options, tuple(index.shape), False, keep)
@@ -373,6 +411,10 @@ def _replay(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo, need_sigma_t,
     gs = ga = image = None
     if not need_sigma_t and not need_albedo and not with_image:
         return None, gs, ga, 0, 0
+    count = share_count(elements, options.part_rank, options.part_world)
+    grads = (int(need_sigma_t) + int(need_albedo)) * sigma_t.numel() * sigma_t.element_size()
+    check_device_memory(device, _scene_bytes_on_device(options, grid_shape, dtype, N) + grads * (2 if compact else 1)
+                        + (N * 4 if compact else 0) + (count * 3 * 8 if with_image else 0), "render_scene backward")
     scene_bytes, keep = _C.scene_to_device(sigma_t, albedo, ref_sigma_t, ref_albedo, options, sigma_t_floor,
                                            albedo_floor, True, device)
     rank = None
@@ -386,7 +428,6 @@ def _replay(grad_output, sigma_t, albedo, ref_sigma_t, ref_albedo, need_sigma_t,
         plane = N
         buf_s = torch.zeros_like(sigma_t) if need_sigma_t else None
         buf_a = torch.zeros_like(albedo) if need_albedo else None
-    count = share_count(elements, options.part_rank, options.part_world)
     acc = torch.zeros((max(count, 1), 3), dtype=torch.float64, device=device) if with_image else None
     counts = torch.zeros(3, dtype=torch.int64, device=device)
     name = replay_kernel_name(options, dtype)
