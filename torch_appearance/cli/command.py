@@ -11,12 +11,14 @@ import argparse
 import contextlib
 import os
 import re
-import shutil
 import sys
 import tempfile
 
+from ..interrupts import folder_listing, sigint_deferred, undo_partial  # noqa: F401  (part of this API)
+
 __all__ = ["CommandParser", "fail", "interrupted", "flag_names", "in_flags", "check_output_file",
-           "check_output_folder", "add_device_argument", "resolve_device", "REFUSED", "INTERRUPTED"]
+           "check_output_folder", "folder_listing", "undo_partial", "owned_folder", "interrupted_message",
+           "add_device_argument", "resolve_device", "REFUSED", "INTERRUPTED"]
 
 #: exit status of refused input (one line on stderr), as argparse's
 REFUSED = 2
@@ -118,42 +120,29 @@ def interrupted(prog, message):
     return INTERRUPTED
 
 
-def folder_listing(folder):
-    """``{name: (inode, size, mtime_ns)}`` of the files in ``folder``; None when it does not exist (what a command
-    that writes a folder notes before it starts, for :func:`undo_partial`)."""
-    if not os.path.isdir(folder):
-        return None
-    entries = {}
-    for entry in os.scandir(folder):
-        if entry.is_file(follow_symlinks=False):
-            stat = entry.stat(follow_symlinks=False)
-            entries[entry.name] = (stat.st_ino, stat.st_size, stat.st_mtime_ns)
-    return entries
+@contextlib.contextmanager
+def owned_folder(prog, folder, what, flag="--out"):
+    """The run folder ``folder`` held by the command ``prog`` while the ``with`` block writes it
+    (:func:`~torch_appearance.pipelines.runs.claim_run_folder`: another tool's folder, or one that another process
+    holds, is refused with a ValueError naming ``flag``; the folder is locked and marked as ``prog``'s). After Ctrl-C
+    in the block what it wrote is undone under the lock (:func:`undo_partial`, ``what`` e.g. "fit") and the
+    ``KeyboardInterrupt`` raised again with what was kept as its message, for :func:`interrupted`."""
+    from ..pipelines.runs import claim_run_folder  # here: the ring commands import this module without the pipelines
+
+    before = folder_listing(folder)
+    with claim_run_folder(folder, prog, flag):
+        try:
+            yield
+        except KeyboardInterrupt:
+            with sigint_deferred():  # a second Ctrl-C does not cut the undo in two
+                kept = undo_partial(folder, before, what)
+            raise KeyboardInterrupt(kept) from None
 
 
-def undo_partial(folder, before, what):
-    """After Ctrl-C: no partial ``what`` (e.g. "fit") is left as if it were one. A folder the command created
-    (``before`` None, :func:`folder_listing`) is removed; in an existing one the files it added are removed, and when
-    it had already replaced files of an earlier ``what``, that one's ``summary.json`` goes too (a folder holds a
-    whole ``what`` exactly when it holds summary.json, written last). Returns what was kept, for
-    :func:`interrupted`'s line."""
-    if before is None:
-        shutil.rmtree(folder, ignore_errors=True)
-        return "nothing was written (start it again)"
-    after = folder_listing(folder) or {}
-    for name in set(after) - set(before):
-        with contextlib.suppress(OSError):
-            os.remove(os.path.join(folder, name))
-    replaced = sorted(name for name in set(after) & set(before) if after[name] != before[name])
-    if not replaced:
-        return f"{folder!r} is as it was (start it again)"
-    dropped = ""
-    if "summary.json" in before and "summary.json" not in replaced:
-        with contextlib.suppress(OSError):
-            os.remove(os.path.join(folder, "summary.json"))
-        dropped = ": its summary.json is removed"
-    return (f"the earlier {what} in {folder!r} was partly replaced ({', '.join(replaced[:3])}"
-            f"{', ...' if len(replaced) > 3 else ''}) and is incomplete{dropped}; start it again to redo it")
+def interrupted_message(stop):
+    """What a ``KeyboardInterrupt`` raised by :func:`owned_folder` says was kept; one raised elsewhere (while the
+    folder was claimed, before anything was written in it) says nothing was written."""
+    return str(stop) or "nothing was written (start it again)"
 
 
 def flag_names(parser, **aliases):

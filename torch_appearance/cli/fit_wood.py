@@ -21,8 +21,8 @@ import sys
 
 from ..pipelines.wood.config import WoodFitConfig
 from ..pipelines.wood.fit import fit_wood
-from .command import (CommandParser, check_output_folder, fail, flag_names, folder_listing, interrupted,
-                      undo_partial)
+from .command import (CommandParser, check_output_folder, fail, flag_names, interrupted, interrupted_message,
+                      owned_folder)
 
 __all__ = ["add_fit_arguments", "config_from_args", "parser", "main", "FIT_FLAGS"]
 
@@ -128,13 +128,13 @@ def main(argv=None, prog=PROG):
     if args.dpi is not None and args.dpi <= 0:
         p.error(f"--dpi: expected > 0, got {args.dpi}")
     cfg = config_from_args(args, photo=args.photo, out=args.out, pixel_size_mm=pixel, preview=not args.no_preview)
-    before = folder_listing(args.out)
-    try:
-        fit_wood(cfg, progress=not args.quiet)
+    try:  # the folder is this command's while it fits: another tool's or one another fit writes is refused
+        with owned_folder(PROG, args.out, "fit"):
+            fit_wood(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         return fail(prog, error, flag_names(p), vars(args))
-    except KeyboardInterrupt:
-        return interrupted(prog, undo_partial(args.out, before, "fit"))
+    except KeyboardInterrupt as stop:
+        return interrupted(prog, interrupted_message(stop))
     return 0
 
 

@@ -30,10 +30,11 @@ from ..fabrication.inks import DEFAULT_INKS, INKS
 from ..fabrication.printer import builtin_printers
 from ..fabrication.quantize import HALFTONES
 from ..pipelines.print.config import RESUME_MAY_CHANGE, SCHEDULES, PrintConfig, config_conflicts
-from ..pipelines.print.loop import optimize_print
+from ..pipelines.print.loop import TOOL, optimize_print
 from ..pipelines.print.slab_target import MIN_SLAB_TEXELS, slab_texels
 from ..pipelines.print.target_images import load_target
-from ..pipelines.runs import TRACE_BATCH, RunInterrupted, check_checkpoint, check_memory, trace_buffer_bytes
+from ..pipelines.runs import (TRACE_BATCH, RunInterrupted, check_checkpoint, check_memory, check_run_folder_owner,
+                              trace_buffer_bytes)
 from .command import CommandParser, check_output_folder, fail, flag_names, in_flags
 
 __all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args", "ink_names_help",
@@ -290,6 +291,10 @@ def main(argv=None, prog=PROG):
     p = parser(prog)
     args = p.parse_args(argv)
     check_output_folder(p, "--out", args.out)
+    try:  # another tool's folder: refused before anything is read from it or done
+        check_run_folder_owner(args.out, TOOL, "--out")
+    except ValueError as error:
+        return fail(prog, error)
     if args.threads is not None:
         if args.threads < 1:
             p.error(f"--threads: expected >= 1, got {args.threads}")

@@ -8,8 +8,9 @@ perspective camera. A backward pass of ``image.mean()`` is timed too.
 
 The run folder receives (each written atomically): ``render.png`` (sRGB), ``render.exr`` (linear RGB),
 ``timings.json`` (forward/backward seconds, scatter events per second) and ``config.json``, the four together once
-the render is done. A second ``ta-render-object`` on the same ``--out`` while one renders is refused; Ctrl-C ends it
-with one line and exit 130, and writes nothing (or, when it comes while the files are written, all four).
+the render is done, and ``tool.json`` (naming this command; another tool's folder is refused). A second
+``ta-render-object`` on the same ``--out`` while one renders is refused; Ctrl-C ends it with one line and exit 130,
+and writes nothing (or, when it comes while the files are written, all four).
 
 Examples:
     ta-render-object --shape torus --size 256 --spp 64 --out results/render-object
@@ -26,7 +27,8 @@ import torch
 import torch_appearance
 from torch_appearance import io as ta_io
 from torch_appearance.geometry import corner_points, sphere_sdf, torus_sdf
-from torch_appearance.pipelines.runs import check_memory, lock_output, sigint_deferred
+from torch_appearance.pipelines.runs import (check_memory, check_run_folder_owner, lock_output, mark_run_folder,
+                                             sigint_deferred)
 from torch_appearance.render import (BoxBoundary, DiscLight, EnvironmentMap, PerspectiveCamera, Scene,
                                      SDFBoundary)
 
@@ -77,6 +79,10 @@ def main(argv=None):
     add_device_argument(p)
     args = p.parse_args(argv)
     check_output_folder(p, "--out", args.out)
+    try:  # another tool's folder: refused before any work (again when the files are written)
+        check_run_folder_owner(args.out, PROG, "--out")
+    except ValueError as error:
+        return fail(PROG, error)
     args.device = str(resolve_device(p, args.device, log=print))
     for name in ("radius_mm", "voxel_size", "size", "spp"):
         if not getattr(args, name) > 0:
@@ -143,7 +149,9 @@ def _render(args, n, emitter, written):
                "events_per_s": stats["scatter_events"] / forward_s, "threads": torch.get_num_threads(),
                "device": args.device}
     with sigint_deferred():
+        check_run_folder_owner(args.out, PROG, "--out")  # under --out's lock, as the files are written
         os.makedirs(args.out, exist_ok=True)
+        mark_run_folder(args.out, PROG)
         ta_io.write_png(os.path.join(args.out, "render.png"), image.detach())
         ta_io.write_exr(os.path.join(args.out, "render.exr"), image.detach())
         ta_io.write_json(os.path.join(args.out, "timings.json"), timings)

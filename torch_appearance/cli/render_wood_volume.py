@@ -20,8 +20,8 @@ import sys
 
 from torch_appearance.pipelines.wood_volume_render import LampshadeGeometry, WoodVolumeConfig, render_wood_volume
 
-from .command import (CommandParser, add_device_argument, check_output_folder, fail, folder_listing, interrupted,
-                      resolve_device, undo_partial)
+from .command import (CommandParser, add_device_argument, check_output_folder, fail, interrupted,
+                      interrupted_message, owned_folder, resolve_device)
 
 PROG = "ta-render-wood-volume"
 
@@ -76,7 +76,6 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
-    before = folder_listing(args.out)
     try:
         shade = LampshadeGeometry(*args.shade, voxel_mm=args.shade_voxel_mm)
         cfg = WoodVolumeConfig(out=args.out, fit_dir=args.fit_dir, synthetic_seed=args.synthetic,
@@ -88,11 +87,12 @@ def main(argv=None):
                                sigma_early=args.sigma_early, sigma_late=args.sigma_late, mapping=args.mapping,
                                spp=args.spp, shade_spp=args.shade_spp, passes=args.passes, seed=args.seed,
                                threads=args.threads, device=args.device)
-        render_wood_volume(cfg, progress=not args.quiet)
+        with owned_folder(PROG, args.out, "render"):  # another tool's folder or one being written: refused
+            render_wood_volume(cfg, progress=not args.quiet)
     except (ValueError, TypeError) as error:
         return fail(PROG, error)
-    except KeyboardInterrupt:
-        return interrupted(PROG, undo_partial(args.out, before, "render"))
+    except KeyboardInterrupt as stop:
+        return interrupted(PROG, interrupted_message(stop))
     return 0
 
 

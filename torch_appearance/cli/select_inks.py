@@ -53,6 +53,7 @@ import time
 from torch_appearance import io as ta_io
 from torch_appearance.fabrication.inks import INKS, InkSet
 from torch_appearance.pipelines.print import PrintConfig, build_target, optimize_print
+from torch_appearance.pipelines.runs import claim_run_folder
 from torch_appearance.progress import LineProgress, progress_bar
 
 from .command import CommandParser, check_output_folder, fail, interrupted
@@ -487,9 +488,10 @@ def main(argv=None):
     if args.threads is not None and args.threads >= 1:
         import torch
         torch.set_num_threads(args.threads)
-    try:
-        run(args)
-    except SelectionError as error:
+    try:  # the folder is this command's while it runs: another tool's, or one another selection writes, is refused
+        with claim_run_folder(args.out, PROG, "--out"):
+            run(args)
+    except (SelectionError, ValueError) as error:
         return fail(PROG, error)
     except KeyboardInterrupt:  # finished sets keep their summary.json, the running one its checkpoint
         return interrupted(PROG, f"finished sets are kept; run the same command again to resume the selection in "

@@ -37,7 +37,10 @@ from torch_appearance import io as ta_io
 from torch_appearance.geometry import load_mesh, voxelize
 from torch_appearance.geometry.preview import write_previews
 
-from .command import INTERRUPTED, CommandParser, check_output_folder, fail, flag_names, in_flags, interrupted
+from torch_appearance.pipelines.runs import claim_run_folder
+
+from .command import (INTERRUPTED, CommandParser, check_output_folder, fail, flag_names, folder_listing, in_flags,
+                      interrupted, undo_partial)
 
 PROG = "ta-voxelize"
 NOTHING_WRITTEN = "nothing written (object.npz was not finished)"
@@ -79,14 +82,11 @@ def units_refusal(report):
 def main(argv=None):
     """Run the command with the flags in ``argv`` (default ``sys.argv[1:]``); returns the exit status (2 for refused
     input, 130 after Ctrl-C, with one line saying what was written)."""
-    state = {"out": None, "created": False, "object": False}
+    state = {"out": None, "object": False}
     try:
         return _main(argv, state)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # the folder's claim has removed the folder (or its mark) when nothing was written
         if not state["object"]:
-            if state["created"]:  # the folder this run made, before anything was written in it
-                with contextlib.suppress(OSError):
-                    os.rmdir(state["out"])
             return interrupted(PROG, NOTHING_WRITTEN)
         return interrupted(PROG, f"object.npz in {state['out']} is complete, the previews are not (--no-previews "
                                  f"skips them)")
@@ -116,15 +116,26 @@ def _main(argv, state):
         load_kwargs["texture"] = args.texture
     progress = Progress(args.quiet)
     flags = flag_names(p)
-    with _exit_on_sigint():  # nothing is written while the mesh loads and is voxelised
+    before = folder_listing(args.out)
+    with contextlib.ExitStack() as stack:
+        try:  # the folder is this command's from here: another tool's, or one another process writes, is refused
+            stack.enter_context(claim_run_folder(args.out, PROG, "--out"))
+        except ValueError as error:
+            return fail(PROG, error, flags)
+        state["out"] = args.out
+        return _voxelize_and_write(args, load_kwargs, progress, flags, state, before)
+
+
+def _voxelize_and_write(args, load_kwargs, progress, flags, state, before):
+    """Load and voxelise the mesh, then write the folder (claimed by the caller); returns the exit status."""
+    # nothing is written while the mesh loads and is voxelised: Ctrl-C then removes the claimed folder (or its mark)
+    with _exit_on_sigint(lambda: undo_partial(args.out, before, "voxelisation")):
         loaded = _load_and_voxelize(args, load_kwargs, progress, flags)
     if isinstance(loaded, int):
         return loaded
     obj, report, t0, t1, t2 = loaded
     progress(f"voxelised in {t2 - t1:.1f} s: grid {' × '.join(map(str, obj.grid_shape))} (D×H×W), "
              f"{len(obj.texel_voxels)} texels; writing object.npz …")
-    state["out"], state["created"] = args.out, not os.path.exists(args.out)
-    os.makedirs(args.out, exist_ok=True)
     obj.save(os.path.join(args.out, "object.npz"))  # atomically: whole or not at all
     state["object"] = True
     centres = (obj.texel_voxels.numpy()[:, ::-1] + 0.5) * obj.voxel_size + np.array(obj.origin)
@@ -179,16 +190,17 @@ def _load_and_voxelize(args, load_kwargs, progress, flags):
 
 
 @contextlib.contextmanager
-def _exit_on_sigint():
-    """Ctrl-C while nothing is written ends the process at once with the one line and exit 130, instead of a
-    ``KeyboardInterrupt`` raised inside the mesh and voxel libraries (trimesh swallows one raised during its lazy
-    imports, and one raised while a native module loads can abort the process). Only in the main thread."""
+def _exit_on_sigint(undo):
+    """Ctrl-C while nothing is written ends the process at once, after ``undo()``, with the one line and exit 130,
+    instead of a ``KeyboardInterrupt`` raised inside the mesh and voxel libraries (trimesh swallows one raised during
+    its lazy imports, and one raised while a native module loads can abort the process). Only in the main thread."""
     previous = signal.getsignal(signal.SIGINT)
     if threading.current_thread() is not threading.main_thread() or not callable(previous):
         yield
         return
 
     def exit_now(signum, frame):
+        undo()
         print(f"{PROG}: interrupted; {NOTHING_WRITTEN}", file=sys.stderr, flush=True)
         os._exit(INTERRUPTED)
 

@@ -1,20 +1,23 @@
-"""What every long run needs from its machine and its run folder: an exclusive lock on the folder while the run
-writes to it, shared by the readers of a finished run (:func:`lock_run_folder`), a lock on an output name while it is
-written (:func:`lock_output`), the memory it may use (:func:`memory_limits`: the machine's, the address-space
-limit's, the cgroup's; :func:`available_memory_bytes`, :func:`check_memory`; the tracer's own buffers,
-:func:`trace_buffer_bytes`), Ctrl-C held back while a step's state is written (:func:`sigint_deferred`), the
-interruption that says how to resume (:class:`RunInterrupted`), and a checkpoint read back with a message that names
-it when it is damaged (:func:`check_checkpoint`, :func:`load_checkpoint`)."""
+"""What every long run needs from its machine and its run folder: an exclusive lock on the folder while the run writes
+to it, shared by the readers of a finished run (:func:`lock_run_folder`), the tool that owns a run folder
+(:func:`run_folder_owner`; :func:`claim_run_folder` refuses another tool's folder, locks it and marks it), a lock on
+an output name while it is written (:func:`lock_output`), the memory it may use (:func:`memory_limits`: the
+machine's, the address-space limit's, the cgroup's; :func:`available_memory_bytes`, :func:`check_memory`; the
+tracer's own buffers, :func:`trace_buffer_bytes`), Ctrl-C held back while a step's state is written
+(:func:`sigint_deferred`), the interruption that says how to resume (:class:`RunInterrupted`), and a checkpoint read
+back with a message that names it when it is damaged (:func:`check_checkpoint`, :func:`load_checkpoint`)."""
 import contextlib
+import json
 import os
 import pickle
 import threading
 import zipfile
 
-from ..interrupts import sigint_deferred  # noqa: F401  (part of this module's API)
+from ..interrupts import folder_listing, sigint_deferred  # noqa: F401  (sigint_deferred: part of this API)
 
-__all__ = ["RunInterrupted", "lock_run_folder", "lock_output", "available_memory_bytes", "memory_limits", "check_memory",
-           "trace_buffer_bytes", "sigint_deferred", "check_checkpoint", "load_checkpoint"]
+__all__ = ["RunInterrupted", "lock_run_folder", "OWNER_FILE", "run_folder_owner", "check_run_folder_owner",
+           "mark_run_folder", "claim_run_folder", "lock_output", "available_memory_bytes", "memory_limits",
+           "check_memory", "trace_buffer_bytes", "sigint_deferred", "check_checkpoint", "load_checkpoint"]
 
 GiB = float(1 << 30)
 
@@ -90,6 +93,118 @@ def lock_run_folder(folder, name="out", *, shared=False, reentrant=False,
                     del _HELD[key]
     finally:
         os.close(fd)  # releases the lock
+
+
+#: the file in a run folder that names the ``ta-…`` tool whose folder it is (:func:`claim_run_folder` writes it)
+OWNER_FILE = "tool.json"
+
+#: how a folder written before :data:`OWNER_FILE` existed is known: (tool, entries only its folders hold), the first
+#: match wins (a print run of an object holds object.npz too, so the print run comes before ta-voxelize); an export
+#: package is known by its export.json alone (its files are listed exactly, it gets no tool.json)
+_SIGNATURES = (
+    ("ta-optimize-print", ("checkpoint.pt",)),
+    ("ta-optimize-print", ("mixture.npz",)),
+    ("ta-export-print", ("export.json",)),
+    ("ta-select-inks", ("ranking.json",)),
+    ("ta-select-inks", ("runs", "inks.json")),
+    ("ta-fit-wood", ("board_estimate.json",)),
+    ("ta-fit-wood", ("model.json", "params.json")),
+    ("ta-render-wood-volume", ("veneer_fit.exr",)),
+    ("ta-render-object", ("timings.json", "render.exr")),
+    ("ta-voxelize", ("object.npz",)),
+)
+
+
+def run_folder_owner(folder):
+    """The ``ta-…`` tool whose run folder ``folder`` is, and how that is known: ``(tool, how)``, or None for a
+    folder that does not exist or that no tool has marked (a new or a user's own folder).
+
+    A folder is marked by its :data:`OWNER_FILE` (``{"tool": "ta-fit-wood"}``, written by :func:`claim_run_folder`);
+    one written before that file existed is known by the files only that tool writes (a print run's checkpoint.pt,
+    a wood fit's board_estimate.json, an export package's export.json, ...).
+
+    Example:
+        >>> import tempfile
+        >>> folder = tempfile.mkdtemp()
+        >>> run_folder_owner(folder) is None
+        True
+        >>> mark_run_folder(folder, "ta-fit-wood")
+        >>> run_folder_owner(folder)
+        ('ta-fit-wood', 'its tool.json')
+    """
+    if not os.path.isdir(folder):
+        return None
+    marker = os.path.join(folder, OWNER_FILE)
+    if os.path.exists(marker):
+        try:
+            with open(marker, encoding="utf-8") as f:
+                tool = json.load(f).get("tool")
+        except (OSError, ValueError, AttributeError):
+            tool = None
+        if not isinstance(tool, str) or not tool.startswith("ta-"):
+            return ("another tool", f"its {OWNER_FILE} names none that can be read")
+        return tool, f"its {OWNER_FILE}"
+    names = set(os.listdir(folder))
+    for tool, files in _SIGNATURES:
+        if names.issuperset(files):
+            return tool, f"it holds {' and '.join(files)}"
+    return None
+
+
+def check_run_folder_owner(folder, tool, name="out"):
+    """Refuse a ``folder`` that another tool owns (:func:`run_folder_owner`) before ``tool`` writes to it.
+
+    Raises:
+        ValueError: ``"{name}: 'F' holds the output of ta-fit-wood (its tool.json); ta-optimize-print writes only into
+            a new folder or one of its own: choose another folder (or remove that one)"``.
+    """
+    owner = run_folder_owner(folder)
+    if owner is not None and owner[0] != tool:
+        raise ValueError(f"{name}: {folder!r} holds the output of {owner[0]} ({owner[1]}); {tool} writes only into a "
+                         f"new folder or one of its own: choose another folder (or remove that one)")
+
+
+def mark_run_folder(folder, tool):
+    """Write ``folder``'s :data:`OWNER_FILE` naming ``tool`` (atomically; left as it is when it already names it, so
+    a later run of the same tool replaces no file by marking the folder)."""
+    marker = os.path.join(folder, OWNER_FILE)
+    if run_folder_owner(folder) == (tool, f"its {OWNER_FILE}"):
+        return
+    from .. import io as ta_io
+
+    ta_io.write_json(marker, {"tool": tool})
+
+
+@contextlib.contextmanager
+def claim_run_folder(folder, tool, name="out", *, advice="wait for it to end or choose another folder"):
+    """Own ``folder`` for the tool ``tool`` (``"ta-fit-wood"``) while the ``with`` block writes to it: a folder that
+    another tool owns is refused (:func:`check_run_folder_owner`), the folder is created and locked
+    (:func:`lock_run_folder`: a second process on it is refused at once), checked again under the lock and marked
+    (:func:`mark_run_folder`). When the block ends (or raises) having changed nothing in the folder but the mark,
+    the mark goes, and the folder too when the claim made it (a refused input leaves no folder behind).
+
+    Raises:
+        ValueError: naming ``name``, for another tool's folder or one that a run holds locked.
+    """
+    check_run_folder_owner(folder, tool, name)
+    created = not os.path.isdir(folder)
+    before = None
+    try:
+        with lock_run_folder(folder, name, advice=advice):
+            check_run_folder_owner(folder, tool, name)  # again under the lock: another tool may have marked it
+            if not os.path.exists(os.path.join(folder, OWNER_FILE)):
+                before = (set(os.listdir(folder)), folder_listing(folder))
+            mark_run_folder(folder, tool)
+            yield
+    finally:
+        with contextlib.suppress(OSError):
+            if before is not None:  # the mark is this claim's: it goes when nothing else was written
+                names, files = set(os.listdir(folder)) - {OWNER_FILE}, folder_listing(folder)
+                files.pop(OWNER_FILE, None)
+                if (names, files) == before:
+                    os.remove(os.path.join(folder, OWNER_FILE))
+            if created and not os.listdir(folder):
+                os.rmdir(folder)
 
 
 @contextlib.contextmanager

@@ -34,7 +34,7 @@ from .fixed_fractions import fixed_fractions
 from .object_target import ObjectTarget
 from .remap25d import MAX_SLAB_TEXELS, prepare_uv_slab, wrap_slab_weights
 from .report import write_figures
-from ..runs import RunInterrupted, load_checkpoint, lock_run_folder, sigint_deferred
+from ..runs import RunInterrupted, check_run_folder_owner, claim_run_folder, load_checkpoint, sigint_deferred
 from ...print_error import EVAL_RENDERS
 from ...progress import progress_bar
 from .run_folder import CHECKPOINT, LOG_FIELDS, npz_bytes, save_torch, score
@@ -75,7 +75,8 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     ``palette.json``); ``checkpoint.pt`` (written atomically at every evaluation, after ``cfg.checkpoint_s`` seconds
     without one, and on Ctrl-C; ``cfg.resume`` continues from it with the settings of ``config.json``, of which only
     :data:`.config.RESUME_MAY_CHANGE` may differ); ``summary.json``. The folder is locked while the run writes to it
-    (:func:`~torch_appearance.pipelines.runs.lock_run_folder`): a second run on it is refused.
+    (:func:`~torch_appearance.pipelines.runs.claim_run_folder`): a second run on it is refused, and so is a folder of
+    another tool; ``tool.json`` names this one.
 
     Args:
         cfg: the settings. progress: show a progress bar (whole lines when stderr is not a terminal).
@@ -121,8 +122,9 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
             import shutil
             shutil.rmtree(folder, ignore_errors=True)
     # the folder is made only once the inputs are known to be good (no partial run folder), and locked while the run
-    # writes to it: a second run on the same folder is refused instead of mixing its files with this one's
-    with lock_run_folder(folder):
+    # writes to it: a second run on the same folder is refused instead of mixing its files with this one's, and so
+    # is another tool's folder (claim_run_folder marks it as this tool's)
+    with claim_run_folder(folder, TOOL):
         _check_not_a_run(cfg, ckpt_path)  # again under the lock: another run may have finished in the meantime
         return _Run(cfg, target, inks, constraints, fixed, folder, ckpt_path, log, world, t_call).run(progress)
 
@@ -171,7 +173,12 @@ def _scores_text(scores):
     return f"{scores['dE00_mean']:.2f}{se_text}/{scores['dE00_p95']:.2f}"
 
 
+#: the tool that owns a print run's folder (:func:`~torch_appearance.pipelines.runs.claim_run_folder`)
+TOOL = "ta-optimize-print"
+
+
 def _check_not_a_run(cfg, ckpt_path):
+    check_run_folder_owner(cfg.out, TOOL)
     if os.path.exists(ckpt_path) and not cfg.resume:
         raise ValueError(f"out: {cfg.out!r} already holds a run (checkpoint.pt); pass resume=True (--resume) to "
                          f"continue it or choose another folder")

@@ -26,8 +26,9 @@ leaves no partial package. The export holds two locks for its whole length
 (:mod:`torch_appearance.pipelines.runs`): the run folder's, shared with other exports (a run that is optimising or
 writing its results holds it alone, so an export never reads a volume that is being replaced), and the name ``OUT``'s
 (:func:`~torch_appearance.pipelines.runs.lock_output`), under which an existing ``OUT`` is refused unless ``force``: of
-two exports to one ``OUT`` the second is refused, whichever comes first. ``export.json`` records the run's iteration
-that was packaged.
+two exports to one ``OUT`` the second is refused, whichever comes first; another tool's folder is refused even with
+``force`` (:func:`~torch_appearance.pipelines.runs.check_run_folder_owner`). ``export.json`` records the run's
+iteration that was packaged.
 
 What differs between a slab run and an object run (its rendered texels, the mesh of ``print.3mf``, the void outside
 a requantised object) is a method of its reader, :class:`SlabRun` or :class:`ObjectRun`; :func:`open_run` picks the
@@ -45,13 +46,15 @@ from ...fabrication.export import VOID, IndexVolumeLayers, export_slices, npy_he
 from ...fabrication.inks import InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
 from ...fabrication.quantize import HALFTONES, iter_quantized, micro_grid_pitch
-from ..runs import check_memory, lock_output, lock_run_folder
+from ..runs import check_memory, check_run_folder_owner, lock_output, lock_run_folder
 from .config import iteration_seed
 
 __all__ = ["export_run", "open_run", "run_layers", "RunFolder", "SlabRun", "ObjectRun", "FORMATS"]
 
 #: The package formats, in the order they are written.
 FORMATS = ("gcvf", "3mf", "slices")
+#: the tool whose folders the packages are (known by their export.json, :func:`~.runs.run_folder_owner`)
+TOOL = "ta-export-print"
 
 
 def _check_run_folder(folder):
@@ -376,6 +379,7 @@ def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halfto
             raise ValueError(f"formats: expected some of {FORMATS}, got {formats}")
         printer.material_indices(run.inks.names)  # an ink the printer lacks: refused before anything is written
         out = os.path.join(run.folder, f"package-{printer.name}") if out is None else os.fspath(out)
+        check_run_folder_owner(out, TOOL)  # --force replaces a package, never another tool's folder
         if os.path.exists(out) and not force:  # early, before the volume is prepared; again under out's lock
             raise _exists(out)
         shape = run.mixture_shape()
@@ -396,6 +400,7 @@ def export_run(run, out=None, printer="j750", formats=("gcvf", "3mf"), *, halfto
         try:
             os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
             with lock_output(out, "out", advice="wait for it to end or write elsewhere"):
+                check_run_folder_owner(out, TOOL)
                 if os.path.exists(out) and not force:  # another export may have written it meanwhile
                     raise _exists(out)
                 with ta_io.atomic_output(out, folder=True) as tmp:   # a failed export leaves no partial package
