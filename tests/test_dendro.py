@@ -390,3 +390,21 @@ def test_split_modules_keep_the_old_imports():
         assert getattr(dendro, name) is getattr(evaluation, name)
     with pytest.raises(AttributeError):
         dendro.no_such_name
+
+
+def test_cli_refuses_a_core_width_that_adds_only_work(core_png, tmp_path, run_inproc):
+    """--width-px 100000 on a 48-px-wide core (it ran > 10 min without a word): refused at once, in one line naming
+    --width-px, the bound and why; the largest width the bound allows still runs."""
+    import time
+
+    path, _ = core_png
+    out = tmp_path / "o.csv"
+    t0 = time.perf_counter()
+    rc, _, err = run_inproc("detect_rings", path, "--out", out, "--bark", "right", "--width-px", 100000)
+    assert rc == 2 and err.count("\n") == 1 and time.perf_counter() - t0 < 30, err
+    assert err.startswith("ta-detect-rings: error: --width-px: expected at most 82 px, the larger of the core's "
+                          "width across its axis (48 px) and the curved Gabor's longest contour (82 px): a wider "
+                          "resampling adds no detail, only time and memory"), err
+    assert err.rstrip().endswith("got 100000") and not out.exists()
+    rc, _, err = run_inproc("detect_rings", path, "--out", out, "--bark", "right", "--width-px", 82)
+    assert rc == 0 and out.exists(), err

@@ -377,7 +377,7 @@ def main(argv=None):
                 for i, ((x, y), wp, wm) in enumerate(zip(res.points, res.widths_px, res.widths_mm))]
         png = overlay_png(rgb, res.points, transect) if args.overlay else None
     except ValueError as e:
-        return fail(PROG, str(e))
+        return fail(PROG, e, flags={"width_px": "--width-px"})
     write_csv(args.out, rows, ["index", "x_px", "y_px", "width_px", "width_mm"])
     if png is not None:
         atomic_write_bytes(args.overlay, png)

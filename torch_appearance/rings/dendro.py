@@ -206,7 +206,7 @@ def _gabor_params(img, p, q, f_max):
     if p is None:
         p = int(np.clip(round(1.5 * period), 8, 150))
     if q is None:
-        q = int(np.clip(min(img.shape[0] // 2 - 1, round(period)), 2, 40))
+        q = int(np.clip(min(img.shape[0] // 2 - 1, round(period)), 2, MAX_CORE_Q))
     return p, q, period
 
 
@@ -266,6 +266,10 @@ def growth_direction(image, axis: str | None = None, blocks: int | None = None) 
     return dict(bark=bark, skewness=skew(d), z=z, confident=bool(abs(z) >= 3.0), block_skewness=per_block)
 
 
+#: the longest half contour along the rings (px) that a core's curved Gabor filter uses by default
+MAX_CORE_Q = 40
+
+
 def detect_core_boundaries(image, *, bark: str | None = None, width_px: int | None = 32, dpi=None, pixel_size_mm=None,
                            p: int | None = None, q: int | None = None, f_max: float = 0.4,
                            band: float = 0.5, min_rel_magnitude: float = 0.15, min_rel_rise: float = 0.1,
@@ -280,7 +284,8 @@ def detect_core_boundaries(image, *, bark: str | None = None, width_px: int | No
             contradicts is used, with a warning (a wrong side puts every boundary on the wrong edge of its
             latewood). ``info["growth"]`` holds the estimate.
         width_px: the core's short side is resampled to this many pixels (uniform width, the long axis keeps its
-            resolution); None keeps it.
+            resolution); None keeps it. At most the core's own width or ``2 q + 2`` (``q`` at most
+            :data:`MAX_CORE_Q` by default), whichever is larger: a wider resampling adds no detail.
         dpi, pixel_size_mm: scan resolution for the ring widths in mm (at most one).
         p, q: curved-Gabor half lengths across / along the rings (px); default scaled to the dominant ring period
             ``P``: ``p = clip(1.5 P, 8, 150)``, ``q = clip(P, 2, min(40, width/2 - 1))``.
@@ -334,6 +339,11 @@ def detect_core_boundaries(image, *, bark: str | None = None, width_px: int | No
     Hc, L = v.shape
     if L < 16:
         raise ValueError(f"the core is too short along its axis ({L} px)")
+    contour = 2 * (MAX_CORE_Q if q is None else int(q)) + 2
+    if width_px is not None and width_px > max(Hc, contour):  # refused before the filter's work, which grows with it
+        raise ValueError(f"width_px: expected at most {max(Hc, contour)} px, the larger of the core's width across its "
+                         f"axis ({Hc} px) and the curved Gabor's longest contour ({contour} px): a wider resampling "
+                         f"adds no detail, only time and memory ({L} px along the core per row); got {width_px}")
     Hs = Hc if width_px is None else int(width_px)
     vs = cv2.resize(v, (L, Hs), interpolation=cv2.INTER_AREA if Hs < Hc else cv2.INTER_LINEAR) if Hs != Hc else v
     p, q, period = _gabor_params(vs, p, q, f_max)
