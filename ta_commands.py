@@ -45,8 +45,9 @@ def _import_main(name):
 
 def _run(name):
     """Run the command ``name`` (a module of torch_appearance.cli); returns its exit status. Once ``main()`` has
-    returned (or exited), SIGINT is ignored: a Ctrl-C while the interpreter shuts down (torch's teardown takes a while; Python
-    restores the default SIGINT for it) would kill the finished command and report it as interrupted."""
+    returned (or exited), SIGINT is ignored: a Ctrl-C while the interpreter shuts down (torch's teardown takes a
+    while; Python restores the default SIGINT for it) would kill the finished command and report it as
+    interrupted."""
     main = _import_main(name)
     status = None
     try:
