@@ -143,12 +143,59 @@ def test_cgroup_v1_limit_and_a_namespaced_view(tmp_path):
 
 def test_check_memory_names_the_limit_that_binds(monkeypatch):
     from torch_appearance.pipelines import runs
-    monkeypatch.setattr(runs, "memory_limits", lambda proc="/proc": {"MemAvailable": 8 * GiB,
+    monkeypatch.setattr(runs, "memory_limits", lambda proc="/proc", device=None: {"MemAvailable": 8 * GiB,
                                                                        "cgroup memory.max": 2 * GiB})
     with pytest.raises(ValueError, match=r"^x: it needs about 3\.0 GiB of memory, this process may use 2\.0 GiB "
                                          r"\(its cgroup memory\.max\); fix$"):
         check_memory("x", 3 * GiB, "it", "fix")
     check_memory("x", GiB, "it", "fix")
-    monkeypatch.setattr(runs, "memory_limits", lambda proc="/proc": {"MemAvailable": 2 * GiB})
+    monkeypatch.setattr(runs, "memory_limits", lambda proc="/proc", device=None: {"MemAvailable": 2 * GiB})
     with pytest.raises(ValueError, match=r"this machine has 2\.0 GiB available; fix$"):
         check_memory("x", 3 * GiB, "it", "fix")
+
+
+def test_a_cuda_devices_free_memory_binds_and_is_named(monkeypatch):
+    """memory_limits(device=cuda) adds torch.cuda.mem_get_info's free bytes (here faked: no GPU needed); the refusal
+    names the GPU when it binds, the host limits when they do; a CPU device or None adds nothing."""
+    import torch
+
+    from torch_appearance.pipelines import runs
+
+    calls = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda index: (calls.append(index), (GiB // 2, 80 * GiB))[1])
+    assert runs.gpu_memory_limits(None) == {} and runs.gpu_memory_limits("cpu") == {} and calls == []
+    assert runs.gpu_memory_limits("cuda:1") == {"free memory of cuda:1": GiB // 2} and calls == [1]
+    limits = memory_limits(device="cuda")
+    assert limits["free memory of cuda:0"] == GiB // 2 and "MemAvailable" in limits
+    assert "free memory of cuda:0" not in memory_limits()
+    with pytest.raises(ValueError, match=r"^x: it needs about 1\.0 GiB of memory, cuda:0 has 0\.5 GiB free; fix$"):
+        check_memory("x", GiB, "it", "fix", device="cuda")
+    check_memory("x", GiB, "it", "fix")  # the host's memory alone admits it
+    check_memory("x", GiB // 4, "it", "fix", device=torch.device("cuda", 0))
+
+
+def test_the_wood_fit_admits_its_filter_on_its_device(tmp_path, monkeypatch):
+    """ta-fit-wood --p 100000 (a 13 GB chunk: a RuntimeError traceback from the allocator): refused in one line
+    naming --p/--q before anything is written; with --device cuda the GPU's free memory binds and is named."""
+    import numpy as np
+    import torch
+
+    from torch_appearance import io as ta_io
+    from torch_appearance.testing import run_command
+
+    photo = tmp_path / "board.png"
+    ta_io.write_png(str(photo), np.full((64, 64, 3), 0.5, np.float32))
+    out = tmp_path / "fit"
+    rc, _, err = run_command("fit_wood", photo, "--p", 100000, "--quiet", "--out", out)
+    assert rc == 2 and err.count("\n") == 1, err
+    assert err.startswith("ta-fit-wood: error: --p/--q: the curved Gabor filter of a 64 × 64 photo with curves of "
+                          "2p+1 = 200001"), err
+    assert not out.exists()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda index: (1 << 20, 80 * GiB))
+    rc, _, err = run_command("fit_wood", photo, "--device", "cuda", "--quiet", "--out", out)
+    assert rc == 2 and "cuda:0 has 0.001 GiB free" in err, err
+    assert not out.exists()

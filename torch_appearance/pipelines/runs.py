@@ -17,7 +17,8 @@ from ..interrupts import folder_listing, sigint_deferred  # noqa: F401  (sigint_
 
 __all__ = ["RunInterrupted", "lock_run_folder", "OWNER_FILE", "run_folder_owner", "check_run_folder_owner",
            "mark_run_folder", "claim_run_folder", "lock_output", "available_memory_bytes", "memory_limits",
-           "check_memory", "trace_buffer_bytes", "sigint_deferred", "check_checkpoint", "load_checkpoint"]
+           "gpu_memory_limits", "check_memory", "trace_buffer_bytes", "sigint_deferred", "check_checkpoint",
+           "load_checkpoint"]
 
 GiB = float(1 << 30)
 
@@ -254,7 +255,7 @@ def lock_output(path, name="out", *, advice="wait for it to end or choose anothe
 _NO_LIMIT = 1 << 60
 
 
-def memory_limits(proc="/proc"):
+def memory_limits(proc="/proc", device=None):
     """What limits the memory a new allocation of this process can get, in bytes, by source (only the sources that
     apply; the smallest binds, :func:`available_memory_bytes`):
 
@@ -264,11 +265,15 @@ def memory_limits(proc="/proc"):
       (``VmSize``); ``"data limit (ulimit -d)"``: ``RLIMIT_DATA`` less ``VmData``;
     - ``"cgroup memory.max"`` (v2) and ``"cgroup memory.limit_in_bytes"`` (v1, the container's limit): the limit less
       the cgroup's usage without its reclaimable page cache (``inactive_file``), the smallest over the process's
-      cgroup and those above it.
+      cgroup and those above it;
+    - with a CUDA ``device``, ``"free memory of cuda:N"``: ``torch.cuda.mem_get_info(device)``'s free bytes (a run
+      whose tensors live on the GPU is bound by them too; what the host limits say still applies to its host copies).
 
     Args:
         proc: where procfs is mounted (a test passes a folder with ``meminfo``, ``self/status``,
             ``self/cgroup`` and ``self/mountinfo``; the rlimits are then not read).
+        device: the run's torch device (``"cuda"``, ``"cuda:1"``, a ``torch.device``); None or a CPU device adds
+            nothing.
 
     Example:
         >>> limits = memory_limits()
@@ -300,14 +305,30 @@ def memory_limits(proc="/proc"):
                     limits[source] = max(0, soft - status.get(used, 0))
     for source, left in _cgroup_room(proc).items():
         limits[source] = left
+    limits.update(gpu_memory_limits(device))
     return limits
 
 
-def available_memory_bytes(proc="/proc"):
+def gpu_memory_limits(device):
+    """``{"free memory of cuda:N": bytes}`` for a CUDA ``device`` (``torch.cuda.mem_get_info``: free memory on the
+    device as the driver reports it, other processes' allocations included); {} for None or another device."""
+    if device is None:
+        return {}
+    import torch
+
+    device = torch.device(device)
+    if device.type != "cuda" or not torch.cuda.is_available():  # no CUDA: the run itself says so
+        return {}
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    free, _ = torch.cuda.mem_get_info(index)
+    return {f"free memory of cuda:{index}": int(free)}
+
+
+def available_memory_bytes(proc="/proc", device=None):
     """Memory a new allocation of this process can get: the smallest of :func:`memory_limits` (``MemAvailable``,
-    ``RLIMIT_AS`` and ``RLIMIT_DATA`` less what is mapped, the cgroup v2/v1 limit less its usage); None when none is
-    known."""
-    limits = memory_limits(proc)
+    ``RLIMIT_AS`` and ``RLIMIT_DATA`` less what is mapped, the cgroup v2/v1 limit less its usage, a CUDA ``device``'s
+    free memory); None when none is known."""
+    limits = memory_limits(proc, device)
     return min(limits.values()) if limits else None
 
 
@@ -403,29 +424,34 @@ def _read_fields_plain(path):
     return fields
 
 
-def check_memory(name, need_bytes, what, fix, available=None):
+def check_memory(name, need_bytes, what, fix, available=None, device=None):
     """Refuse work that would not fit in memory, before anything is written.
 
     Args:
         name: the argument to blame. need_bytes: the estimate. what: what needs it ("a 1644×1644×12 slab").
         fix: what to change. available: bytes available (default: the smallest of :func:`memory_limits`, so an
             address-space limit (``ulimit -v``) or a container's cgroup limit refuses as the machine's memory does).
+        device: the run's torch device; a CUDA one's free memory is one of the limits (named when it binds).
 
     Raises:
         ValueError: ``"{name}: {what} needs about X GiB of memory, this machine has Y GiB available; {fix}"``, or
             ``"... this process may use Y GiB (its address-space limit (ulimit -v)); {fix}"`` when a limit of the
-            process binds before the machine's memory.
+            process binds before the machine's memory, ``"... cuda:0 has Y GiB free; {fix}"`` when the GPU's free
+            memory binds.
     """
     source = None
     if available is None:
-        limits = memory_limits()
+        limits = memory_limits(device=device)
         if limits:
             source, available = min(limits.items(), key=lambda item: item[1])
     if available is not None and need_bytes > available:
         digits = 1 if f"{need_bytes / GiB:.1f}" != f"{available / GiB:.1f}" else 3  # "needs 0.3, may use 0.3"
-        have = (f"this machine has {available / GiB:.{digits}f} GiB available" if source in (None, "MemAvailable",
-                                                                                             "physical memory")
-                else f"this process may use {available / GiB:.{digits}f} GiB (its {source})")
+        if source in (None, "MemAvailable", "physical memory"):
+            have = f"this machine has {available / GiB:.{digits}f} GiB available"
+        elif source.startswith("free memory of "):  # a GPU's
+            have = f"{source[len('free memory of '):]} has {available / GiB:.{digits}f} GiB free"
+        else:
+            have = f"this process may use {available / GiB:.{digits}f} GiB (its {source})"
         raise ValueError(f"{name}: {what} needs about {need_bytes / GiB:.{digits}f} GiB of memory, {have}; {fix}")
 
 

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from ..checks import check_tensor
 from .orientation import _as_image, _check_params, _tensor_orientation, orientation_from_phase
 
-__all__ = ["GaborResult", "curved_gabor", "curved_gabor_response", "CurvedGaborFilter"]
+__all__ = ["GaborResult", "curved_gabor", "curved_gabor_memory_bytes", "curved_gabor_response", "CurvedGaborFilter"]
 
 
 @dataclass
@@ -216,6 +216,31 @@ def _dominant_normal(c2: torch.Tensor, s2: torch.Tensor, weight: torch.Tensor) -
     if n[1] < -1e-12 or (abs(n[1]) <= 1e-12 and n[0] < 0):
         n = -n
     return torch.tensor(n, dtype=c2.dtype, device=c2.device)
+
+
+#: bytes per element of a chunk's traced curves (``chunk_size * (2p+1)`` across, ``chunk_size * (2q+1)`` along)
+CHUNK_BYTES_PER_SAMPLE = 40
+#: bytes per image pixel of the results and the orientation field held beside them (about 15 float32 / float64
+#: planes), with a margin
+BYTES_PER_PIXEL = 160
+
+
+def curved_gabor_memory_bytes(shape, p, q, device="cpu", chunk_size=16384, num_workers=None):
+    """Memory in bytes that :func:`curved_gabor` of an image of ``shape`` (H, W) needs at its peak, estimated before
+    the work: every worker's chunk of traced curves, :data:`CHUNK_BYTES_PER_SAMPLE` per sample of the longer of the
+    across (``2p+1``) and along (``2q+1``) curves, and :data:`BYTES_PER_PIXEL` per pixel. A ``p`` or ``q`` far
+    beyond the image's size makes the chunks, not the image, exhaust the memory.
+
+    Example:
+        >>> curved_gabor_memory_bytes((100, 100), p=100000, q=10, num_workers=1) > 50 * 2**30
+        True
+    """
+    h, w = shape
+    workers = 1 if torch.device(device).type != "cpu" else max(
+        1, torch.get_num_threads() if num_workers is None else int(num_workers))
+    pixels = int(h) * int(w)
+    chunk = min(int(chunk_size), pixels)
+    return workers * chunk * (2 * max(int(p), int(q)) + 1) * CHUNK_BYTES_PER_SAMPLE + pixels * BYTES_PER_PIXEL
 
 
 def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float | None = None,

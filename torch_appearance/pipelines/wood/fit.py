@@ -18,6 +18,8 @@ import numpy as np
 import torch
 
 from ... import io as ta_io
+from ...rings.gabor import curved_gabor_memory_bytes
+from ..runs import check_memory
 from .colour_stage import fit_colour_map, match_luminance_histogram
 from .config import LOG_FIELDS, MIN_RINGS_FOR_SCALE, POOR_FIT_PHASE_RMS, WoodFitConfig
 from .geometry_stage import fit_geometry
@@ -95,8 +97,13 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     cfg.validate()
     torch.manual_seed(cfg.seed)
     rgb, gray = load_photo(cfg.photo, cfg.max_size)
-    os.makedirs(cfg.out, exist_ok=True)  # only once the photo has been read: a refused photo leaves no run folder
     h, w = gray.shape
+    # the filter's curves fit the memory the process may use (on the fit's device too), before any work
+    check_memory("p/q", curved_gabor_memory_bytes((h, w), cfg.p, cfg.q, cfg.device),
+                 f"the curved Gabor filter of a {h} × {w} photo with curves of 2p+1 = {2 * cfg.p + 1} and 2q+1 = "
+                 f"{2 * cfg.q + 1} px", "lower p and q (the curves' half lengths across and along the rings)",
+                 device=cfg.device)
+    os.makedirs(cfg.out, exist_ok=True)  # only once the photo has been read: a refused photo leaves no run folder
     gab, rings, estimate, pith_info, model, info, timings = detect_board(cfg, rgb, gray)
     photo_phase = info["resolved_phase"].astype(np.float32)
 
