@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-import torch_appearance  # noqa: F401  (fails early, with the build instructions, if the extension is missing)
+from torch_appearance import _C  # noqa: F401  (fails early, with the build instructions, if the extension is missing)
 
 
 @pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])

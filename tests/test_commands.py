@@ -30,15 +30,15 @@ def console_script(name):
 
 
 def test_every_command_follows_the_naming_scheme():
-    """ta-NAME is ta_commands:NAME (outside the package, which imports torch), which runs main() of
+    """ta-NAME is torch_appearance.cli.entry:NAME (of the standard library only), which runs main() of
     torch_appearance.cli.NAME."""
-    import ta_commands
+    from torch_appearance.cli import entry
 
     assert len(COMMANDS) >= 8
     for name, target in COMMANDS.items():
         module, _, func = target.partition(":")
-        assert name.startswith("ta-") and module == "ta_commands", (name, target)
-        assert func == name[3:].replace("-", "_") and func in ta_commands.__all__, (name, target)
+        assert name.startswith("ta-") and module == "torch_appearance.cli.entry", (name, target)
+        assert func == name[3:].replace("-", "_") and func in entry.__all__, (name, target)
         assert os.path.isfile(os.path.join(ROOT, "torch_appearance", "cli", func + ".py")), (name, target)
 
 

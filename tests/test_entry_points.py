@@ -1,7 +1,8 @@
 """Ctrl-C at the very start of any ``ta-…`` command (issue 49 §6): while the command imports torch it ends with one
-line and exit 130, never a ``KeyboardInterrupt`` traceback. The console scripts run ``ta_commands`` (outside the
-package, which imports torch first); a real SIGINT goes to a real child as soon as torch's library is mapped into it
-(read from /proc/PID/maps, so the signal lands inside the imports), and then at later moments."""
+line and exit 130, never a ``KeyboardInterrupt`` traceback. The console scripts run ``torch_appearance.cli.entry``,
+which with the package's ``__init__`` imports only the standard library (torch loads on first use); a real SIGINT
+goes to a real child as soon as torch's library is mapped into it (read from /proc/PID/maps, so the signal lands
+inside the imports), and then at later moments."""
 import os
 import signal
 import subprocess
@@ -68,19 +69,29 @@ def test_ctrl_c_at_later_moments_is_never_a_traceback():
 
 
 def test_a_ctrl_c_that_main_lets_through_is_one_line(monkeypatch, capsys):
-    import ta_commands
+    from torch_appearance.cli import entry
 
     def main():
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(ta_commands, "_import_main", lambda name: main)
-    assert ta_commands.fit_wood() == 130
+    monkeypatch.setattr(entry, "_import_main", lambda name: main)
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        assert entry.fit_wood() == 130
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN  # what a console script does once main() is done
+    finally:  # not this test session's Ctrl-C (nor its children's, which would inherit SIG_IGN)
+        signal.signal(signal.SIGINT, previous)
     assert capsys.readouterr().err == "ta-fit-wood: interrupted\n"
 
 
 def test_the_entry_module_imports_no_torch():
-    """ta_commands imports only the standard library (else a Ctrl-C could land in torch before its handler)."""
-    code = "import sys, ta_commands; print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', " \
-           "'torch_appearance', 'numpy')))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0 and out.stdout.strip() == "[]", out
+    """torch_appearance.cli.entry, and with it the package and torch_appearance.cli, import only the standard library
+    (else a Ctrl-C could land in torch before the entry's handler) and leave SIGINT as Python sets it."""
+    code = ("import signal, sys, torch_appearance.cli.entry; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torch_appearance', 'numpy'))); "
+            "print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         preexec_fn=sigint_default)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [str(["torch_appearance", "torch_appearance.cli", "torch_appearance.cli.entry"]),
+                                       "True"], out.stdout

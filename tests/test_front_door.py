@@ -1,5 +1,9 @@
 """One way into the tracer: render_texels is render_scene of the slab scene with seed_grad = seed, the renderer
-modules are render_scene with a seed sequence, and one TraceJob builds the C++ options."""
+modules are render_scene with a seed sequence, and one TraceJob builds the C++ options. The package itself loads
+them on first use (``import torch_appearance`` imports only the standard library)."""
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -79,3 +83,42 @@ def test_trace_job_builds_the_options():
     assert (whole.part_rank, whole.part_world) == (0, 1)
     with pytest.raises(AttributeError):
         job.spp = 1  # frozen
+
+
+def test_the_package_loads_its_names_on_first_use():
+    """``ta.render_scene``, ``from torch_appearance import render_texels``, ``ta.nn.X`` and ``ta._C`` are the
+    package's pieces, loaded when first used; an unknown name is an AttributeError."""
+    import torch_appearance.render
+    from torch_appearance import _C, render_texels  # noqa: F401
+
+    assert ta.render_scene is torch_appearance.render.render_scene and render_texels is ta.render.render_texels
+    assert ta.nn.SceneRenderer is SceneRenderer and ta._C is _C and ta._C is torch_appearance._ext._C
+    assert set(ta.__all__) <= set(dir(ta)) and "_C" in dir(ta)
+    with pytest.raises(AttributeError, match="'torch_appearance' has no attribute 'render_scenes'"):
+        ta.render_scenes
+
+
+def test_a_missing_build_is_refused_on_first_use_with_the_fix():
+    """In a fresh interpreter whose extension does not load: ``import torch_appearance`` loads nothing (no torch),
+    and the first use of a name raises the ImportError that says how to build."""
+    code = """
+import sys
+class NoExtension:
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch_appearance._C":
+            raise ImportError("no such file (made by the test)")
+sys.meta_path.insert(0, NoExtension())
+import torch_appearance as ta
+print("torch" in sys.modules)
+try:
+    ta.render_scene
+except ImportError as error:
+    print(error)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    loaded, message = out.stdout.splitlines()
+    assert loaded == "False", out.stdout
+    assert message.startswith("torch_appearance: the C++ extension torch_appearance._C is missing or does not load "
+                              "(no such file (made by the test)). Build it from the repository root with `make build`"), \
+        message

@@ -1,4 +1,6 @@
-"""The ``ta-…`` commands (installed as console scripts by setup.cfg); each module has ``main(argv=None) -> int``.
+"""The ``ta-…`` commands (installed as console scripts by setup.cfg); each module has ``main(argv=None) -> int``, and
+:mod:`.entry` the console scripts' entry points. This package imports nothing (the entry points must start before
+torch loads).
 
 =========================  ============================================================================
 command                    what it does

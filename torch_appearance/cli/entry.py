@@ -1,12 +1,13 @@
 """The console-script entry points of the ``ta-…`` commands (setup.cfg ``[options.entry_points]``): one function per
 command, which runs ``main()`` of its module in :mod:`torch_appearance.cli`.
 
-This module lies outside the ``torch_appearance`` package on purpose. Importing any module of the package imports the
-package first, and with it torch: seconds in which a Ctrl-C used to end in a ``KeyboardInterrupt`` traceback, before
-any of the command's code could catch it. Here the command's module is imported with Ctrl-C ending the process at
+Importing a command's module imports torch: seconds in which a Ctrl-C used to end in a ``KeyboardInterrupt``
+traceback, before any of the command's code could catch it. This module, the package's ``__init__`` and
+:mod:`torch_appearance.cli` import only the standard library (the package loads torch on first use), so the console
+script gets here with torch not yet loaded; the command's module is then imported with Ctrl-C ending the process at
 once, with one line and the exit status 130 (nothing has been written yet; no exception unwinds through a native
 module being loaded); a ``KeyboardInterrupt`` that ``main()`` lets through ends the same way, and a Ctrl-C after
-``main()`` has returned leaves its exit status as it is. Only the standard library is imported here.
+``main()`` has returned leaves its exit status as it is.
 """
 import importlib
 import os
