@@ -301,6 +301,19 @@ def test_ctrl_c_in_fit_wood_leaves_no_partial_fit(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SIGINT to a child, /proc")
+def test_interrupt_when_leaves_no_child_behind(tmp_path):
+    """A child that outlives interrupt_when's timeout (here one that ignores SIGINT) is killed and reaped before the
+    timeout is raised."""
+    pid_file = tmp_path / "pid"
+    code = (f"import os, signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+            f"open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(120)")
+    with pytest.raises(subprocess.TimeoutExpired):
+        interrupt_when([sys.executable, "-c", code], lambda: pid_file.exists() and pid_file.read_text() != "",
+                       wait_s=30, timeout_s=1)
+    assert not os.path.exists(f"/proc/{pid_file.read_text()}")  # neither running nor a zombie
+
+
 def test_an_interrupted_fit_over_an_earlier_one_drops_its_summary(tmp_path):
     from torch_appearance.cli.command import folder_listing, undo_partial
 

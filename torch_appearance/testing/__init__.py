@@ -26,8 +26,8 @@ import warnings
 import torch
 
 __all__ = ["bonferroni_z", "seed_stats", "assert_z", "simd_walk_level", "status_kb", "reset_peak_rss",
-           "tiny_print_target", "run_command", "sigint_default", "address_space_limit", "interrupt_when",
-           "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
+           "tiny_print_target", "run_command", "sigint_default", "address_space_limit",
+           "interrupt_when", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
 
 
 def bonferroni_z(n_tests, family_alpha=1e-3):
@@ -145,19 +145,25 @@ def address_space_limit(limit_bytes):
 
 
 def interrupt_when(command, ready, *, env=None, wait_s=300.0, timeout_s=120.0):
-    """Start ``command`` (an argv list) in a child process, send it SIGINT once ``ready()`` is true (or it has ended,
-    or ``wait_s`` seconds have passed), and wait for it.
+    """Start ``command`` (an argv list) in a child process, send it SIGINT once ``ready()``
+    is true (or it has ended, or ``wait_s`` seconds have passed), and wait for it (at most ``timeout_s`` seconds, then
+    it is killed and reaped, and ``subprocess.TimeoutExpired`` raised).
 
     Returns:
         (exit status, stdout, stderr) of the child, as text.
     """
     proc = subprocess.Popen([str(a) for a in command], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env, preexec_fn=sigint_default)
-    deadline = time.monotonic() + wait_s
-    while not ready() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=timeout_s)
+    try:
+        deadline = time.monotonic() + wait_s
+        while not ready() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=timeout_s)
+    except BaseException:  # a timeout, a failing ready(), the test run stopped: the child must not outlive it
+        proc.kill()
+        proc.communicate()
+        raise
     return proc.returncode, out, err
 
 
