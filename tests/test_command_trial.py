@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from torch_appearance.testing import interrupt_when
+from torch_appearance.testing import command_argv, interrupt_when
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SIGINT to a child: POSIX")
 
@@ -17,7 +17,7 @@ def _env():
 
 
 def _cli(name, *args):
-    return [sys.executable, "-m", f"torch_appearance.cli.{name}", *[str(a) for a in args]]
+    return command_argv(name, *args)  # as the console script runs it
 
 
 def test_render_object_refuses_a_second_process_and_ends_in_one_line_on_ctrl_c(tmp_path):

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from torch_appearance.testing import interrupt_when, run_command
+from torch_appearance.testing import command_argv, interrupt_when, run_command
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -294,8 +294,8 @@ def test_ctrl_c_in_fit_wood_leaves_no_partial_fit(tmp_path):
     _board(tmp_path / "board.png")
     out = tmp_path / "fit"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    rc, _, err = interrupt_when([sys.executable, "-m", "torch_appearance.cli.fit_wood", tmp_path / "board.png",
-                                 "--epochs", "100000", "--no-preview", "--quiet", "--out", out],
+    rc, _, err = interrupt_when(command_argv("fit_wood", tmp_path / "board.png", "--epochs", "100000", "--no-preview",
+                                             "--quiet", "--out", out),
                                 lambda: (out / "board_estimate.json").exists(), env=env, wait_s=240)
     assert rc == 130 and err == "ta-fit-wood: interrupted; nothing was written (start it again)\n", err
     assert not out.exists()

@@ -23,7 +23,7 @@ from torch_appearance.pipelines.print.rendering import render_indexed, slab_scen
 from torch_appearance.pipelines.print.slab_target import SlabTarget, slab_memory_bytes
 from torch_appearance.pipelines.runs import RunInterrupted, check_memory, lock_run_folder
 from torch_appearance.print_error import EVAL_RENDERS
-from torch_appearance.testing import interrupt_when, run_command, sigint_default, tiny_print_target
+from torch_appearance.testing import command_argv, interrupt_when, run_command, sigint_default, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -287,7 +287,7 @@ def test_ctrl_c_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     args = ["--target", "zebra", "--width-mm", "3", "--thickness-mm", "0.5", "--spp", "4", "--eval-spp", "4",
             "--iterations", "60", "--eval-every", "1", "--init", "white", "--no-naive-baseline", "--quiet",
             "--out", out]
-    rc, _, err = interrupt_when(cli(*args), lambda: (out / "checkpoint.pt").exists(), env=command_env())
+    rc, _, err = interrupt_when(command_argv("optimize_print", *args), lambda: (out / "checkpoint.pt").exists(), env=command_env())
     assert rc == 130, err
     assert "Traceback" not in err
     assert f"resume with: ta-optimize-print --out {out} --resume" in err

@@ -25,7 +25,7 @@ from torch_appearance.fabrication.quantize import iter_quantized, micro_grid_sha
 from torch_appearance.pipelines.print import PrintConfig, optimize_print
 from torch_appearance.pipelines.print.config import iteration_seed
 from torch_appearance.pipelines.print.package import export_run
-from torch_appearance.testing import reset_peak_rss, sigint_default, status_kb, tiny_print_target
+from torch_appearance.testing import command_argv, reset_peak_rss, sigint_default, status_kb, tiny_print_target
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -579,8 +579,8 @@ def test_an_export_is_refused_while_a_run_writes_its_folder_and_records_the_iter
                                naive_baseline=False, out=str(run), seed=5), progress=False, log=lambda *_: None)
     assert cli(run, "--format", "slices", "--out", tmp_path / "p2", "--quiet").returncode == 0
     assert json.load(open(tmp_path / "p2" / "export.json"))["iteration"] == 2
-    extending = subprocess.Popen([sys.executable, "-m", "torch_appearance.cli.optimize_print", "--out", str(run),
-                                  "--resume", "--iterations", "100000", "--quiet"], stdout=subprocess.PIPE,
+    extending = subprocess.Popen(command_argv("optimize_print", "--out", run, "--resume", "--iterations", "100000",
+                                              "--quiet"), stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True, env=command_env(),
                                  preexec_fn=sigint_default)
     try:

@@ -11,7 +11,7 @@ import pytest
 
 from torch_appearance.pipelines.runs import (OWNER_FILE, check_run_folder_owner, claim_run_folder, mark_run_folder,
                                              run_folder_owner)
-from torch_appearance.testing import interrupt_when, run_command, tiny_print_target
+from torch_appearance.testing import command_argv, interrupt_when, run_command, tiny_print_target
 
 SPOT = os.path.join(os.path.dirname(__file__), "data", "meshes", "spot")
 
@@ -151,8 +151,8 @@ def test_two_fits_on_one_folder_and_ctrl_c(tmp_path):
     _board(tmp_path / "board.png")
     out = tmp_path / "fit"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    command = [sys.executable, "-m", "torch_appearance.cli.fit_wood", tmp_path / "board.png", "--epochs", "100000",
-               "--no-preview", "--quiet", "--out", out]
+    command = command_argv("fit_wood", tmp_path / "board.png", "--epochs", "100000", "--no-preview", "--quiet",
+                           "--out", out)
     second = []
 
     def ready():

@@ -9,15 +9,15 @@ import time
 import pytest
 
 from torch_appearance.geometry.voxelize import VoxelObject
-from torch_appearance.testing import interrupt_when, sigint_default
+from torch_appearance.testing import command_argv, interrupt_when, sigint_default
 
 SPOT = os.path.join(os.path.dirname(__file__), "data", "meshes", "spot")
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SIGINT to a child: POSIX")
 
 
 def _command(out):
-    return [sys.executable, "-m", "torch_appearance.cli.voxelize", os.path.join(SPOT, "spot_triangulated.obj"),
-            "--texture", os.path.join(SPOT, "spot_texture.png"), "--height-mm", "10", "--quiet", "--out", out]
+    return command_argv("voxelize", os.path.join(SPOT, "spot_triangulated.obj"), "--texture",
+                        os.path.join(SPOT, "spot_texture.png"), "--height-mm", "10", "--quiet", "--out", out)
 
 
 def _env():

@@ -1,7 +1,8 @@
 """A new user's trial of every ``ta-…`` command (issue 49): bad input, Ctrl-C, two processes at once, ``ulimit -v``.
 
-Every case is a real subprocess (``python -m torch_appearance.cli.<module>``, as the console script runs it) on tiny
-inputs made in a scratch folder (a 12×16 EXR print target, a synthetic board and core, Spot from tests/data), with
+Every case is a real subprocess (the entry point of ``torch_appearance.cli.entry`` called by ``python -c``, as the
+console script runs it; ``python -m`` may end in SIGINT after a handled Ctrl-C, see that module) on tiny inputs made
+in a scratch folder (a 12×16 EXR print target, a synthetic board and core, Spot from tests/data), with
 OMP_NUM_THREADS=1. The cases:
 
     ok           the tiny invocation itself (exit 0, its output complete); later cases reuse what it wrote
@@ -81,7 +82,10 @@ def _env():
 
 
 def _argv(command, args):
-    return [sys.executable, "-m", f"torch_appearance.cli.{COMMANDS[command]}", *[str(a) for a in args]]
+    """As torch_appearance.testing.command_argv (not imported here: the children import the package from ROOT)."""
+    name = COMMANDS[command]
+    code = f"import sys; from torch_appearance.cli.entry import {name}; sys.argv[0] = {command!r}; sys.exit({name}())"
+    return [sys.executable, "-c", code, *[str(a) for a in args]]
 
 
 def _sigint_default():

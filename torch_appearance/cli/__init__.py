@@ -1,6 +1,6 @@
 """The ``ta-…`` commands (installed as console scripts by setup.cfg); each module has ``main(argv=None) -> int``, and
 :mod:`.entry` the console scripts' entry points. This package imports nothing (the entry points must start before
-torch loads).
+torch loads); ``python -m torch_appearance.cli.NAME`` runs a command too, with the differences :mod:`.entry` names.
 
 =========================  ============================================================================
 command                    what it does

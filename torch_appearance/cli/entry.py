@@ -8,6 +8,16 @@ script gets here with torch not yet loaded; the command's module is then importe
 once, with one line and the exit status 130 (nothing has been written yet; no exception unwinds through a native
 module being loaded); a ``KeyboardInterrupt`` that ``main()`` lets through ends the same way, and a Ctrl-C after
 ``main()`` has returned leaves its exit status as it is.
+
+``python -m torch_appearance.cli.NAME`` runs ``main()`` without this module (for development): a Ctrl-C while it
+imports torch is a traceback, and after a Ctrl-C that ``main()`` handled (one line, the cleanup done) the process may
+still end killed by SIGINT instead of exiting with 130. CPython 3.11 marks a ``KeyboardInterrupt`` that leaves code
+run from a string (``exec(text)``: dataclasses and namedtuple build their methods so) as unhandled even when a caller
+catches it, and under ``-m`` ``Py_RunMain`` ends a marked process by SIGINT once it has shut down; a script file (the
+installed console script) and ``python -c`` exit with their status first. A shell reports 130 either way, and a death
+by SIGINT is what a calling shell script expects after Ctrl-C, so nothing undoes it (``os._exit`` would skip the
+interpreter's shutdown). Tests run the commands as the console scripts do
+(:func:`torch_appearance.testing.command_argv`).
 """
 import importlib
 import os

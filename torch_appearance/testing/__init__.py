@@ -26,7 +26,7 @@ import warnings
 import torch
 
 __all__ = ["bonferroni_z", "seed_stats", "assert_z", "simd_walk_level", "status_kb", "reset_peak_rss",
-           "tiny_print_target", "run_command", "sigint_default", "address_space_limit",
+           "tiny_print_target", "run_command", "command_argv", "sigint_default", "address_space_limit",
            "interrupt_when", "run_stiff_case", "SIGMAS", "ALBEDOS", "GS", "IORS", "THICKNESS"]
 
 
@@ -126,6 +126,21 @@ def run_command(name, *args):
     return rc, out.getvalue(), err.getvalue()
 
 
+def command_argv(name, *args):
+    """The argv that runs the ``ta-…`` command ``name`` (a module of :mod:`torch_appearance.cli`, e.g.
+    ``"fit_wood"``) in a child process as its installed console script does: the entry point in
+    :mod:`torch_appearance.cli.entry`, called by ``python -c`` (which, like the script file, exits with the status
+    the command returns; ``python -m`` may end in SIGINT instead, see that module).
+
+    Example:
+        >>> command_argv("fit_wood", "board.png", 3)[-2:]
+        ['board.png', '3']
+    """
+    prog = "ta-" + name.replace("_", "-")
+    code = f"import sys; from torch_appearance.cli.entry import {name}; sys.argv[0] = {prog!r}; sys.exit({name}())"
+    return [sys.executable, "-c", code, *[str(a) for a in args]]
+
+
 def sigint_default():
     """``preexec_fn`` for a child that must see SIGINT as a terminal's Ctrl-C: a suite started in the background of
     a non-interactive shell has SIGINT ignored, and a child keeps that (then Python installs no handler)."""
@@ -145,7 +160,7 @@ def address_space_limit(limit_bytes):
 
 
 def interrupt_when(command, ready, *, env=None, wait_s=300.0, timeout_s=120.0):
-    """Start ``command`` (an argv list) in a child process, send it SIGINT once ``ready()``
+    """Start ``command`` (an argv list, e.g. :func:`command_argv`) in a child process, send it SIGINT once ``ready()``
     is true (or it has ended, or ``wait_s`` seconds have passed), and wait for it (at most ``timeout_s`` seconds, then
     it is killed and reaped, and ``subprocess.TimeoutExpired`` raised).
 
