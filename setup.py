@@ -4,8 +4,9 @@ Build ahead of time, without build isolation so the extension links against the 
 
     pip install -e . --no-build-isolation      # or: make build
 
-The build records a hash of the csrc/ sources and the torch version; ``import torch_appearance`` compares
-them with the checkout and tells you to rebuild when they differ (see torch_appearance/_ext.py).
+The build records a hash of the csrc/ sources and the torch version; loading the extension (on first use of the
+tracer: ``torch_appearance.render_scene``, ``from torch_appearance import _C``) compares them with the checkout and
+tells you to rebuild when they differ (see torch_appearance/_ext.py).
 """
 import glob
 import os
