@@ -114,8 +114,8 @@ def add_optimization_arguments(p, d=None):
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"evaluate every k iterations {default('eval_every')}")
     p.add_argument("--eval-texels", type=_eval_texels, default=d.eval_texels,
-                   help=f"texels an evaluation scores, a random subset fixed for the run; 0: all; 'auto': a third "
-                        f"of the iterations' texel samples, 2048 to 8192 {default('eval_texels')}")
+                   help=f"texels an evaluation scores, a random subset fixed for the run; 0: all; 'auto': a "
+                        f"quarter of the iterations' texel samples, 2048 to 8192 {default('eval_texels')}")
     p.add_argument("--iterations", type=int, default=d.iterations, help=default("iterations"))
     p.add_argument("--table-steps", type=int, default=d.table_steps,
                    help="naive-extrusion baseline: mixtures in steps of 1/N (default: %(default)s)")

@@ -33,8 +33,9 @@ RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
 #: cost is linear in the texels, so 8,192 take about 12.5 % at 25 mm, at a sampling error of about 0.08 ΔE00 (in the
 #: SE). But a smaller object's iterations are cheaper while its evaluations are not: 8,192 texels took 22 % of the
 #: default Spot 10 mm job (318 of 1,435 s; 22,882 texels). So ``"auto"`` (:func:`auto_eval_texels`) sizes the subset
-#: by the training: the evaluations render at most a third of the texel samples of the iterations, 2,048 to 8,192
-#: texels. Camera views of the quantised object render at ``view_spp``. ``eval_texels`` 0: every texel.
+#: by the training: the evaluations render at most a quarter of the texel samples of the iterations, 2,048 to 8,192
+#: texels (with a third, 4,290 texels, they still took 18.5 % of the 10 mm job: a quantised print's render also costs
+#: about 0.75 s per call to prepare, whatever its texels). Camera views of the quantised object render at ``view_spp``. ``eval_texels`` 0: every texel.
 SCHEDULES = {
     "slab": {"spp": 32, "iterations": 300, "eval_spp": 128, "eval_every": 50, "eval_texels": 0, "view_spp": 32},
     "object": {"spp": 8, "iterations": 45, "eval_spp": 128, "eval_every": 25, "eval_texels": "auto",
@@ -42,7 +43,7 @@ SCHEDULES = {
 }
 #: bounds of ``eval_texels="auto"`` (:func:`auto_eval_texels`) and its share of the training's texel samples
 AUTO_EVAL_TEXELS = (2048, 8192)
-AUTO_EVAL_SAMPLE_SHARE = 1 / 3
+AUTO_EVAL_SAMPLE_SHARE = 1 / 4
 
 
 #: the least time an iteration takes (the mixture, a render, the loss and the optimiser step of the smallest slab
@@ -252,7 +253,7 @@ def auto_eval_texels(texels, cfg):
     Example:
         >>> cfg = PrintConfig(mesh="spot.obj", height_mm=10).resolved()
         >>> auto_eval_texels(22882, cfg), auto_eval_texels(145615, cfg), auto_eval_texels(1500, cfg)
-        (4290, 8192, 0)
+        (3218, 8192, 0)
     """
     low, high = AUTO_EVAL_TEXELS
     budget = AUTO_EVAL_SAMPLE_SHARE * cfg.iterations * texels * cfg.spp / (evaluation_count(cfg) * cfg.eval_spp)

@@ -236,7 +236,7 @@ class _Run:
         if count == "auto":
             count = auto_eval_texels(len(target.target), cfg)
             log(f"optimize_print: evaluations score {'every texel' if not count else f'{count} random texels'} of "
-                f"{len(target.target)} (eval_texels 'auto': a third of the iterations' texel samples at most)")
+                f"{len(target.target)} (eval_texels 'auto': a quarter of the iterations' texel samples at most)")
         self.subset = target.evaluation_subset(count, iteration_seed(cfg.seed, -3))
         self.eval_scene = None if self.subset is None else target.subset_scene(self.subset)
         self.quant_seed = iteration_seed(cfg.seed, -2)
