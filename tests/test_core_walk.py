@@ -154,7 +154,7 @@ def test_grad_support_is_checked():
     sc = scene("texels")
     with pytest.raises(ValueError, match="grad_support: expected the grid's shape"):
         ta.render_scene(sc, sigma_t, albedo, spp=1, grad_support=shell[:-1])
-    with pytest.raises(ValueError, match="grad_support: expected a CPU bool tensor"):
+    with pytest.raises(ValueError, match="grad_support: expected a CPU or CUDA bool tensor"):
         ta.render_scene(sc, sigma_t, albedo, spp=1, grad_support=shell.float())
     with pytest.raises(TypeError, match="grad_support: expected a bool tensor"):
         ta.render_scene(sc, sigma_t, albedo, spp=1, grad_support=shell.numpy())

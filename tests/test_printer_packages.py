@@ -651,7 +651,8 @@ def test_an_export_beyond_the_memory_the_process_may_use_is_refused_before_any_f
     run = fake_run(str(tmp_path / "run"), 5)
     own, again = export_memory_bytes((3, 2, 24, 16), False), export_memory_bytes((3, 2, 24, 16), True)
     assert again > own
-    monkeypatch.setattr(runs, "memory_limits", lambda proc="/proc": {"cgroup memory.max": (own + again) // 2})
+    monkeypatch.setattr(runs, "memory_limits",
+                        lambda proc="/proc", device=None: {"cgroup memory.max": (own + again) // 2})
     assert cli(run, "--printer", "j750").returncode == 0  # its own volume: admitted
     result = cli(run, "--printer", "j750-hq", "--out", tmp_path / "hq")
     assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr

@@ -270,7 +270,8 @@ def check_tensor(name, value, shape_desc, *, ndim=None, last=None, dtypes=None, 
             "dtype " + " or ".join(str(d) for d in dtypes)
         raise TypeError(f"{name}: expected {want}, got {value.dtype}")
     if cpu and value.device.type != "cpu":
-        raise ValueError(f"{name}: expected a CPU tensor (the tracer runs on the CPU), got device {value.device}")
+        raise ValueError(f"{name}: expected a CPU tensor (a scene's own tensors stay on the CPU; a render on a GPU "
+                         f"copies them there), got device {value.device}")
     ndims = (ndim,) if isinstance(ndim, int) else ndim
     if (ndims is not None and value.dim() not in ndims) or \
             (last is not None and (value.dim() == 0 or value.shape[-1] != last)):
