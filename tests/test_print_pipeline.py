@@ -126,6 +126,8 @@ def test_run_folder_resume_and_refusal(tmp_path):
         assert scores["dE00_mean"] < scores["dE00_mean_raw"] and scores["dE00_mean_se"] > 0
     assert summary["evaluation"]["renders"] == 4 and summary["evaluation"]["spp_each"] == 2
     assert 0 < summary["evaluation"]["share_of_job"] < 1
+    # a slab is scored whole: every texel of its face (it once said 1, the length of the target's first axis)
+    assert summary["evaluation"]["texels"] == summary["texels"] == target.shape[0] * target.shape[1]
 
 
 def test_same_seed_reproducible(tmp_path):
@@ -186,3 +188,13 @@ def test_init_naive_starts_from_the_naive_extrusion(tmp_path):
     optimize_print(PrintConfig(init="white", out=str(tmp_path / "white"), **kw), progress=False, log=lambda *_: None)
     white = np.load(tmp_path / "white" / "mixture.npz")["weights"]
     assert np.abs(white - naive.numpy()).max() > 0.3
+
+
+def test_auto_evaluation_subset_scores_a_slab_whole(tmp_path):
+    """``eval_texels="auto"`` sizes an object's evaluation subset; a slab given it is still scored whole."""
+    logged = []
+    summary = optimize_print(PrintConfig(target="zebra", width_mm=2.0, height_mm=2.0, iterations=2, eval_every=2,
+                                         eval_texels="auto", out=str(tmp_path / "run")), progress=False,
+                             log=logged.append)
+    assert summary["evaluation"]["texels"] == summary["texels"]
+    assert not [line for line in logged if "random texels" in line]

@@ -233,7 +233,9 @@ class _Run:
         self.picture_seconds = 0.0  # spent on whole pictures of prints scored on a subset (:meth:`picture`)
         # an object's evaluations score a fixed random subset of its texels (None: all), the same for every print
         count = cfg.eval_texels
-        if count == "auto":
+        if count == "auto" and not isinstance(target, ObjectTarget):
+            count = 0  # a slab is scored whole
+        elif count == "auto":
             count = auto_eval_texels(len(target.target), cfg)
             log(f"optimize_print: evaluations score {'every texel' if not count else f'{count} random texels'} of "
                 f"{len(target.target)} (eval_texels 'auto': a quarter of the iterations' texel samples at most)")
@@ -564,7 +566,7 @@ class _Run:
             "seconds_per_iteration": (rows[-1]["wall_s"] / max(1, len(opt_rows))) if opt_rows else None,
             **target.describe(), "spp": cfg.spp, "eval_spp": cfg.eval_spp,
             "evaluation": {"renders": EVAL_RENDERS, "spp_each": cfg.eval_spp // EVAL_RENDERS,
-                           "texels": len(target.target) if self.subset is None else len(self.subset),
+                           "texels": target.describe()["texels"] if self.subset is None else len(self.subset),
                            "seconds": self.eval_seconds, "picture_seconds": self.picture_seconds,
                            "share_of_job": self.eval_seconds / (time.perf_counter() - self.t_call),
                            "estimator": "torch_appearance.print_error.noise_free_error: CIEDE2000 extrapolated to "
