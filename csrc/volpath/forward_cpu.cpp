@@ -139,6 +139,18 @@ void set_tally(const torch::Tensor& bins) {
   g_tally = bins.defined() ? bins.contiguous() : torch::Tensor();
 }
 
+// The forward kernel of `opt`'s configuration (dispatch_scene) over this process's share of S's elements.
+template <typename T>
+ForwardCounts forward_scene(const Scene<T>& S, T* out, bool ratio, const SceneOptions& opt) {
+  ForwardCounts counts;
+  dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
+    const Share share(S.elements(), opt.part_rank, opt.part_world);
+    counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out, share)
+                   : forward_kernel<T, L, B, DIEL, false, HERO>(S, out, share);
+  });
+  return counts;
+}
+
 std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                                                            const torch::Tensor& ref_sigma_t,
                                                            const torch::Tensor& ref_albedo, bool ratio,
@@ -153,11 +165,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_cpu(const torch::Tensor& 
     SceneStorage store;
     Scene<T> S = make_scene<T>(opt, sigma_t, albedo, ref_sigma_t, ref_albedo, store);
     build_core(S, store, nullptr);
-    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
-      const Share share(S.elements(), opt.part_rank, opt.part_world);
-      counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
-                     : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
-    });
+    counts = forward_scene(S, out.data_ptr<T>(), ratio, opt);
   });
   interrupt.throw_if_interrupted();
   return {out, counts};
@@ -168,8 +176,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
                                                                    const torch::Tensor& albedo_table,
                                                                    const SceneOptions& opt) {
   check_palette(index, sigma_t_table, albedo_table, opt);
-  const int64_t D = index.size(0), H = index.size(1), W = index.size(2), P = sigma_t_table.size(1);
-  const uint8_t* idx = index.data_ptr<uint8_t>();
+  const int64_t H = index.size(1), W = index.size(2);
   auto out = opt.part_world > 1 ? torch::zeros(image_shape(opt, H, W), sigma_t_table.options())
                                 : torch::empty(image_shape(opt, H, W), sigma_t_table.options());
   ForwardCounts counts;
@@ -177,21 +184,8 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_indexed_cpu(const torch::
   AT_DISPATCH_FLOATING_TYPES(sigma_t_table.scalar_type(), "volpath_forward_indexed", [&] {
     using T = scalar_t;
     SceneStorage store;
-    Scene<T> S = make_scene<T>(opt, D, H, W, sigma_t_table.scalar_type(), store);
-    core::Channels<T> st, al;
-    st.index = al.index = idx;
-    st.voxels = al.voxels = D * H * W;
-    st.entries = al.entries = P;
-    st.plain = al.plain = false;
-    st.palette = sigma_t_table.data_ptr<T>();
-    al.palette = albedo_table.data_ptr<T>();
-    S.medium.sigma_t = S.medium.ref_sigma_t = st;
-    S.medium.albedo = S.medium.ref_albedo = al;
-    build_core(S, store, nullptr);
-    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
-      counts = forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), Share(S.elements(), opt.part_rank,
-                                                                                      opt.part_world));
-    });
+    const Scene<T> S = make_palette_scene<T>(opt, index, sigma_t_table, albedo_table, store);
+    counts = forward_scene(S, out.data_ptr<T>(), false, opt);
   });
   interrupt.throw_if_interrupted();
   return {out, counts};
@@ -220,11 +214,7 @@ std::tuple<torch::Tensor, ForwardCounts> scene_forward_from_bytes_cpu(const torc
     auto shape = image_shape(opt, S.medium.H, S.medium.W);
     out = opt.part_world > 1 ? torch::zeros(shape, torch::TensorOptions().dtype(dtype))
                              : torch::empty(shape, torch::TensorOptions().dtype(dtype));
-    dispatch_scene(opt, [&]<int L, bool HERO, int B, bool DIEL>() {
-      const Share share(S.elements(), opt.part_rank, opt.part_world);
-      counts = ratio ? forward_kernel<T, L, B, DIEL, true, HERO>(S, out.data_ptr<T>(), share)
-                     : forward_kernel<T, L, B, DIEL, false, HERO>(S, out.data_ptr<T>(), share);
-    });
+    counts = forward_scene(S, out.data_ptr<T>(), ratio, opt);
   });
   interrupt.throw_if_interrupted();
   return {out, counts};

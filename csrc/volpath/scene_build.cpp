@@ -258,6 +258,29 @@ core::Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, c
 }
 
 
+template <typename T>
+core::Scene<T> make_palette_scene(const SceneOptions& o, const torch::Tensor& index, const torch::Tensor& sigma_t_table,
+                                  const torch::Tensor& albedo_table, SceneStorage& store) {
+  const int64_t D = index.size(0), H = index.size(1), W = index.size(2);
+  core::Scene<T> S = make_scene<T>(o, D, H, W, sigma_t_table.scalar_type(), store);
+  core::Channels<T> st, al;
+  st.index = al.index = index.data_ptr<uint8_t>();
+  st.voxels = al.voxels = D * H * W;
+  st.entries = al.entries = sigma_t_table.size(1);
+  st.plain = al.plain = false;
+  st.palette = sigma_t_table.data_ptr<T>();
+  al.palette = albedo_table.data_ptr<T>();
+  S.medium.sigma_t = S.medium.ref_sigma_t = st;
+  S.medium.albedo = S.medium.ref_albedo = al;
+  build_core(S, store, nullptr);
+  return S;
+}
+
+template core::Scene<float> make_palette_scene<float>(const SceneOptions&, const torch::Tensor&, const torch::Tensor&,
+                                                      const torch::Tensor&, SceneStorage&);
+template core::Scene<double> make_palette_scene<double>(const SceneOptions&, const torch::Tensor&,
+                                                        const torch::Tensor&, const torch::Tensor&, SceneStorage&);
+
 template core::Scene<float> make_scene<float>(const SceneOptions&, int64_t, int64_t, int64_t, at::ScalarType,
                                               SceneStorage&);
 template core::Scene<double> make_scene<double>(const SceneOptions&, int64_t, int64_t, int64_t, at::ScalarType,

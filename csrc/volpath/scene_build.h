@@ -37,6 +37,13 @@ template <typename T>
 core::Scene<T> make_scene(const SceneOptions& o, const torch::Tensor& sigma_t, const torch::Tensor& albedo,
                           const torch::Tensor& ref_sigma_t, const torch::Tensor& ref_albedo, SceneStorage& store);
 
+// The scene of a palette volume: `index` (D, H, W) uint8 entries of the tables (P, 3) `sigma_t_table` and
+// `albedo_table` (checked by check_palette), the parameters and the reference alike (plain weights), with its
+// homogeneous core (build_core). The tensors must outlive the scene.
+template <typename T>
+core::Scene<T> make_palette_scene(const SceneOptions& o, const torch::Tensor& index, const torch::Tensor& sigma_t_table,
+                                  const torch::Tensor& albedo_table, SceneStorage& store);
+
 // The homogeneous core of an SDF scene's medium (core::Medium::core), once S.medium's channels are final: the bricks
 // whose voxels all lie inside the object (kCellInside) and hold one tuple of values, σ_t and albedo of every channel,
 // equal in the parameters and the reference, finite, σ_t > 0: the tuple that most such bricks hold. In a gradient

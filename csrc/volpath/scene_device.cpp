@@ -158,24 +158,13 @@ std::tuple<torch::Tensor, std::vector<torch::Tensor>> scene_to_device_indexed(co
   const auto hi = host(index).contiguous(), hs = host(sigma_t_table).contiguous(), ha = host(albedo_table).contiguous();
   const SceneOptions o = host_options(opt);
   detail::check_palette(hi, hs, ha, o);
-  const int64_t D = hi.size(0), H = hi.size(1), W = hi.size(2), P = hs.size(1);
   Placement place;
   place.device = device;
   std::tuple<torch::Tensor, std::vector<torch::Tensor>> out;
   AT_DISPATCH_FLOATING_TYPES(hs.scalar_type(), "scene_to_device_indexed", [&] {
     using T = scalar_t;
     auto store = std::make_shared<SceneStorage>();
-    core::Scene<T> S = detail::make_scene<T>(o, D, H, W, hs.scalar_type(), *store);
-    core::Channels<T> st, al;  // as scene_forward_indexed_cpu
-    st.index = al.index = hi.data_ptr<uint8_t>();
-    st.voxels = al.voxels = D * H * W;
-    st.entries = al.entries = P;
-    st.plain = al.plain = false;
-    st.palette = hs.data_ptr<T>();
-    al.palette = ha.data_ptr<T>();
-    S.medium.sigma_t = S.medium.ref_sigma_t = st;
-    S.medium.albedo = S.medium.ref_albedo = al;
-    detail::build_core(S, *store, nullptr);
+    const core::Scene<T> S = detail::make_palette_scene<T>(o, hi, hs, ha, *store);  // as scene_forward_indexed_cpu
     out = relocate(S, store, place);
   });
   return out;
