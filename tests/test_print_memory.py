@@ -139,6 +139,31 @@ def test_quantized_render_equals_the_dense_medium(sphere_target):
     assert torch.equal(got, render_scene(scene, sigma_t, albedo, spp=1, seed=3))
 
 
+def test_prepared_print_renders_the_same_image(sphere_target):
+    """A print prepared once (ObjectTarget.prepare_quantized) renders bitwise what its raw indices render, for the
+    texels and a camera; the caller's indices stay untouched; a print prepared for another resolution is refused."""
+    from torch_appearance.fabrication.quantize import micro_grid_shape
+    target, inks = sphere_target, InkSet.from_names()
+    dpi = (600, 300, 940)
+    shape = micro_grid_shape(target.shape, target.obj.voxel_size, dpi)
+    rng = np.random.default_rng(7)
+    indices = target.quantized_void(rng.integers(0, len(inks), size=shape).astype(np.uint8))
+    before = indices.copy()
+    prepared = target.prepare_quantized(indices, dpi)
+    assert np.array_equal(indices, before)
+    assert (prepared.index.numpy() != 255).all()
+    for seed in (3, 4):
+        assert torch.equal(target.render_quantized(prepared, inks, dpi, spp=1, seed=seed),
+                           target.render_quantized(indices, inks, dpi, spp=1, seed=seed))
+    cam = target.camera_views(1, size=8)[0]
+    assert torch.equal(target.render_quantized(prepared, inks, dpi, 1, 5, sensor=cam),
+                       target.render_quantized(indices, inks, dpi, 1, 5, sensor=cam))
+    with pytest.raises(ValueError, match=r"printer_dpi: the prepared print is for"):
+        target.render_quantized(prepared, inks, (300, 300, 940), spp=1, seed=3)
+    with pytest.raises(ValueError, match=r"indices: expected a \(Dz, Hy, Wx\) uint8"):
+        target.prepare_quantized(indices.astype(np.int32), dpi)
+
+
 def _floor_case(scene_kind):
     g = torch.Generator().manual_seed(5)
     if scene_kind == "slab":

@@ -1,7 +1,6 @@
 """Print optimisation of a voxelised textured object (issue 12): the loop, its run folder, resume, the shell,
 the void outside the object and bad input."""
 import csv
-import json
 import os
 
 import numpy as np
@@ -375,7 +374,7 @@ def test_fill_void_at_surface_takes_the_inner_neighbour():
         fill_void_at_surface(indices, sdf[:, :, :4])
 
 
-def test_object_evaluations_score_a_fixed_random_subset(sphere_ply, tmp_path):
+def test_object_evaluations_score_a_fixed_random_subset(sphere_ply, tmp_path, monkeypatch):
     """``eval_texels``: every evaluation renders and scores the same random subset of the texels (the sensor's rows
     and the target's rows agree: the subset's figure for the final print matches a render of all its texels within
     their standard errors); the pictures of the final print and the naive baseline cover every texel, the in-run
@@ -383,10 +382,22 @@ def test_object_evaluations_score_a_fixed_random_subset(sphere_ply, tmp_path):
     from torch_appearance.pipelines.print.loop import build_target
     from torch_appearance.print_error import noise_free_error
 
+    from torch_appearance.pipelines.print.object_target import ObjectTarget
+
+    calls = {"prepare": 0, "render": 0}   # each print (naive, final) is prepared once for all its renders
+    for name, key in (("prepare_quantized", "prepare"), ("render_quantized", "render")):
+        def counted(self, *a, _f=getattr(ObjectTarget, name), _k=key, **kw):
+            calls[_k] += 1
+            return _f(self, *a, **kw)
+        monkeypatch.setattr(ObjectTarget, name, counted)
     out = tmp_path / "run"
     cfg = config(sphere_ply, out, height_mm=3.6, dpi=200.0, iterations=2, eval_every=2, eval_spp=16,
                  eval_texels=1024, views=1)
     summary = optimize_print(cfg, **QUIET)
+    # the evaluation's renders and the picture of each print, the final's view: 11 renders of 2 prepared prints
+    from torch_appearance.print_error import EVAL_RENDERS
+    assert calls == {"prepare": 2, "render": 2 * (EVAL_RENDERS + 1) + 1}
+    monkeypatch.undo()
     n = summary["texels"]
     assert n > 1500 and summary["evaluation"]["texels"] == 1024
     rendered = [np.isfinite(np.load(out / f"{stem}.npy")).all(1) for stem in ("initial", "optimized")]

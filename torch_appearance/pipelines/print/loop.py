@@ -305,15 +305,19 @@ class _Run:
         return {"loss": float(loss), **{k: float(v) for k, v in parts.items()}}
 
     def quantized(self, weights, fixed=()):
-        """Printer-resolution indices of ``weights`` and their evaluation renders (K, *texels)."""
+        """Printer-resolution indices of ``weights``, the print prepared for rendering (``target.prepare_quantized``:
+        prepared once for its evaluation renders, picture and views) and its evaluation renders (K, *texels)."""
         indices = quantize(self.target, weights, self.inks, self.cfg, self.quant_seed, fixed)
+        t0 = time.perf_counter()
+        prepared = self.target.prepare_quantized(indices, self.cfg.printer_dpi)
+        self.eval_seconds += time.perf_counter() - t0
         subset = {} if self.eval_scene is None else {"sensor": self.eval_scene.sensor}
-        return indices, self.renders(lambda spp, seed: self.target.render_quantized(
-            indices, self.inks, self.cfg.printer_dpi, spp, seed, **subset))
+        return indices, prepared, self.renders(lambda spp, seed: self.target.render_quantized(
+            prepared, self.inks, self.cfg.printer_dpi, spp, seed, **subset))
 
     def picture(self, indices, renders):
-        """(*texels) the colours to save as the picture of a quantised print (``indices``) with evaluation
-        ``renders``: their mean where they cover every texel, else one render of every texel at the training's
+        """(*texels) the colours to save as the picture of a quantised print (``indices``, or as prepared) with
+        evaluation ``renders``: their mean where they cover every texel, else one render of every texel at the training's
         spp (the print is scored on the subset; the picture is for looking at)."""
         if self.subset is None:
             return renders.mean(0)
@@ -367,13 +371,13 @@ class _Run:
             t0 = time.perf_counter()
             base_w, table = target.naive_weights(self.inks, cfg)
             t_quantised = time.perf_counter()
-            base_indices, base_renders = self.quantized(base_w)
-            picture = self.picture(base_indices, base_renders)
+            _, base_print, base_renders = self.quantized(base_w)
+            picture = self.picture(base_print, base_renders)
             self.quantised_s = time.perf_counter() - t_quantised  # the time estimate's cost of the final print
             self.baseline = {"image": picture.numpy(), **self.score(base_renders), "table": table,
                              "seconds": time.perf_counter() - t0}
             target.save_texels(self.folder, "baseline", self.baseline["image"])
-            del base_indices
+            del base_print
         if cfg.init == "naive":  # warm start: the optimisation begins where the naive extrusion ends
             self.model.set_weights(target.naive_weights(self.inks, cfg)[0] if base_w is None else base_w)
         # the extrusion's (inks, D, H, W) weights are not kept through the optimisation (1.16 GB for Spot at 40 mm)
@@ -392,8 +396,8 @@ class _Run:
         t0 = time.perf_counter()
         weights, info = remap_baseline(self.target, self.inks, self.cfg,
                                        work_dir=os.path.join(self.folder, "remap25d"), log=self.log)
-        remap_indices, renders = self.quantized(weights, self.fixed)
-        remap = {"image": self.picture(remap_indices, renders).numpy(), **self.score(renders), "info": info,
+        _, remap_print, renders = self.quantized(weights, self.fixed)
+        remap = {"image": self.picture(remap_print, renders).numpy(), **self.score(renders), "info": info,
                  "seconds": time.perf_counter() - t0}
         self.target.save_texels(self.folder, "baseline_remap", remap["image"])
         return remap
@@ -535,9 +539,9 @@ class _Run:
         self.evaluated = (None, None)
         target.save_texels(folder, "optimized", optimized.mean(0), self.subset)
         weights = self.model.weights().detach()
-        indices, final_renders = self.quantized(weights, self.fixed)
+        indices, final_print, final_renders = self.quantized(weights, self.fixed)
         scores, texel_de = self.score(final_renders, texels=True)
-        final = {"image": self.picture(indices, final_renders).numpy(), **scores, "texel_dE00": texel_de}
+        final = {"image": self.picture(final_print, final_renders).numpy(), **scores, "texel_dE00": texel_de}
         target.save_texels(folder, "final", final["image"])
         final.update(target.extra_scores(final_renders))
         # what quantisation costs: the quantised print's expected colours against the continuous optimum's (both
@@ -548,8 +552,9 @@ class _Run:
         save_index_volume(os.path.join(folder, "quantized.npz"), indices, inks, cfg.printer_dpi)
         export_slices(indices, inks, os.path.join(folder, "slices"), dpi=cfg.printer_dpi)
         write_figures(folder, rows, cfg, target, inks, weights, final, self.baseline, self.remap)
-        view_seconds = target.views(folder, indices, inks, cfg, self.eval_seed, texel_de, log=self.log,
+        view_seconds = target.views(folder, final_print, inks, cfg, self.eval_seed, texel_de, log=self.log,
                                     texel_index=self.subset)
+        del final_print  # an object's prepared copy and micro-grid SDF (1.8 GB at 40 mm)
         package = None
         if cfg.printer is not None:  # the printer's package of the run's volume (pipelines.print.package)
             from .package import export_run

@@ -212,6 +212,11 @@ class SlabTarget:
         """A slab has no void: ``indices`` unchanged."""
         return indices
 
+    def prepare_quantized(self, indices, printer_dpi):
+        """A slab's renders need no preparation: ``indices`` as they are (the object's counterpart is
+        :meth:`ObjectTarget.prepare_quantized`)."""
+        return indices
+
     def render_quantized(self, indices, inks, printer_dpi, spp, seed):
         """(F, H, W, 3) face texels of a printer-resolution index volume averaged back to the slab's texels."""
         cfg = dataclasses.replace(self.cfg, printer_dpi=tuple(printer_dpi))
