@@ -123,7 +123,8 @@ def evaluate(folder, spp, sigma, seed, log=print, mesh=None, texture=None):
     for halftone in ("random", "blue-noise"):
         t = time.perf_counter()
         run_cfg = PrintConfig(**{**cfg.__dict__, "halftone": halftone})
-        indices = quantize(target, weights, inks, run_cfg, iteration_seed(cfg.seed, -2))
+        indices = target.prepare_quantized(quantize(target, weights, inks, run_cfg, iteration_seed(cfg.seed, -2)),
+                                           cfg.printer_dpi)  # prepared once for all its renders
         renders = [target.render_quantized(indices, inks, cfg.printer_dpi, spp, s).numpy() for s in seeds]
         del indices
         rows.append(row(halftone, renders, time.perf_counter() - t))

@@ -79,6 +79,7 @@ def main(argv=None):
     target, inks, cfg, indices, what = build(args)
     renders = []
     t0 = time.perf_counter()
+    indices = target.prepare_quantized(indices, cfg.printer_dpi)  # prepared once for all its renders
     for k in progress_bar(range(args.renders), desc="renders", unit="render"):
         image = target.render_quantized(indices, inks, cfg.printer_dpi, args.spp, 1000 + k)
         renders.append(np.asarray(target.scored(image)[0], np.float32).reshape(-1, 3))

@@ -70,7 +70,9 @@ def _score_top(renders, target):
 def _quantize_and_render(target, weights, inks, cfg, spp, seed, quant_seed):
     """Printer-resolution indices of ``weights`` and their evaluation renders (as the print loop scores a result)."""
     indices = quantize(target, weights, inks, cfg, quant_seed)
-    return indices, _evaluation(lambda n, k: target.render_quantized(indices, inks, cfg.printer_dpi, n, k), spp, seed)
+    prepared = target.prepare_quantized(indices, cfg.printer_dpi)  # once for all its renders
+    return indices, _evaluation(lambda n, k: target.render_quantized(prepared, inks, cfg.printer_dpi, n, k), spp,
+                                seed)
 
 
 EXTRA_FIELDS = ["cpu_s", "eval_s", "spp_used"]
