@@ -103,3 +103,21 @@ def test_a_missing_nvrtc_is_refused_with_the_fix(cache, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_cuda)
     with pytest.raises(RuntimeError, match=r"needs NVRTC through NVIDIA's cuda-bindings.*pip install cuda-bindings"):
         ck.compile_program("forward", "f32", "compute_90")
+
+
+def test_compiling_leaves_python_s_shared_bytes_alone():
+    """NVRTC writes its log and code into buffers of ours: a compilation with an empty log (one NUL byte) once wrote
+    into CPython's shared one-byte ``b" "``, after which every torch.load in the process read a stride of 32 as 0 (a
+    print run resumed after a GPU render failed in Adagrad)."""
+    import io
+
+    import torch
+
+    code = ck.compile_source('extern "C" __global__ void ta_empty_log(long long* out) { out[0] = 1; }\n',
+                             "empty_log.cu", "compute_80")
+    assert isinstance(code, bytes) and b".entry ta_empty_log" in code
+    assert b" "[0] == 32 and bytes([32]).decode() == " "
+    buffer = io.BytesIO()
+    torch.save(torch.zeros(5, 2, 4, 4), buffer)
+    buffer.seek(0)
+    assert torch.load(buffer).stride() == (32, 16, 4, 1)

@@ -268,21 +268,24 @@ def _compile(nvrtc, source, source_name, opts, kind, what):
         (result,) = nvrtc.nvrtcCompileProgram(prog, len(encoded), encoded)
         err, size = nvrtc.nvrtcGetProgramLogSize(prog)
         _ok(nvrtc, err, "nvrtcGetProgramLogSize")
-        raw = b" " * size
+        # NVRTC writes into the buffer: a bytearray, never a bytes object (``b" " * 1`` is CPython's shared one-byte
+        # b" ", which an empty log's NUL would overwrite for the whole process: torch.load then read strides of 32
+        # as 0)
+        raw = bytearray(size)
         (err,) = nvrtc.nvrtcGetProgramLog(prog, raw)
         _ok(nvrtc, err, "nvrtcGetProgramLog")
-        log = raw.rstrip(b"\0").decode(errors="replace").strip()
+        log = bytes(raw).rstrip(b"\0").decode(errors="replace").strip()
         _ok(nvrtc, result, f"NVRTC compiling {source_name} ({what})", log)
         get_size, get = ((nvrtc.nvrtcGetCUBINSize, nvrtc.nvrtcGetCUBIN) if kind == "cubin"
                          else (nvrtc.nvrtcGetPTXSize, nvrtc.nvrtcGetPTX))
         err, size = get_size(prog)
         _ok(nvrtc, err, get_size.__name__)
-        code = b" " * size
+        code = bytearray(size)
         (err,) = get(prog, code)
         _ok(nvrtc, err, get.__name__)
     finally:
         nvrtc.nvrtcDestroyProgram(prog)
-    return code, log
+    return bytes(code), log
 
 
 def compile_source(source, name, arch="compute_90", *, options: Sequence[str] = ()):
