@@ -142,3 +142,20 @@ def test_print_optimisation_under_two_ranks_follows_one_process(tmp_path):
 def _rank_folders():
     import tempfile
     return sorted(n for n in os.listdir(tempfile.gettempdir()) if n.startswith("optimize_print_rank"))
+
+
+def test_the_process_group_backend_follows_the_device():
+    """gloo on the CPU; with CUDA tensors NCCL (and gloo for the CPU tensors such a run still reduces), each rank on
+    the GPU of its LOCAL_RANK whatever index the run's device names."""
+    assert distributed.process_group_backend("cpu") == "gloo"
+    assert distributed.process_group_backend(torch.device("cpu")) == "gloo"
+    for device in ("cuda", "cuda:0", torch.device("cuda", 1)):
+        assert distributed.process_group_backend(device) == "cpu:gloo,cuda:nccl"
+    assert torch.distributed.Backend(distributed.process_group_backend("cuda")) == "cpu:gloo,cuda:nccl"
+    assert distributed.rank_device("cuda:0", {"LOCAL_RANK": "2"}) == torch.device("cuda", 2)
+    assert distributed.rank_device("cuda", {}) == torch.device("cuda", 0)
+    assert distributed.rank_device("cpu", {"LOCAL_RANK": "2"}) == torch.device("cpu")
+    with pytest.raises(ValueError, match=r"^device: expected 'cpu', 'cuda' or 'cuda:N', got 'tpu'$"):
+        distributed.process_group_backend("tpu")
+    with pytest.raises(ValueError, match=r"^LOCAL_RANK: expected an int >= 0 \(torchrun sets it\), got 'x'$"):
+        distributed.rank_device("cuda", {"LOCAL_RANK": "x"})

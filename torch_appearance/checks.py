@@ -25,8 +25,8 @@ import torch
 
 __all__ = ["is_real", "is_int", "all_finite", "describe", "check_real", "check_positive", "check_int",
            "check_odd_int", "check_seed", "check_spp", "check_choice", "check_path", "check_rgb", "check_vector3",
-           "check_direction", "check_tensor", "check_float_tensor", "check_finite", "check_image_shape",
-           "check_point_in_image"]
+           "check_direction", "check_device", "check_tensor", "check_float_tensor", "check_finite",
+           "check_image_shape", "check_point_in_image"]
 
 
 def describe(value):
@@ -161,6 +161,28 @@ def check_choice(name, value, choices, *, kind=None):
     if value not in choices:
         raise ValueError(f"{name}: expected one of {choices}, got {value!r}")
     return value
+
+
+def check_device(name, value):
+    """A device the tracer runs on: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or such a :class:`torch.device`, returned as
+    a :class:`torch.device` (whether a GPU is there is the caller's question: this checks the spelling).
+
+    >>> check_device("device", "cuda:1")
+    device(type='cuda', index=1)
+    >>> check_device("device", "tpu")
+    Traceback (most recent call last):
+    ...
+    ValueError: device: expected 'cpu', 'cuda' or 'cuda:N', got 'tpu'
+    """
+    if not isinstance(value, (str, torch.device)):
+        raise TypeError(f"{name}: expected 'cpu', 'cuda' or 'cuda:N', got {describe(value)}")
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name}: expected 'cpu', 'cuda' or 'cuda:N', got {str(value)!r}")
+    return device
 
 
 def check_path(name, path, suffixes=None):

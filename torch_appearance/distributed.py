@@ -1,4 +1,5 @@
-"""Data-parallel rendering over several processes or machines with ``torch.distributed`` (gloo, CPU).
+"""Data-parallel rendering over several processes or machines with ``torch.distributed`` (gloo on the CPU; with
+CUDA tensors NCCL, each rank on its own GPU: :func:`process_group_backend`, :func:`rank_device`).
 
 Every rank holds the whole medium (the grids are small next to the work of tracing them) and traces a fixed
 interleaved share of the sensor elements: element t belongs to rank ``t % world``. The random numbers of a path are
@@ -22,7 +23,58 @@ Usage (on one machine with 2 processes: ``torchrun --nproc_per_node 2 script.py`
 """
 import torch
 
-__all__ = ["rank_and_world", "render", "all_reduce_sum", "reduce_gradient"]
+__all__ = ["rank_and_world", "render", "all_reduce_sum", "reduce_gradient", "process_group_backend", "rank_device",
+           "init_process_group"]
+
+
+def process_group_backend(device):
+    """The ``torch.distributed`` backend of a run whose tensors live on ``device``: ``"gloo"`` for the CPU; for a
+    CUDA device ``"cpu:gloo,cuda:nccl"``: CUDA tensors are reduced by NCCL, and the CPU tensors such a run still
+    reduces (the renders of a quantised print, which stay on the CPU) by gloo.
+
+    Example:
+        >>> process_group_backend("cpu"), process_group_backend(torch.device("cuda", 1))
+        ('gloo', 'cpu:gloo,cuda:nccl')
+    """
+    from .checks import check_device
+
+    return "cpu:gloo,cuda:nccl" if check_device("device", device).type == "cuda" else "gloo"
+
+
+def rank_device(device, environ=None):
+    """The device of this rank of a run on ``device``: the CPU stays the CPU; with CUDA each rank takes one GPU,
+    ``cuda:LOCAL_RANK`` (``torchrun`` sets ``LOCAL_RANK``, the rank's number on its machine; 0 when absent), whatever
+    index ``device`` names.
+
+    Example:
+        >>> rank_device("cuda", {"LOCAL_RANK": "3"}), rank_device("cpu", {"LOCAL_RANK": "3"})
+        (device(type='cuda', index=3), device(type='cpu'))
+    """
+    import os
+
+    from .checks import check_device
+
+    device = check_device("device", device)
+    if device.type != "cuda":
+        return device
+    environ = os.environ if environ is None else environ
+    text = environ.get("LOCAL_RANK", "0")
+    if not str(text).isdigit():
+        raise ValueError(f"LOCAL_RANK: expected an int >= 0 (torchrun sets it), got {text!r}")
+    return torch.device("cuda", int(text))
+
+
+def init_process_group(device):
+    """Start the default process group for a run on ``device`` (under ``torchrun``: ``RANK``, ``WORLD_SIZE`` and
+    the rendezvous from the environment) with :func:`process_group_backend`; with CUDA this rank's GPU
+    (:func:`rank_device`) becomes torch's current device first. Returns the rank's device."""
+    import torch.distributed as dist
+
+    device = rank_device(device)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    dist.init_process_group(process_group_backend(device))
+    return device
 
 
 def rank_and_world(group=None):

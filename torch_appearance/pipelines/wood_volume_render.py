@@ -30,7 +30,7 @@ import torch
 from .. import io as ta_io
 from ..geometry.primitives import conical_shell_sdf
 from ..nn.wood_volume import SIGMA_EARLY, SIGMA_LATE, load_wood_fit, wood_volume
-from ..checks import check_int, check_real
+from ..checks import check_device, check_int, check_real
 from ..render import (BoxBoundary, DiscLight, OrthographicCamera, PerspectiveCamera, Scene, SDFBoundary,
                       render_scene)
 
@@ -258,12 +258,7 @@ class WoodVolumeConfig:
         check_int("shade_spp", self.shade_spp, lo=1)
         check_int("passes", self.passes, lo=1)
         check_int("threads", self.threads, lo=0)
-        try:
-            device = torch.device(self.device)
-        except (RuntimeError, TypeError) as error:
-            raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {self.device!r}") from error
-        if device.type not in ("cpu", "cuda"):
-            raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
+        check_device("device", self.device)
         if self.mapping not in ("table", "elek"):
             raise ValueError(f"mapping: expected 'table' or 'elek', got {self.mapping!r}")
         return self
