@@ -12,9 +12,14 @@ With --mesh (OBJ + MTL + texture, GLB/GLTF, PLY with vertex colours, ...) the ob
 voxelised at --dpi, and only a shell of --shell-mm below its surface is optimised (deeper voxels hold --core-ink);
 the surface is a smooth dielectric (--ior), the texels shoot inward from the surface.
 
+--device cuda runs the iterations on a GPU (the mixture, the renders, the loss and the optimiser's state; one read
+back per iteration, the log row); evaluations render there and are scored on the CPU; quantisation, its renders and
+the files stay on the CPU. A run resumes on either device.
+
 Examples:
     ta-optimize-print --target colorchecker --iterations 200 --out results/colorchecker
     ta-optimize-print --target zebra --gamma 1,3,1 --out results/zebra
+    ta-optimize-print --target zebra --device cuda --out results/zebra-gpu
     ta-optimize-print --target photo.png --bottom-target back.exr --width-mm 20 --out results/mine
     ta-optimize-print --mesh spot.obj --texture spot_texture.png --height-mm 20 --out results/spot
     ta-optimize-print --out results/mine --resume     # continue an interrupted run
@@ -35,7 +40,8 @@ from ..pipelines.print.slab_target import MIN_SLAB_TEXELS, slab_texels
 from ..pipelines.print.target_images import load_target
 from ..pipelines.runs import (TRACE_BATCH, RunInterrupted, check_checkpoint, check_memory, check_run_folder_owner,
                               trace_buffer_bytes)
-from .command import CommandParser, check_output_folder, fail, flag_names, in_flags
+from .command import (CommandParser, add_device_argument, check_output_folder, fail, flag_names, in_flags,
+                      resolve_device)
 
 __all__ = ["float_tuple", "add_target_arguments", "add_optimization_arguments", "config_from_args", "ink_names_help",
            "check_slab_size", "check_render_memory", "parser", "main", "MIN_SLAB_TEXELS"]
@@ -163,7 +169,7 @@ def config_from_args(args, **overrides):
 
 def parser(prog=PROG):
     """The ``optimize_print`` argument parser: every flag names a :class:`PrintConfig` field, plus ``--threads``
-    and ``--quiet``."""
+    and ``--quiet`` (``--device`` is ``auto`` until :func:`main` resolves it)."""
     p = CommandParser(prog, __doc__.split("\n\n", 1)[1])
     add_target_arguments(p)
     p.add_argument("--inks", default=",".join(DEFAULT_INKS), help=f"{ink_names_help()} (default: %(default)s)")
@@ -180,6 +186,7 @@ def parser(prog=PROG):
     p.add_argument("--view-spp", type=int, default=PrintConfig.view_spp,
                    help="objects: samples per pixel of those renders (default: 32)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    add_device_argument(p)
     p.add_argument("--out", default=PrintConfig.out,
                    help="run folder: config.json, log.csv, convergence.png, target/baseline/initial/optimized/final "
                         "images (slabs: .exr+.png; objects: .npy, .ply and _uv.png), views.png (objects), "
@@ -227,8 +234,9 @@ def given_flags(p, argv):
 
 
 def resumed_config(p, args, argv):
-    """The config of the run in ``--out`` (its config.json), with ``--iterations``/``--checkpoint-s`` if given;
-    any other flag given must agree with it (exit 2 naming the flags otherwise)."""
+    """The config of the run in ``--out`` (its config.json), with ``--iterations``/``--checkpoint-s`` if given and
+    this call's (resolved) ``--device``; any other flag given must agree with it (exit 2 naming the flags
+    otherwise)."""
     path = os.path.join(args.out, "config.json")
     if not os.path.isfile(path):
         p.error(f"--resume: {args.out!r} holds no run to resume (no config.json); start one without --resume")
@@ -251,7 +259,7 @@ def resumed_config(p, args, argv):
         except ValueError as error:
             p.error(str(error))
     keep = {name: getattr(args, name) for name in ("iterations", "checkpoint_s") if name in given}
-    return dataclasses.replace(stored, out=args.out, resume=True, **keep)
+    return dataclasses.replace(stored, out=args.out, resume=True, device=args.device, **keep)
 
 
 def check_slab_size(cfg, warn):
@@ -282,14 +290,17 @@ def _show(value):
 
 def main(argv=None, prog=PROG):
     """Run :func:`optimize_print` with the flags in ``argv`` (default ``sys.argv[1:]``); under ``torchrun``
-    (``WORLD_SIZE`` > 1) the renders are data-parallel over a gloo process group. Returns the exit status (2 for
-    refused input, with the message on stderr; 130 after Ctrl-C, with the checkpoint written and the command that
-    resumes the run)."""
+    (``WORLD_SIZE`` > 1) the renders are data-parallel over a process group (gloo; with ``--device cuda`` NCCL, each
+    rank on the GPU ``cuda:LOCAL_RANK``: :func:`torch_appearance.distributed.init_process_group`). Returns the exit
+    status (2 for refused input, with the message on stderr; 130 after Ctrl-C, with the checkpoint written and the
+    command that resumes the run)."""
     import torch
 
     argv = sys.argv[1:] if argv is None else list(argv)
     p = parser(prog)
     args = p.parse_args(argv)
+    device_lines = []  # which device and why: said once the input is known to be good (a refusal says only itself)
+    args.device = str(resolve_device(p, args.device, log=device_lines.append))  # refused: exit 2, before any work
     check_output_folder(p, "--out", args.out)
     try:  # another tool's folder: refused before anything is read from it or done
         check_run_folder_owner(args.out, TOOL, "--out")
@@ -316,9 +327,14 @@ def main(argv=None, prog=PROG):
         check_render_memory(cfg)
     except (ValueError, TypeError) as error:
         return fail(prog, error, flags, vars(args))
+    if int(os.environ.get("RANK", "0")) == 0:  # under torchrun one rank says it
+        for line in device_lines:
+            print(line)
     if distributed:
         import torch.distributed as dist
-        dist.init_process_group("gloo")
+
+        from ..distributed import init_process_group
+        cfg = dataclasses.replace(cfg, device=str(init_process_group(cfg.device)))  # cuda: this rank's own GPU
     try:
         optimize_print(cfg, progress=not args.quiet, log=say)
     except (ValueError, TypeError) as error:

@@ -497,7 +497,8 @@ def check_checkpoint(path, name="resume"):
 
 
 def load_checkpoint(path, name="resume", keys=CHECKPOINT_KEYS):
-    """``torch.load`` of a run's checkpoint (a dict written by the run itself, so not ``weights_only``), with a
+    """``torch.load`` of a run's checkpoint (a dict written by the run itself, so not ``weights_only``) onto the CPU
+    (one saved with CUDA tensors loads on a machine without a GPU; the run moves them to its device), with a
     damaged file (truncated, cut short, overwritten, missing one of ``keys``) refused by a message that names it,
     instead of the reader's own error.
 
@@ -508,7 +509,7 @@ def load_checkpoint(path, name="resume", keys=CHECKPOINT_KEYS):
 
     check_checkpoint(path, name)
     try:
-        state = torch.load(path, weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False)  # a GPU run's tensors too: any machine
     except (OSError, RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, AttributeError,
             ImportError) as error:
         raise ValueError(_damaged(name, path, error)) from None

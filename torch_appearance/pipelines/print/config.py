@@ -5,6 +5,7 @@ import os
 from dataclasses import dataclass, fields
 from typing import Optional, Sequence, Tuple, Union
 
+from ...checks import check_device
 from ...fabrication.inks import DEFAULT_INKS, Ink, InkSet, ink_from_dict
 from ...fabrication.printer import load_printer
 from ...fabrication.quantize import HALFTONES, PRINTER_DPI
@@ -14,8 +15,9 @@ from .fixed_fractions import parse_fixed
 __all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "config_conflicts", "SCHEDULES",
            "auto_eval_texels", "evaluation_count"]
 
-#: the settings a resumed run may change: where it is, that it resumes, how long it runs and how often it saves
-RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s"})
+#: the settings a resumed run may change: where it is, that it resumes, how long it runs, how often it saves and the
+#: device it runs on (a checkpoint holds CPU tensors: a run started on a GPU resumes on the CPU and the other way)
+RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s", "device"})
 
 #: the schedule of a run by the kind of its target, for the :class:`PrintConfig` fields left at None. Slabs: the
 #: paper's 32 spp, with 300 iterations (a 20 mm ColorChecker slab takes seconds per iteration) and evaluations every
@@ -108,6 +110,9 @@ class PrintConfig:
     out: str = "results/print"
     resume: bool = False
     checkpoint_s: float = 300.0  # write checkpoint.pt at least this often (wall seconds), besides every evaluation
+    device: str = "cpu"  # where the iterations run: "cpu", "cuda" or "cuda:N" (the mixture, the renders, the loss and
+    # the optimiser's state); evaluations render there too and are scored on the CPU; quantisation, its renders and
+    # the files stay on the CPU
 
     def validate(self):
         """Raise ValueError/TypeError naming the field for anything out of range."""
@@ -120,6 +125,7 @@ class PrintConfig:
 
         for name in ("thickness_mm", "dpi", "lr", "shell_mm", "checkpoint_s"):
             positive(name, getattr(self, name))
+        check_device("device", self.device)
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size", "view_spp"):
             if getattr(self, name) is not None or name not in SCHEDULES["slab"]:
                 positive(name, getattr(self, name), integer=True)

@@ -14,6 +14,15 @@ evaluations render and score a fixed random subset of ``eval_texels`` texels (th
 errors), its final print and naive baseline are also rendered whole as pictures. After the loop:
 probabilistic quantisation (one ink per printer micro-voxel) and the same evaluation of the *quantised* volume at the
 printer resolution; the baselines are scored the same way.
+
+Devices (``cfg.device``): the mixture's parameters, the optimiser's state, the renders, the loss and its target, the
+running mean and every other tensor of an iteration live on the run's device; the loop's own code reads back one
+thing per iteration, its log row (the loss and its three parts, one transfer: :func:`log_values`). (What it calls
+still waits on the device where it checks its input: the tracer's front door builds each render's scene on the host,
+the appearance loss refuses non-finite colours and an empty mask.) Evaluations render on the device and are scored on
+the CPU (the renders are moved there explicitly); the naive baseline, the quantisation, the quantised print's
+renders, the figures and the files stay on the CPU. A checkpoint holds CPU tensors, so a run resumes on another
+device.
 """
 import dataclasses
 import os
@@ -95,6 +104,7 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     t_call = time.perf_counter()
     cfg.validate()
     cfg = cfg.resolved()  # the schedule of its kind for what it leaves at None; config.json records these
+    _check_device_usable(cfg.device)
     rank, world = distributed.rank_and_world()
     folder = cfg.out
     ckpt_path = os.path.join(folder, CHECKPOINT)
@@ -177,6 +187,34 @@ def _scores_text(scores):
 TOOL = "ta-optimize-print"
 
 
+def _check_device_usable(device):
+    """A CUDA ``device`` on a machine where CUDA tensors cannot be rendered: ValueError naming ``device``, before any
+    work."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return
+    from ...render.cuda_launch import cuda_unavailable
+
+    missing = cuda_unavailable()
+    if missing:
+        raise ValueError(f"device: {device} cannot be used here: {missing}; use device='cpu'")
+    if (device.index or 0) >= torch.cuda.device_count():
+        raise ValueError(f"device: expected cuda:0 ... cuda:{torch.cuda.device_count() - 1} (the GPUs torch sees), "
+                         f"got {device}")
+
+
+def _to_cpu(value):
+    """``value`` (a state dict, nested dicts, lists and tuples of tensors) with its tensors on the CPU (a CPU tensor
+    itself, not a copy): what a checkpoint holds, whichever device the run is on."""
+    if isinstance(value, torch.Tensor):
+        return value.cpu()
+    if isinstance(value, dict):
+        return {k: _to_cpu(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_to_cpu(v) for v in value)
+    return value
+
+
 def _check_not_a_run(cfg, ckpt_path):
     check_run_folder_owner(cfg.out, TOOL)
     if os.path.exists(ckpt_path) and not cfg.resume:
@@ -208,6 +246,20 @@ def remap_baseline(target, inks, cfg, *, work_dir, log=print, progress=False, ma
     return weights, info
 
 
+def log_values(loss, parts):
+    """``{"loss", "E1", "E2", "E3"}`` as Python floats from the 0-dim tensors ``loss`` and ``parts`` (a dict), read
+    back from their device in one transfer (``Tensor.tolist`` of their stack): the one host round trip of an
+    iteration.
+
+    Example:
+        >>> log_values(torch.tensor(1.5), {"E1": torch.tensor(0.5), "E2": torch.tensor(1.0)})
+        {'loss': 1.5, 'E1': 0.5, 'E2': 1.0}
+    """
+    names = ["loss", *parts]
+    values = torch.stack([loss.detach(), *(v.detach() for v in parts.values())]).tolist()
+    return dict(zip(names, values))
+
+
 class _Run:
     """One run of :func:`optimize_print` once its inputs are checked: the model, the optimiser and the log rows,
     with the steps (start or resume, baselines, iterations, results) as methods; writes to ``folder``."""
@@ -217,8 +269,10 @@ class _Run:
         self.cfg, self.target, self.inks, self.fixed = cfg, target, inks, fixed
         self.folder, self.ckpt_path, self.log, self.world = folder, ckpt_path, log, world
         self.shape = tuple(target.shape)
+        self.device = torch.device(cfg.device)
         self.model = MaterialMixture(inks, self.shape, parameterization=cfg.parameterization, support=target.support,
-                                     core_ink=cfg.core_ink if target.support is not None else None, fixed=constraints)
+                                     core_ink=cfg.core_ink if target.support is not None else None,
+                                     fixed=constraints).to(self.device)
         optim_cls = torch.optim.Adagrad if cfg.optimizer == "adagrad" else torch.optim.Adam
         self.optimizer = optim_cls(self.model.parameters(), lr=cfg.lr)
         self.criterion = AppearanceLoss(gamma=tuple(cfg.gamma))
@@ -272,10 +326,10 @@ class _Run:
     # ---------------------------------------------------------------------------------------------- helpers
     def renders(self, render):
         """(K, *texels) the K = :data:`EVAL_RENDERS` independent renders of an evaluation: ``render(spp, seed)``
-        with ``eval_spp / K`` spp and the evaluation's seeds."""
+        with ``eval_spp / K`` spp and the evaluation's seeds, on the CPU (where they are scored)."""
         t0 = time.perf_counter()
         spp = self.cfg.eval_spp // EVAL_RENDERS
-        renders = torch.stack([render(spp, seed) for seed in self.eval_seeds])
+        renders = torch.stack([render(spp, seed).cpu() for seed in self.eval_seeds])
         self.eval_seconds += time.perf_counter() - t0
         return renders
 
@@ -345,10 +399,11 @@ class _Run:
         if tuple(state["grid_dhw"]) != self.shape or state["inks"] != list(self.inks.names):
             raise ValueError(f"resume: the checkpoint in {self.folder!r} is for grid {state['grid_dhw']} and inks "
                              f"{state['inks']}, this run has {list(self.shape)} and {list(self.inks.names)}")
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        self.model.load_state_dict(state["model"])  # copied onto the model's device; the optimiser's state follows
+        self.optimizer.load_state_dict(state["optimizer"])  # its parameters' device
         self.rows, self.start, self.wall_offset = state["rows"], state["iteration"], state["wall_s"]
-        self.ema = state.get("ema", self.ema)
+        ema = state.get("ema", self.ema)
+        self.ema = {**ema, "sum": None if ema["sum"] is None else ema["sum"].to(self.device)}
         self.baseline, self.remap = state["baseline"], state.get("baseline_remap")
         self.log(f"optimize_print: resuming {self.folder} at iteration {self.start}")
 
@@ -448,9 +503,10 @@ class _Run:
             record(loss, parts)
 
     def checkpoint(self, iteration, wall_s):
-        save_torch({"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "rows": self.rows,
-                    "iteration": iteration, "wall_s": wall_s, "baseline": self.baseline,
-                    "baseline_remap": self.remap, "ema": self.ema,
+        """``checkpoint.pt`` (its tensors on the CPU: it resumes on any device) and ``log.csv``."""
+        save_torch({"model": _to_cpu(self.model.state_dict()), "optimizer": _to_cpu(self.optimizer.state_dict()),
+                    "rows": self.rows, "iteration": iteration, "wall_s": wall_s, "baseline": self.baseline,
+                    "baseline_remap": self.remap, "ema": _to_cpu(self.ema),
                     "grid_dhw": list(self.shape), "inks": list(self.inks.names)},
                    os.path.join(self.folder, CHECKPOINT))
         ta_io.write_csv(os.path.join(self.folder, "log.csv"), self.rows, LOG_FIELDS)
@@ -469,10 +525,11 @@ class _Run:
 
         def record(loss, parts):
             nonlocal done
+            values = log_values(loss, parts)  # the iteration's one read back from the device
             if done == 0 and "loss" not in self.rows[0]:  # scored on a subset: the loss of the same state
-                self.rows[0].update({"loss": loss.item(), **{k: v.item() for k, v in parts.items()}})
-            self.rows.append({"iteration": done + 1, "loss": loss.item(), **{k: v.item() for k, v in parts.items()},
-                              "seed": seed, "wall_s": time.perf_counter() - t_start})
+                self.rows[0].update(values)
+            self.rows.append({"iteration": done + 1, **values, "seed": seed,
+                              "wall_s": time.perf_counter() - t_start})
             done += 1
 
         # the iteration whose time is logged with the whole job's: with the ``ema`` estimator the first iteration
@@ -538,7 +595,7 @@ class _Run:
         optimized = renders if done == cfg.iterations else self.evaluate()
         self.evaluated = (None, None)
         target.save_texels(folder, "optimized", optimized.mean(0), self.subset)
-        weights = self.model.weights().detach()
+        weights = self.model.weights().detach().cpu()  # quantised, exported and drawn on the CPU
         indices, final_print, final_renders = self.quantized(weights, self.fixed)
         scores, texel_de = self.score(final_renders, texels=True)
         final = {"image": self.picture(final_print, final_renders).numpy(), **scores, "texel_dE00": texel_de}
@@ -591,6 +648,7 @@ class _Run:
             # the whole call: preparation, baselines, iterations, evaluations, quantisation and outputs (a resumed
             # run: its own call only)
             "job_s": time.perf_counter() - self.t_call,
+            "device": str(self.device),  # where the iterations ran (cfg.device; a resumed run: its last call's)
         }
         ta_io.write_json(os.path.join(folder, "summary.json"), summary)
         naive_text = "" if baseline is None else f", naive extrusion {_scores_text(baseline)}"

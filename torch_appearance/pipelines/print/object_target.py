@@ -26,7 +26,7 @@ from ...render.volpath import render_scene_indexed
 from ..runs import check_memory
 from .baselines import naive_extrusion
 from .config import iteration_seed
-from .rendering import render, replay_seed
+from .rendering import on_device, render, replay_seed
 from .run_folder import save_image
 
 __all__ = ["ObjectTarget", "PreparedPrint", "object_memory_bytes", "fill_void_at_surface", "outside_micro_centres"]
@@ -111,9 +111,10 @@ class ObjectTarget:
         """``(E, {"E1", "E2", "E3"})`` of (N, 3) texel colours against the target with the
         :class:`~torch_appearance.nn.AppearanceLoss` ``criterion``, on the sparse texel path
         (:meth:`~torch_appearance.nn.AppearanceLoss.forward_parts_texels`): no voxel grid is built, the filter
-        matrices are cached in ``criterion``; equal to the grid path ``criterion.forward_parts(to_grid(texels),
-        target_grid, mask)`` to float rounding."""
-        return criterion.forward_parts_texels(texels, self.target, self.positions)
+        matrices are cached in ``criterion`` per device; equal to the grid path ``criterion.forward_parts(
+        to_grid(texels), target_grid, mask)`` to float rounding. On the texels' device (the target copied there
+        once)."""
+        return criterion.forward_parts_texels(texels, on_device(self, texels.device, "target"), self.positions)
 
     @classmethod
     def from_config(cls, cfg, inks, log=print):
@@ -128,7 +129,8 @@ class ObjectTarget:
         check_memory("height_mm", object_memory_bytes(np.prod(dims, dtype=np.float64)),
                      f"a {' × '.join(map(str, dims))}-voxel object ({extent[0]:.1f} × {extent[1]:.1f} × "
                      f"{extent[2]:.1f} mm at {cfg.dpi:g} DPI)",
-                     "print it smaller (height_mm, --height-mm) or optimise at a lower dpi (--dpi)")
+                     "print it smaller (height_mm, --height-mm) or optimise at a lower dpi (--dpi)",
+                     device=cfg.device)  # on a GPU its free memory too
         t0 = time.perf_counter()
         obj = voxelize(mesh, cfg.voxel_size, shell_mm=cfg.shell_mm)
         inside, shell = int(obj.occupancy.sum()), int(obj.shell.sum())
@@ -166,7 +168,7 @@ class ObjectTarget:
         scene = self.scene if scene is None else scene
         # only the shell carries parameters: the replay crosses the fixed white core without gradient bookkeeping
         return render(scene, sigma_t, albedo, spp=spp, seed=seed, seed_grad=replay_seed(seed, self.gradient_seed),
-                      grad_support=self.support, adjoint=adjoint)
+                      grad_support=self.support, adjoint=adjoint)  # on the CPU: the tracer's front door keeps it there
 
     def to_grid(self, texels):
         return self.obj.texels_to_grid(texels)

@@ -9,7 +9,29 @@ from ...render import BoxBoundary, ConstantEnvironment, FaceTexels, Scene
 from ...render.scene import derive_seed_grad
 from ...render.volpath import render_scene, render_scene_indexed
 
-__all__ = ["replay_seed", "render", "render_indexed", "ink_tables", "slab_scene"]
+__all__ = ["replay_seed", "render", "render_indexed", "ink_tables", "slab_scene", "on_device"]
+
+
+def on_device(owner, device, name):
+    """``owner.name`` (a tensor) on ``device``: the attribute itself where it is there already, else a copy made on
+    first use and kept in ``owner`` (a target's references for the loss, copied once onto a run's GPU, not every
+    iteration).
+
+    Example:
+        >>> class T: pass
+        >>> t = T(); t.x = torch.ones(2)
+        >>> on_device(t, torch.device("cpu"), "x") is t.x
+        True
+    """
+    value = getattr(owner, name)
+    device = torch.device(device)
+    if value.device == device:
+        return value
+    copies = owner.__dict__.setdefault("_device_copies", {})
+    key = (name, str(device))
+    if key not in copies or copies[key][0] is not value:  # the attribute replaced since: copy it again
+        copies[key] = (value, value.to(device))
+    return copies[key][1]
 
 
 def replay_seed(seed, gradient_seed):

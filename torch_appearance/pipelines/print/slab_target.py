@@ -8,6 +8,7 @@ import torch
 from ... import io as ta_io
 from ..runs import check_memory
 from .baselines import naive_extrusion, render_quantized, render_slab
+from .rendering import on_device
 from .report import heatmap_figure
 from .run_folder import save_image, score
 from .target_images import load_target
@@ -37,7 +38,8 @@ def slab_texel_grid(faces_rgb, depth):
     mask = torch.zeros(depth, h, w, dtype=torch.bool, device=faces_rgb.device)
     layers = [depth - 1, 0][:f]
     for k, layer in enumerate(layers):
-        grid = grid.index_copy(1, torch.tensor([layer]), faces_rgb[k].permute(2, 0, 1).unsqueeze(1))
+        grid = grid.index_copy(1, torch.tensor([layer], device=faces_rgb.device),
+                               faces_rgb[k].permute(2, 0, 1).unsqueeze(1))
         mask[layer] = True
     return grid, mask
 
@@ -145,8 +147,9 @@ class SlabTarget:
         """The slab of ``cfg``: top (and bottom) images sized by the image at the voxel pitch or by width/height.
 
         A slab that would not fit in memory (:func:`slab_memory_bytes` against ``available`` bytes, default what
-        the process may use) is refused before any resampling or file; the log names its size and its memory (the
-        seconds per iteration and the whole job's are logged once an iteration has been timed, by the loop)."""
+        the process may use, and on a GPU ``cfg.device``'s free memory) is refused before any resampling or file;
+        the log names its size and its memory (the seconds per iteration and the whole job's are logged once an
+        iteration has been timed, by the loop)."""
         top = load_target(cfg.target, name="target")
         size = slab_texels(cfg, top.shape[:2])  # a side of fewer than MIN_SLAB_TEXELS texels is refused
         h, w = size or top.shape[:2]
@@ -156,7 +159,7 @@ class SlabTarget:
         need = slab_memory_bytes((cfg.depth, h, w), len(inks))
         check_memory("target" if size is None else "width_mm/height_mm", need, what,
                      "print a smaller slab (width_mm/height_mm, --width-mm/--height-mm) or optimise at a lower dpi "
-                     "(--dpi)", available)
+                     "(--dpi)", available, device=cfg.device)  # on a GPU its free memory too
         log(f"optimize_print: {what}, {faces * h * w} texels, about {need / 2**30:.1f} GiB of memory")
         if size is not None:
             top = load_target(cfg.target, size=size, name="target")
@@ -184,8 +187,10 @@ class SlabTarget:
 
     def appearance(self, criterion, texels):
         """``(E, {"E1", "E2", "E3"})`` of the face texels (F, H, W, 3) on the voxel grid (dense path: the faces
-        are whole layers, which the grid path filters with per-axis matrices)."""
-        return criterion.forward_parts(self.to_grid(texels), self.target_grid, self.mask)
+        are whole layers, which the grid path filters with per-axis matrices), on the texels' device (the target's
+        grid and mask copied there once)."""
+        return criterion.forward_parts(self.to_grid(texels), on_device(self, texels.device, "target_grid"),
+                                       on_device(self, texels.device, "mask"))
 
     def evaluation_subset(self, count, seed):
         """A slab's evaluations score every texel of its top face: None."""
