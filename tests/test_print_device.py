@@ -132,26 +132,31 @@ def test_checkpoints_hold_cpu_tensors_and_load_onto_the_cpu(tmp_path, monkeypatc
 
 
 def test_an_iteration_reads_back_only_its_log_row(tmp_path, monkeypatch):
-    """Counts the library's explicit device→host reads (``item``, ``tolist``, ``cpu``, ``numpy`` called from
-    torch_appearance's code) in the optimisation loop, outside its evaluations and checkpoints: one ``tolist`` per
-    iteration (the log row), nothing else. (torch's own optimisers read their CPU step counters with ``item``; those
-    are not the library's and not counted.)"""
+    """Counts the device→host reads in the optimisation loop, outside its evaluations and checkpoints: ``item``,
+    ``tolist``, ``cpu`` and ``numpy`` called from torch_appearance's code, and ``float``/``int``/``bool`` of a tensor
+    in the print package's own code: one ``tolist`` per iteration (the log row), nothing else. (Not counted: torch's
+    optimisers reading their CPU step counters with ``item``, and the input checks of the tracer's front door and of
+    the appearance loss, which take ``bool``/``float`` of reductions.)"""
     counts = {}
     counting = [False]
+    package = os.path.join("torch_appearance", "")
+    print_package = os.path.join("torch_appearance", "pipelines", "print", "")
 
-    def counted(name):
+    def counted(name, where):
         real = getattr(torch.Tensor, name)
 
         def wrapper(self, *args, **kwargs):
             import sys
             caller = sys._getframe(1).f_code.co_filename
-            if counting[0] and f"torch_appearance{os.sep}" in caller:
+            if counting[0] and where in caller:
                 counts[name] = counts.get(name, 0) + 1
             return real(self, *args, **kwargs)
         return wrapper
 
     for name in ("item", "tolist", "cpu", "numpy"):
-        monkeypatch.setattr(torch.Tensor, name, counted(name))
+        monkeypatch.setattr(torch.Tensor, name, counted(name, package))
+    for name in ("__float__", "__int__", "__bool__"):
+        monkeypatch.setattr(torch.Tensor, name, counted(name, print_package))
 
     def counted_in(method, on):
         real = getattr(loop._Run, method)
