@@ -168,7 +168,7 @@ def main(argv=None):
                                                           "%(default)s)")
     p.add_argument("--size", type=int, default=256, help="board size in px, square (default: %(default)s)")
     p.add_argument("--pixel-size-mm", type=float, default=0.1, help="pixel pitch in mm (default: %(default)s)")
-    add_fit_arguments(p, ["epochs", "color_epochs", "lobe_shape", "lobe_radius_rings"])
+    add_fit_arguments(p, ["epochs", "color_epochs", "lobe_shape", "lobe_radius_rings", "pith_split"])
     p.add_argument("--label", default="", help="a name for this run in the JSON (e.g. before, after)")
     p.add_argument("--redraw", action="store_true", help="rescore and redraw run folders that hold a fitted model")
     p.add_argument("--measured", default=None, help="also write the JSON here")
@@ -196,6 +196,7 @@ def main(argv=None):
         result = {"label": args.label, "commit": commit, "size": args.size, "pixel_size_mm": args.pixel_size_mm,
                   "epochs": args.epochs, "color_epochs": args.color_epochs, "cases": args.cases,
                   "lobe_shape": args.lobe_shape, "lobe_radius_rings": args.lobe_radius_rings,
+                  "pith_split": args.pith_split,
                   "medians": medians(rows), "rows": rows}
         ta_io.write_json(os.path.join(args.out, "generators.json"), ta_io.nan_to_none(result))   # after every board
     print(ta_io.markdown_table(rows, FIELDS))

@@ -17,6 +17,7 @@ Examples:
     ta-fit-wood board.jpg --dpi 600 --epochs 300 --out results/board600
     ta-fit-wood board.png --photometric --out results/board_photo
 """
+import argparse
 import sys
 
 from ..pipelines.wood.config import WoodFitConfig
@@ -44,6 +45,9 @@ FIT_FLAGS = {
                    "(default: %(default)s)"),
     "lobe_radius_rings": ("--lobe-radius-rings", dict(type=float),
                           "radius of the lobe texture round the pith, in ring widths (default: %(default)s)"),
+    "pith_split": ("--pith-split", dict(action=argparse.BooleanOptionalAction),
+                   "filter the two sides of the pith line apart where the rings run along it (the symmetric profile "
+                   "there bends the innermost rings' phase; default: on)"),
     "color_bins": ("--color-bins", dict(type=int), "lateness samples of the colour map (default: %(default)s)"),
     "contrast_match": ("--contrast-match", dict(action="store_true"),
                        "after stage 2, remap the colour map's luminance so that the fit's luminance histogram is the "

@@ -149,14 +149,18 @@ class BoardEstimate:
         q = self.pixel_grid()
         return np.hypot(q[..., 0], q[..., 1])
 
-    def side_map(self) -> np.ndarray:
-        """``(H, W)`` ±1: side of the projected tree centre (+1 where w' > c). The Gabor phase sign typically
-        flips across this line."""
+    def centre_distance_map(self) -> np.ndarray:
+        """``(H, W)`` signed distance (mm) of every pixel from the projected tree centre line, w' − c."""
         h, w = self.image_shape
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
         _, wp = _board_coords(np.stack([xx, yy], -1).reshape(-1, 2) * self.pixel_size_mm,
                               self.axis_angle, _image_centre_mm(self.image_shape, self.pixel_size_mm))
-        return np.where(wp.reshape(h, w) >= self.centre_offset_mm, 1.0, -1.0)
+        return wp.reshape(h, w) - self.centre_offset_mm
+
+    def side_map(self) -> np.ndarray:
+        """``(H, W)`` ±1: side of the projected tree centre (+1 where w' > c). The Gabor phase sign typically
+        flips across this line."""
+        return np.where(self.centre_distance_map() >= 0, 1.0, -1.0)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -9,7 +9,9 @@ wrong gap (few traced rings on one side): the fit then follows the rings there w
 (mirrored growth). :func:`choose_pith_side` scores the sign hypotheses of candidate centre lines by how well one
 lateness profile explains the photo (:func:`lateness_profile_score`; a ring's profile is asymmetric) and re-fits
 the board around the best line. :func:`unwrap_phase` (weighted least squares) serves the initial distortion, which
-is fitted to the unwrapped phase residual so that it holds no 2π steps.
+is fitted to the unwrapped phase residual so that it holds no 2π steps. :func:`split_at_pith_line` filters the
+two sides of the projected centre line apart where the rings run along it (the pith line of a board cut through the
+pith), where the symmetric profile otherwise bends the phase of the innermost rings.
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from scipy.sparse import linalg as sparse_linalg
 from .board_estimate import BoardEstimate, _board_coords, _image_centre_mm, _transform, estimate_board
 from .tracing import wrap_angle
 
-__all__ = ["resolve_phase_sign", "lateness_profile_score", "unwrap_phase", "choose_pith_side"]
+__all__ = ["resolve_phase_sign", "lateness_profile_score", "unwrap_phase", "choose_pith_side", "split_at_pith_line"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -216,3 +218,52 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     best_s, best = max(options, key=lambda t: t[0])
     info.update(score_chosen=best_s, moved=best is not estimate)
     return best, info
+
+
+def split_at_pith_line(gray, estimate: BoardEstimate, gabor, *, p=80, q=80, device="cpu", parallel=0.5):
+    """The Gabor response with the two sides of the projected tree centre line filtered apart where the rings run
+    along it.
+
+    On a board cut through the pith the rings on the two sides of the pith line are mirror images: the profile
+    across them is symmetric there, so the Gabor response is real on the line (phase 0 or π, whatever the ring's
+    phase is) and, over the filter's support (about a ring), the phase of the innermost ring on each side is bent
+    towards it (0.4–1 rad on the independent boards; the fit then places the pith-line ring half a cycle off).
+    Here the filter is run again with the centre line as a barrier
+    (``curved_gabor(..., barrier=...)``) at the pixels whose rings run within ``acos(parallel)`` of the line's
+    direction (across a ring that crosses the line, e.g. at an arch's tip, there is no mirror), and each pixel
+    keeps the stronger of the two responses: a one-sided profile keeps its amplitude where the mirrored halves
+    cancel, and where the line is misplaced (through a ring rather than along its symmetry axis) the unsplit
+    response is usually the stronger one.
+
+    Args:
+        gray: ``(H, W)`` luminance of the photo. estimate: the :class:`BoardEstimate` (gives the centre line).
+        gabor: the :class:`~torch_appearance.rings.gabor.GaborResult` of ``curved_gabor(gray, p=p, q=q)``.
+        p, q, device: as for that call. parallel: |cos| of the angle between a pixel's ring normal and the line's
+            normal above which the barrier applies (in (0, 1]).
+
+    Returns:
+        ``(gabor, info)``: a :class:`GaborResult` (``phase`` and ``magnitude`` replaced where the split response
+        is stronger; the other fields of ``gabor``) and a dict with ``split`` (bool: the line crosses the photo)
+        and ``fraction_split`` (share of pixels whose response changed by more than 1 % of the median magnitude).
+    """
+    from .gabor import curved_gabor
+    from .tracing import _as_field
+
+    gray = _as_field("gray", gray, tuple(estimate.image_shape))
+    if not (isinstance(parallel, (int, float)) and 0 < parallel <= 1):
+        raise ValueError(f"parallel: expected a value in (0, 1], got {parallel!r}")
+    dist = estimate.centre_distance_map()
+    if dist.min() >= 0 or dist.max() <= 0:  # the line misses the photo: nothing to split
+        return gabor, {"split": False, "fraction_split": 0.0}
+    th = gabor.theta.astype(np.float64)
+    b = np.array([-math.sin(estimate.axis_angle), math.cos(estimate.axis_angle)])
+    along = np.abs(-np.sin(th) * b[0] + np.cos(th) * b[1]) > parallel
+    split = curved_gabor(gray, p=p, q=q, device=device, barrier=np.where(along, dist, 0.0))
+    r0 = gabor.magnitude * np.exp(1j * gabor.phase)
+    r1 = split.magnitude * np.exp(1j * split.phase)
+    take = split.magnitude > gabor.magnitude
+    changed = np.abs(r1 - r0) > 0.01 * max(float(np.median(gabor.magnitude)), 1e-12)
+    out = dataclasses.replace(gabor, phase=np.where(take, split.phase, gabor.phase).astype(np.float32),
+                              magnitude=np.where(take, split.magnitude, gabor.magnitude).astype(np.float32))
+    return out, {"split": True, "fraction_split": float((take & changed).mean())}
+

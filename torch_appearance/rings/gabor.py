@@ -246,7 +246,7 @@ def curved_gabor_memory_bytes(shape, p, q, device="cpu", chunk_size=16384, num_w
 def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float | None = None,
                  sigma_across: float | None = None, device="cpu", *, freq_range: tuple[float, float] | None = None,
                  normal_reference=None, sigma_smooth: float | None = None, window: int | None = None, chunk_size: int = 16384,
-                 num_workers: int | None = None
+                 num_workers: int | None = None, barrier=None
                  ) -> GaborResult:
     """Curved Gabor filter of a grayscale wood image: local ring phase, amplitude, frequency and curvature.
 
@@ -278,6 +278,12 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
         chunk_size: pixels per chunk (memory per worker ~ ``chunk_size * (2p+1) * 40`` bytes in the across pass).
         num_workers: CPU threads working on separate chunks (each with single-threaded torch ops); default
             ``torch.get_num_threads()``. Ignored on other devices.
+        barrier: optional ``(H, W)`` signed field (e.g. the signed distance to a board's projected tree centre
+            line) that the across curves may not cross: from the first sample whose sign differs from the
+            pixel's own, the rest of that half of the curve gets zero weight. Near a pith line the rings on its
+            two sides are mirror images; a symmetric profile makes the response real there (phase 0 or π) and
+            bends the phase of the innermost ring on both sides; with the barrier each side is filtered on its
+            own. Default None: no barrier.
 
     Returns:
         :class:`GaborResult` with ``(H, W)`` float32 arrays (``normal`` is ``(H, W, 2)``).
@@ -318,6 +324,10 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
 
     img = _as_image(gray, "gray", device=device)
     H, W = img.shape
+    if barrier is not None:
+        barrier = _as_image(barrier, "barrier", device=device)
+        if barrier.shape != img.shape:
+            raise ValueError(f"barrier must have the shape of gray {tuple(img.shape)}; got {tuple(barrier.shape)}")
     if sigma_smooth is None or window is None:
         period = _dominant_period(img, f_min, f_max)
         if sigma_smooth is None:
@@ -354,6 +364,7 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
     xs, ys = xs.reshape(-1), ys.reshape(-1)
     nx, ny = normal[..., 0].reshape(-1).contiguous(), normal[..., 1].reshape(-1).contiguous()
     c2_flat, s2_flat, img_flat = c2.reshape(-1), s2.reshape(-1), img.reshape(-1)
+    barrier_flat = None if barrier is None else barrier.reshape(-1)
     dirs = _Field(torch.stack([c2, s2]))
     gxs, gys = dirs.to_grid(xs, ys)
 
@@ -403,9 +414,15 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
         valid = torch.empty(n_taps, n, device=device)
         prof[p] = A[s:e]
         valid[p] = A_valid[s:e]
+        if barrier is not None:
+            side = barrier_flat[s:e].repeat(2)
+            open_ = torch.ones(2 * n, device=device)  # 0 once this half of the curve has crossed the barrier
         for k, cur, _ in _trace(full2, dirs, gxs[s:e].repeat(2), gys[s:e].repeat(2), dx0, dy0, first, p, True):
             prof[p + k], prof[p - k] = cur[2, :n], cur[2, n:]
             v = cur[3].clamp(0.0, 1.0)  # bicubic may overshoot slightly
+            if barrier is not None:
+                open_.mul_((cur[4] * side >= 0).to(open_.dtype))
+                v = v * open_
             valid[p + k], valid[p - k] = v[:n], v[n:]
         prof, valid = prof.t(), valid.t()  # (n, 2p+1)
         # Local frequency: peak of the Hann-windowed, validity-weighted spectrum; parabolic interpolation of log power.
@@ -436,7 +453,8 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
         run(along_chunk, chunks)
         # Bicubic across the rings: bilinear resampling would attenuate the ring signal (~cos(pi f) at half-pixel
         # offsets) and slightly distort its phase.
-        full2 = _Field(torch.stack([c2, s2, A.view(H, W), A_valid.view(H, W)]), zero_pad=(3,), mode="bicubic")
+        channels = [c2, s2, A.view(H, W), A_valid.view(H, W)] + ([] if barrier is None else [barrier])
+        full2 = _Field(torch.stack(channels), zero_pad=(3,), mode="bicubic")
         run(across_chunk, chunks)
 
     phase_np = phase.view(H, W).cpu().numpy()

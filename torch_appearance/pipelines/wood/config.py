@@ -36,6 +36,9 @@ class WoodFitConfig:
     # pith (WoodModel(lobe_shape=...)); None: no lobe texture (the growth field is m_r(z, r) alone)
     lobe_shape: Optional[tuple] = (16, 8)
     lobe_radius_rings: float = 4.0
+    # the photo's phase near the pith line: the two sides of the projected centre line filtered apart where the rings
+    # run along it (rings.board.split_at_pith_line); False: the Gabor phase of the whole photo, as before
+    pith_split: bool = True
     # after stage 2: remap the colour map's luminance so that the fit's luminance histogram is the photo's (the
     # per-bin photo means blur latewood into earlywood wherever the fitted phase is off by a fraction of a ring)
     contrast_match: bool = False
@@ -72,7 +75,7 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 2:
                 raise ValueError(f"{name}: expected an int >= 2, got {v!r}")
-        for name in ("photometric", "contrast_match"):
+        for name in ("photometric", "contrast_match", "pith_split"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name}: expected a bool, got {type(getattr(self, name)).__name__}")
         if not isinstance(self.photometric_spp, int) or self.photometric_spp < 2:

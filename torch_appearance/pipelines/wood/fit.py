@@ -2,7 +2,8 @@
 
 photo → curved Gabor filter (orientation, magnitude, phase J_φ) → ring tracing at J_φ = π/2 → board location
 (projected tree centre, ring scale, transform) → growth direction: the centre line placed where one lateness
-profile explains both sides (``choose_pith_side``), phase sign resolved → initial ``WoodModel`` (radial distortion
+profile explains both sides (``choose_pith_side``), the two sides of that line filtered apart where the rings run
+along it (``split_at_pith_line``; ``pith_split``), phase sign resolved → initial ``WoodModel`` (radial distortion
 from the traced rings and the unwrapped phase residual) → stage 1 (:mod:`.geometry_stage`): cyclic phase loss
 E = wrap(J_φ − I_φ)² with Adam (lr 0.03, 500 epochs) over the board transform, ring scale and distortion, the
 distortion coarse to fine (3 levels, so no texel cell slips by a ring) → stage 2 (:mod:`.colour_stage`): colour map
@@ -42,7 +43,7 @@ def detect_board(cfg, rgb, gray):
         ValueError: fewer than 2 rings traced, or rings that fit no tree axis behind a planar board (then
         ``ring_overlay.png`` in ``cfg.out`` shows the traced rings).
     """
-    from ...rings.board import choose_pith_side, estimate_board, initial_wood_model
+    from ...rings.board import choose_pith_side, estimate_board, initial_wood_model, split_at_pith_line
     from ...rings.gabor import curved_gabor
     from ...rings.tracing import trace_rings
 
@@ -70,6 +71,9 @@ def detect_board(cfg, rgb, gray):
             f"the traced rings)") from None
     # growth direction: the projected centre where one lateness profile explains both sides (mirror-free)
     estimate, pith_info = choose_pith_side(estimate, gab.phase, gray, magnitude=gab.magnitude, rings=rings)
+    if cfg.pith_split:  # the two sides of the pith line filtered apart (the target phase and its weights)
+        gab, split_info = split_at_pith_line(gray, estimate, gab, p=cfg.p, q=cfg.q, device=cfg.device)
+        pith_info.update(split_info)
     model, info = initial_wood_model(estimate, gab.phase, magnitude=gab.magnitude, rings=rings,
                                      distortion=cfg.distortion, distortion_shape=tuple(cfg.distortion_shape),
                                      dtype=torch.float32, return_info=True, color_bins=cfg.color_bins,
@@ -217,6 +221,8 @@ def _outputs(cfg, model, rgb, photo_phase, rows, rings, info, pith_info, timings
         "ring_scale_reliable": bool(visible_rings >= MIN_RINGS_FOR_SCALE),
         # growth-direction check (choose_pith_side): R² of one lateness profile, and whether the centre moved
         "pith_side": {k: pith_info[k] for k in ("score_initial", "score_chosen", "moved")},
+        # split_at_pith_line: whether the centre line crosses the photo, share of pixels whose response it changed
+        "pith_split": {k: pith_info[k] for k in ("split", "fraction_split") if k in pith_info} or None,
     }
     ta_io.write_json(os.path.join(folder, "summary.json"), summary)
     if not summary["fit_ok"]:
