@@ -283,7 +283,8 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
             pixel's own, the rest of that half of the curve gets zero weight. Near a pith line the rings on its
             two sides are mirror images; a symmetric profile makes the response real there (phase 0 or π) and
             bends the phase of the innermost ring on both sides; with the barrier each side is filtered on its
-            own. Default None: no barrier.
+            own. A pixel whose own value is 0 has no barrier (its curves see both sides). Default None: no
+            barrier.
 
     Returns:
         :class:`GaborResult` with ``(H, W)`` float32 arrays (``normal`` is ``(H, W, 2)``).
