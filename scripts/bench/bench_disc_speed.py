@@ -31,6 +31,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("image", help="disc photo (or a .npy of an (H, W, 3) float image in [0, 1])")
+    p.add_argument("--no-whole-rings", action="store_true",
+                   help="do not trace the rings round the disc (detect_disc_boundaries(whole_rings=False))")
     args = p.parse_args(argv)
     if not os.path.isfile(args.image):
         p.error(f"image: {args.image!r} is not a file")
@@ -39,10 +41,11 @@ def main(argv=None):
     else:
         rgb = read_image(args.image, space="srgb", name="image")
     t0, c0 = time.perf_counter(), time.process_time()
-    res = detect_disc_boundaries(rgb, "auto", angles_deg=[0, 90, 180, 270])
+    res = detect_disc_boundaries(rgb, "auto", angles_deg=[0, 90, 180, 270], whole_rings=not args.no_whole_rings)
     print(json.dumps(dict(package=os.path.dirname(torch_appearance.__file__), wall_s=time.perf_counter() - t0,
                           cpu_s=time.process_time() - c0, filtered_px=res.info["filtered_px"],
                           filter_calls=res.info["filter_calls"], load=os.getloadavg(),
+                          link_s=res.info["link_seconds"], whole_rings_s=res.info["whole_rings_seconds"],
                           boundaries=[len(t.points) for t in res.transects])))
     return 0
 

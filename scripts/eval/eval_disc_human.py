@@ -204,6 +204,8 @@ def main(argv=None):
                         "points and on the pith (a label leak; inpaint_dark_dots)")
     p.add_argument("--no-closed", action="store_true",
                    help="do not trace the rings near the pith as closed curves (detect_disc_boundaries(closed=False))")
+    p.add_argument("--no-whole-rings", action="store_true",
+                   help="do not trace the rings round the disc (detect_disc_boundaries(whole_rings=False))")
     p.add_argument("--helpers", type=int, default=1,
                    help="helper transects between neighbouring transects when linking (default: %(default)s)")
     p.add_argument("--match", choices=("2d", "radial"), default="2d",
@@ -224,7 +226,8 @@ def main(argv=None):
             evs.append(evaluate_disc(args.data, disc, args.pith, args.match, args.inpaint_dots,
                                      half_width=args.half_width,
                                      edge_level=args.edge_level, include_edge=args.include_edge,
-                                     link=not args.no_link, helpers=args.helpers, closed=not args.no_closed))
+                                     link=not args.no_link, helpers=args.helpers, closed=not args.no_closed,
+                                     whole_rings=not args.no_whole_rings))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
             return 2

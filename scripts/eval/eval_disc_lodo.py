@@ -43,6 +43,12 @@ CANDIDATES = {
     "closed_rings": {"on": {}, "off": dict(closed=False)},
     "fine_pass": {"0.5": {}, "off": dict(fine_scale=None)},
     "narrow_gap": {"0.8": dict(narrow_gap=0.8), "0.6": dict(narrow_gap=0.6)},  # 0.8 the default until this run
+    # whole rings traced round the disc (issue 48 item 2): the rings, placing them, dropping what lies on none, and
+    # the share of transects that must have found a ring for it to act
+    "whole_rings": {"on": {}, "off": dict(whole_rings=False)},
+    "whole_place": {"on": {}, "off": dict(whole_place=False)},
+    "whole_drop": {"on": {}, "off": dict(whole_drop=False)},
+    "whole_support": {"0.5": {}, "0.75": dict(whole_min_support=0.75)},
 }
 
 

@@ -74,6 +74,8 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0, help="generator seed (default: %(default)s)")
     p.add_argument("--pith", choices=("true", "auto", "both"), default="both", help="pith used (default: both)")
     p.add_argument("--no-edge", action="store_true", help="do not report the wood's edge as the last boundary")
+    p.add_argument("--no-whole-rings", action="store_true",
+                   help="do not trace the rings round the disc (detect_disc_boundaries(whole_rings=False))")
     p.add_argument("--out", default="disc_synthetic.json", help="output JSON (default: %(default)s)")
     args = p.parse_args(argv)
     try:
@@ -86,12 +88,14 @@ def main(argv=None):
     print(f"{'condition':14s} {'pith':5s} {'F1@3':>5s} {'F1@5':>5s} {'S@5':>5s} {'P@5':>5s} {'pith err':>8s} {'s':>5s}")
     for name, disc in discs.items():
         for mode in modes:
-            r = score_disc(disc, disc.pith if mode == "true" else "auto", angles, include_edge=not args.no_edge)
+            r = score_disc(disc, disc.pith if mode == "true" else "auto", angles, include_edge=not args.no_edge,
+                           whole_rings=not args.no_whole_rings)
             rows.append(dict(condition=name, pith=mode, **r))
             print(f"{name:14s} {mode:5s} {r['tol3']['f1']:5.2f} {r['tol5']['f1']:5.2f} {r['tol5']['sensitivity']:5.2f} "
                   f"{r['tol5']['precision']:5.2f} {r['pith_error_px']:8.1f} {r['seconds']:5.1f}", flush=True)
     blob = dict(command="python scripts/eval/eval_disc_synthetic.py " + " ".join(argv or sys.argv[1:]),
-                angles=angles, seed=args.seed, include_edge=not args.no_edge, rows=rows)
+                angles=angles, seed=args.seed, include_edge=not args.no_edge, whole_rings=not args.no_whole_rings,
+                rows=rows)
     atomic_write_bytes(args.out, json.dumps(blob, indent=1).encode())
     print(f"-> {args.out}")
     return 0

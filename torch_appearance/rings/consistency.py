@@ -78,7 +78,7 @@ def _snap_to_ridge(e, x, px=2):
 
 
 def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_sigma_px=1.5, along_px=18.0,
-                 period_px=40.0, ridge_level=0.5, n_rays=None, periodic=False):
+                 period_px=40.0, ridge_level=0.5, n_rays=None, periodic=False, ridge_px=5):
     """Edge response of the sector between two transect directions (module docstring, step 1).
 
     Args:
@@ -90,6 +90,7 @@ def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_
         n_rays: the number of rays instead (at least 2; ``arc_step_px`` is then not used).
         periodic: the sector is the whole circle (``theta_b = theta_a + 2 pi``): the rays are spaced
             ``2 pi / J`` without repeating ``theta_a`` at ``theta_b``, and the smoothing along the ring wraps round.
+        ridge_px: a ridge centre is the largest response within this window along the ray (odd, px).
 
     Returns:
         ``(E, thetas)``: ``E`` ``(J, R)`` float64 (ray ``j`` at ``thetas[j]``, radius ``0 .. R - 1`` px; 0 outside
@@ -109,7 +110,7 @@ def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_
     scale = ndimage.gaussian_filter(e, (2.0, period_px), mode=(along, "nearest"))
     E = np.log1p(e / (scale + 1e-6 + 1e-3 * max(float(scale.max()), 1e-12)))
     # ridge centres only, all of (about) the same worth: a curve gains nothing by leaving its ring for a stronger one
-    ridge = (E >= ndimage.maximum_filter1d(E, 5, axis=1, mode="nearest")) & (E > ridge_level)
+    ridge = (E >= ndimage.maximum_filter1d(E, ridge_px, axis=1, mode="nearest")) & (E > ridge_level)
     c = np.where(ridge, np.minimum(E, 1.0), 0.0)
     # widened to 3 px with shoulders worth 0.95 of the centre: a curve may ride one pixel beside a ridge, but ties
     # never pull it (or the snap to the largest response) to one side

@@ -73,6 +73,13 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    with the automatic pith this
    raises the radial F1 at 5 px from 0.87 to 0.895 (re-measured leave-one-disc-out in issue 48: it gains on each
    disc alone, 0.875 -> 0.904 on C13C and 0.886 -> 0.917 on C17C with the automatic pith).
+7. **Whole rings** (``whole_rings``, with ``link``). Every ring is traced round the disc as one closed curve,
+   outwards one ring at a time, each above the last
+   (:func:`~torch_appearance.rings.ring_polygons.trace_whole_rings`), seeded by the linked boundaries of all
+   transects (helpers included); a ring is placed on a transect whose boundaries miss it, and a boundary between
+   the innermost and the outermost ring that lies on none of them is dropped
+   (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`). These rings are the polygons of
+   :func:`~torch_appearance.rings.ring_polygons.ring_polygons`. Figures: ``docs/bench_log.md`` (issue 48).
 
 The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass, twice
 that again with one helper transect between neighbours) instead of ``O(n_transects * H W (p + q))``.
@@ -464,8 +471,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
                            narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
-                           bark_zone: bool = True,
-                           device="cpu",
+                           bark_zone: bool = True, whole_rings: bool = True, whole_place: bool = True,
+                           whole_drop: bool = True, whole_min_support: float = 0.5, device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -507,6 +514,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             as steps of the profile (:func:`_bark_zone_boundaries`); only where the edge is found.
         closed: with ``link``, also trace the rings near the pith as closed curves round the disc (module docstring,
             step 6); False: only the curves between neighbouring transects.
+        whole_rings: with ``link``, trace every ring round the disc as a closed curve
+            (:func:`~torch_appearance.rings.ring_polygons.trace_whole_rings`, module docstring step 7): the rings
+            of ``ring_polygons``; then ``whole_place``: a whole ring is placed on a transect whose boundaries miss
+            it (kind ``"inferred"``, ``info["whole"]``), ``whole_drop``: a boundary between whole rings that lies on
+            none of them is dropped (``info["dropped_px"]``); only rings found on at least ``whole_min_support``
+            of the transects act so (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`).
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.
@@ -546,7 +559,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         _number(fine_scale, "fine_scale", 0.05, 0.95)
     _number(narrow_gap, "narrow_gap", 0.0, 10.0)
     _number(helpers, "helpers", 0, 16, integer=True)
-    for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone)):
+    _number(whole_min_support, "whole_min_support", 0.0, 1.0)
+    for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone), ("whole_rings", whole_rings),
+                       ("whole_place", whole_place), ("whole_drop", whole_drop)):
         if not isinstance(flag, bool):
             raise TypeError(f"{name}: expected a bool, got {type(flag).__name__}")
     trace_closed = closed  # (the name ``closed`` holds the per-transect flags below)
@@ -713,7 +728,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     closed = [np.zeros(len(f[0]), bool) for f in found]
     closed_x = [np.zeros(0) for _ in found]
     dropped = [[] for _ in found]
-    link_s, rings_polar = None, None
+    whole = [np.zeros(len(f[0]), bool) for f in found]
+    link_s, rings_polar, whole_s = None, None, None
     usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
     if link and len(usable) >= 3:
         from .consistency import link_transects
@@ -726,11 +742,33 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             found[k] = (lk["radius_px"], found[k][1])
             inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
             closed[k], closed_x[k], dropped[k] = lk["closed"], lk["closed_crossings"], lk["dropped"]
+            whole[k] = np.zeros(len(lk["radius_px"]), bool)
         # the traced curves between neighbouring transects (helpers included), for whole rings
         # (:func:`~torch_appearance.rings.ring_polygons.ring_polygons`)
         rings_polar = dict(angles_deg=[dirs[k][0] for k in usable], radii=[lk["radius_px"] for lk in linked],
-                           curves=[lk["curves"] for lk in linked], period_px=found[usable[0]][1]["period_px"])
+                           curves=[lk["curves"] for lk in linked], period_px=found[usable[0]][1]["period_px"],
+                           lengths_px=lengths, whole=None)
         link_s = time.perf_counter() - t0
+        if whole_rings:
+            from .ring_polygons import place_whole_rings, trace_whole_rings
+            period = found[usable[0]][1]["period_px"]
+            wr = trace_whole_rings(value, c, rings_polar["angles_deg"], [found[k][0] for k in usable], lengths,
+                                   period_px=period)
+            rings_polar["whole"] = wr
+            for i, k in enumerate(usable):
+                pos0 = found[k][0]
+                keep, new = place_whole_rings(pos0, wr["crossings"][i], inner_px=0.5 * period, length_px=lengths[i],
+                                              place=whole_place, drop=whole_drop, support=wr["support"],
+                                              min_support=whole_min_support)
+                o = np.argsort(np.r_[pos0[keep], new], kind="stable")
+                ones, zeros = np.ones(len(new), bool), np.zeros(len(new), bool)
+                found[k] = (np.r_[pos0[keep], new][o], found[k][1])
+                inferred[k] = np.r_[np.asarray(inferred[k], bool)[keep], ones][o]
+                confirmed[k] = np.r_[np.asarray(confirmed[k], bool)[keep], zeros][o]
+                closed[k] = np.r_[np.asarray(closed[k], bool)[keep], zeros][o]
+                whole[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
+                dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
+            whole_s = wr["seconds"]
     out, ends_out = [], []
     for k in range(n_req):
         deg, u, v, wd, edge, Lc = prepared[k]
@@ -742,24 +780,24 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             ends_out.append(c.copy())
             continue
         kinds = ["inferred" if f else "ring" for f in inferred[k]]
-        conf, clos = np.asarray(confirmed[k], bool), np.asarray(closed[k], bool)
+        conf, clos, wh = np.asarray(confirmed[k], bool), np.asarray(closed[k], bool), np.asarray(whole[k], bool)
         if include_edge and edge is not None:
             # the wood's edge is the last ring's outer boundary; a boundary within 3 px inside it (a ring step or
             # an inferred ring found there) is that same boundary and takes its place
             near = pos > edge - 3.0
             kinds = [k_ for k_, n_ in zip(kinds, near) if not n_] + ["edge"]
-            pos, conf, clos = np.r_[pos[~near], edge], conf[~near], clos[~near]
+            pos, conf, clos, wh = np.r_[pos[~near], edge], conf[~near], clos[~near], wh[~near]
         pts = c[None, :] + pos[:, None] * u[None, :]
         wpx, wmm = ring_widths_mm(pts, ps)
         sinfo.update(kind=kinds, radius_px=pos.copy(), angle_deg=deg, edge_px=edge, length_px=float(Lc - 1),
                      confirmed=conf.tolist(), moved_px=list(moved[k]), closed=clos.tolist(),
-                     closed_crossings_px=closed_x[k].copy(), dropped_px=list(dropped[k]))
+                     closed_crossings_px=closed_x[k].copy(), dropped_px=list(dropped[k]), whole=wh.tolist())
         out.append(RingBoundaries(points=pts.reshape(-1, 2), widths_px=wpx, widths_mm=wmm, pixel_size_mm=ps,
                                   info=sinfo))
         ends_out.append(c + (Lc - 1) * u)
     info = dict(filtered_px=int(sum(s[0] * s[1] for s in calls)), filter_calls=len(calls), background=bg,
                 image_px=H * W, pith=pith_info or dict(auto=False, xy=c.copy(), sigma_px=None),
-                helpers_deg=np.array([d for d, _ in dirs[n_req:]]), link_seconds=link_s,
+                helpers_deg=np.array([d for d, _ in dirs[n_req:]]), link_seconds=link_s, whole_rings_seconds=whole_s,
                 rings_polar=rings_polar)
     return DiscBoundaries(pith=c, transects=out, ends=np.array(ends_out).reshape(-1, 2),
                           angles_deg=np.array([d for d, _ in dirs[:n_req]]), info=info)

@@ -1,0 +1,66 @@
+"""Whole rings traced round a disc (rings.ring_polygons.trace_whole_rings, place_whole_rings; issue 48 item 2).
+
+The transects' boundaries are given (the true rings, one missed on one transect, a false one added on another), so
+these tests check the tracer and the placing alone, against the generator's true ring curves."""
+import math
+
+import numpy as np
+import pytest
+
+from torch_appearance.rings.dendro import hsv_value
+from torch_appearance.rings.disc import synthetic_disc
+from torch_appearance.rings.ring_polygons import place_whole_rings, trace_whole_rings
+
+PITH = (150.0, 160.0)
+ANGLES = np.arange(8) * 45.0 + 10.0
+
+
+@pytest.fixture(scope="module")
+def traced():
+    rgb, radius = synthetic_disc(seed=1)  # 320 x 300, 12 eccentric rings 14 -> 7 px (the last one the disc edge)
+    radii = [radius(math.radians(a))[:-1].copy() for a in ANGLES]
+    lengths = [float(radius(math.radians(a))[-1]) for a in ANGLES]
+    missed = radii[2][6]
+    radii[2] = np.delete(radii[2], 6)                               # transect 2 misses ring 6
+    false = 0.5 * (radii[5][3] + radii[5][4])
+    radii[5] = np.sort(np.r_[radii[5], false])                      # transect 5 has a false boundary
+    w = trace_whole_rings(hsv_value(rgb), PITH, ANGLES, radii, lengths, period_px=11.0)
+    return w, radius, radii, lengths, missed, false
+
+
+def test_every_ring_closes_round_the_disc_on_its_true_curve(traced):
+    w, radius, *_ = traced
+    truth = np.array([radius(t)[:-1] for t in w["thetas"]]).T       # (11, J)
+    assert w["rings"].shape == truth.shape                          # every ring inside the edge, none twice
+    assert np.abs(w["rings"] - truth).max() <= 2.0
+    assert np.all(np.diff(w["rings"], axis=0) > 0)                  # rings do not cross
+    assert np.all(w["support"] >= 7 / 8) and np.all(w["scores"] >= 0.6)
+
+
+def test_a_missed_ring_is_placed_and_a_false_boundary_dropped(traced):
+    w, _, radii, lengths, missed, false = traced
+    keep, new = place_whole_rings(radii[2], w["crossings"][2], inner_px=5.5, length_px=lengths[2],
+                                  support=w["support"])
+    assert keep.all() and len(new) == 1 and abs(new[0] - missed) <= 1.5
+    keep, new = place_whole_rings(radii[5], w["crossings"][5], inner_px=5.5, length_px=lengths[5],
+                                  support=w["support"])
+    assert len(new) == 0 and radii[5][~keep].tolist() == [false]
+    # nothing is dropped beyond the second outermost ring (where narrow rings the tracer could not follow lie)
+    last = 0.5 * (radii[5][-1] + radii[5][-2])
+    keep, _ = place_whole_rings(np.r_[radii[5], last], w["crossings"][5], inner_px=5.5, length_px=lengths[5],
+                                support=w["support"])
+    assert keep[-1] and not keep.all()
+    # neither without its switch; a ring few transects found does not act
+    keep, new = place_whole_rings(radii[5], w["crossings"][5], inner_px=5.5, length_px=lengths[5], drop=False)
+    assert keep.all()
+    _, new = place_whole_rings(radii[2], w["crossings"][2], inner_px=5.5, length_px=lengths[2], place=False)
+    assert len(new) == 0
+    low = np.where(np.arange(len(w["support"])) == 6, 0.25, w["support"])
+    _, new = place_whole_rings(radii[2], w["crossings"][2], inner_px=5.5, length_px=lengths[2], support=low)
+    assert len(new) == 0
+
+
+def test_trace_whole_rings_refuses_mismatched_transects():
+    with pytest.raises(ValueError, match="radii, lengths"):
+        trace_whole_rings(np.zeros((50, 50)), (25.0, 25.0), [0.0, 90.0, 180.0], [np.zeros(0)] * 2, [20.0] * 3,
+                          period_px=8.0)
