@@ -64,3 +64,29 @@ def test_trace_whole_rings_refuses_mismatched_transects():
     with pytest.raises(ValueError, match="radii, lengths"):
         trace_whole_rings(np.zeros((50, 50)), (25.0, 25.0), [0.0, 90.0, 180.0], [np.zeros(0)] * 2, [20.0] * 3,
                           period_px=8.0)
+
+
+def test_disc_mode_traces_whole_rings_and_does_not_place_them_by_default(monkeypatch):
+    """Disc mode's defaults (leave-one-disc-out, issue 48): the whole rings are traced (and are the polygons), they
+    drop boundaries on no ring, and they are not placed on the transects; whole_rings=False traces none."""
+    import torch_appearance.rings.ring_polygons as rp
+    from torch_appearance.rings.disc import detect_disc_boundaries
+    calls = []
+
+    def spy(*args, **kw):
+        calls.append((kw["place"], kw["drop"]))
+        return place_whole_rings(*args, **kw)
+
+    monkeypatch.setattr(rp, "place_whole_rings", spy)
+    rgb, _ = synthetic_disc(seed=1)
+    res = detect_disc_boundaries(rgb, PITH, angles_deg=[0.0, 90.0, 180.0, 270.0])
+    whole = res.info["rings_polar"]["whole"]
+    assert whole is not None and len(whole["rings"]) >= 8 and res.info["whole_rings_seconds"] > 0
+    assert len(rp.ring_polygons(res)) == len(whole["rings"])
+    assert calls and set(calls) == {(False, True)}           # one call per transect (helpers too): drop, no place
+    calls.clear()
+    detect_disc_boundaries(rgb, PITH, angles_deg=[0.0, 90.0, 180.0, 270.0], whole_place=True, whole_drop=False)
+    assert set(calls) == {(True, False)}
+    calls.clear()
+    off = detect_disc_boundaries(rgb, PITH, angles_deg=[0.0, 90.0, 180.0, 270.0], whole_rings=False)
+    assert off.info["rings_polar"]["whole"] is None and off.info["whole_rings_seconds"] is None and not calls

@@ -76,10 +76,14 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
 7. **Whole rings** (``whole_rings``, with ``link``). Every ring is traced round the disc as one closed curve,
    outwards one ring at a time, each above the last
    (:func:`~torch_appearance.rings.ring_polygons.trace_whole_rings`), seeded by the linked boundaries of all
-   transects (helpers included); a ring is placed on a transect whose boundaries miss it, and a boundary between
-   the innermost and the outermost ring that lies on none of them is dropped
-   (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`). These rings are the polygons of
-   :func:`~torch_appearance.rings.ring_polygons.ring_polygons`. Figures: ``docs/bench_log.md`` (issue 48).
+   transects (helpers included); a boundary between the innermost and the second outermost ring that lies on none
+   of them is dropped, and (``whole_place``, off by default) a ring is placed on a transect whose boundaries miss
+   it (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`). These rings are the polygons of
+   :func:`~torch_appearance.rings.ring_polygons.ring_polygons`. On the TRAS discs (dots inpainted) dropping
+   raised the radial F1 at 5 px from 0.894 to 0.904 (C13C) and 0.897 to 0.916 (C17C) with the human pith, 0.865 to
+   0.880 and 0.864 to 0.894 with the automatic one; placing gained 0.012 more on C13C and lost 0.017 on C17C (most
+   of the rings it placed there were on no human ring), so it is off. On the independent synthetic discs neither
+   changes a boundary. Figures: ``docs/bench_log.md`` (issue 48, whole rings).
 
 The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass, twice
 that again with one helper transect between neighbours) instead of ``O(n_transects * H W (p + q))``.
@@ -471,7 +475,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            max_tilt_deg: float = 40.0, mag_weight: bool = True, period_px: float | None = None,
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
                            narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
-                           bark_zone: bool = True, whole_rings: bool = True, whole_place: bool = True,
+                           bark_zone: bool = True, whole_rings: bool = True, whole_place: bool = False,
                            whole_drop: bool = True, whole_min_support: float = 0.5, device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
@@ -516,10 +520,11 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             step 6); False: only the curves between neighbouring transects.
         whole_rings: with ``link``, trace every ring round the disc as a closed curve
             (:func:`~torch_appearance.rings.ring_polygons.trace_whole_rings`, module docstring step 7): the rings
-            of ``ring_polygons``; then ``whole_place``: a whole ring is placed on a transect whose boundaries miss
-            it (kind ``"inferred"``, ``info["whole"]``), ``whole_drop``: a boundary between whole rings that lies on
-            none of them is dropped (``info["dropped_px"]``); only rings found on at least ``whole_min_support``
-            of the transects act so (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`).
+            of ``ring_polygons``; then ``whole_drop``: a boundary between whole rings that lies on none of them is
+            dropped (``info["dropped_px"]``), ``whole_place``: a whole ring is placed on a transect whose boundaries
+            miss it (kind ``"inferred"``, ``info["whole"]``; off by default: leave-one-disc-out it helped C13C and
+            hurt C17C); only rings found on at least ``whole_min_support`` of the transects act so
+            (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`).
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.

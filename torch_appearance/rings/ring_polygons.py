@@ -5,14 +5,15 @@ transects included) along its ring's ridge to both neighbouring transects. Chain
 gives whole rings (the representation of CS-TRD): from a boundary on the first transect, the curve towards the next
 transect (in angle order) arrives near one of the boundaries that transect's own curves start from (within 0.3 of
 the narrower ring beside it, at least 3 px), whose curve continues to the next, and so on; the ring *closes* when
-the chain comes back to the boundary it started from. A boundary whose chain breaks or comes back on another ring closes nowhere
-and gives no polygon. The polygon is the concatenation of the curves (one vertex per traced ray).
+the chain comes back to the boundary it started from. A boundary whose chain breaks or comes back on another ring
+closes nowhere and gives no polygon. The polygon is the concatenation of the curves (one vertex per traced ray).
 
 **Traced round the disc** (:func:`trace_whole_rings`, the default of disc mode): rather than chaining the curves
 between transects, every ring is one closed path, a dynamic programme over the rays round the pith in a polar edge
 map, peeled outwards one ring at a time above the last (rings do not cross), seeded and anchored by the transects'
-boundaries. The rings then act on the transects (:func:`place_whole_rings`): a ring is placed where a transect's
-detector missed it, and a boundary between rings that lies on none of them is dropped. On the TRAS discs (human
+boundaries. The rings then act on the transects (:func:`place_whole_rings`): a boundary between rings that lies
+on none of them is dropped, and (optional, off in disc mode by default) a ring is placed where a transect's
+detector missed it. On the TRAS discs (human
 pith, dots inpainted) 21 of C13C's 23 rings and 19 of C17C's close round the disc this way, against 5 - 9 chained;
 the outermost one or two, among the narrow rings before the bark, can still hop between rings.
 
