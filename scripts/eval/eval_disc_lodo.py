@@ -46,7 +46,7 @@ CANDIDATES = {
     # whole rings traced round the disc (issue 48 item 2): the rings, placing them, dropping what lies on none, and
     # the share of transects that must have found a ring for it to act
     "whole_rings": {"on": {}, "off": dict(whole_rings=False)},
-    "whole_place": {"on": {}, "off": dict(whole_place=False)},
+    "whole_place": {"off": {}, "on": dict(whole_place=True)},  # "on" the default at 8b360e1 (disc_lodo_whole_rings)
     "whole_drop": {"on": {}, "off": dict(whole_drop=False)},
     "whole_support": {"0.5": {}, "0.75": dict(whole_min_support=0.75)},
 }
