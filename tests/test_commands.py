@@ -329,3 +329,60 @@ def test_an_interrupted_fit_over_an_earlier_one_drops_its_summary(tmp_path):
     message = undo_partial(str(folder), before, "fit")
     assert "partly replaced (phase.npy)" in message and "summary.json is removed" in message
     assert sorted(os.listdir(folder)) == ["notes.txt", "phase.npy"]
+
+
+# ---- issue 49: ta-fit-wood's sizes and ranges refused in one line before any work (the 128² board: h + w = 256)
+@pytest.mark.parametrize("args, start", [
+    (["--max-size", "0"], "--max-size: expected an int >= 8"),  # was a cv2.error traceback
+    (["--max-size", "3"], "--max-size: expected an int >= 8"),  # was "found 0 growth ring(s)"
+    (["--color-bins", "100000000"], "--color-bins: expected at most 256 (the 128 × 128 px photo's height + width"),
+    (["--lobe-shape", "100000", "100000"], "--lobe-shape: expected at most 16384 texels"),  # 40 GB: a traceback
+    (["--lobe-shape", "4"], "--lobe-shape: expected 2 arguments"),
+    (["--p", "1000"], "--p: expected at most 256 (the 128 × 128 px photo's height + width: a curve of 2p+1 = 2001 px "
+                      "leaves the photo, so the steps beyond add only work; the filter would take about"),
+    (["--q", "100000"], "--q: expected at most 256"),
+    (["--coarse-to-fine", "100000"], "--coarse-to-fine: expected at most 6"),  # ran for hours
+    (["--lr", "inf"], "--lr: expected a finite value > 0, got inf"),  # was an IndexError traceback
+    (["--dpi", "inf"], "--dpi: expected a finite value > 0, got inf"),  # named --pixel-size-mm
+    (["--photometric-epochs", "5"], "--photometric-epochs: set for stage 3, which runs only with --photometric"),
+    (["--photometric", "--photometric-levels", "1000"],  # stage 3 skipped the level without a word
+     "--photometric-levels: expected downsampling factors of at most 32"),
+    (["--photometric", "--photometric-spp", "1000000000"],  # a 4.6 TB allocation, a traceback
+     "--photometric-spp: stage 3's 4096000000000 filter samples per step"),
+    (["--photometric", "--photometric-color-lr", "inf"], "--photometric-color-lr: expected a finite value >= 0"),
+])
+def test_fit_wood_refuses_nonsense_sizes_in_one_line(args, start, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _board(tmp_path / "board.png")
+    rc, out, err = run_command("fit_wood", "board.png", *args, "--no-preview", "--quiet", "--out", "fit")
+    _one_line(rc, err, "ta-fit-wood: error: " + start)
+    assert sorted(os.listdir(tmp_path)) == ["board.png"]
+
+
+def test_fit_wood_says_how_long_a_long_gabor_filter_takes_before_it(tmp_path, monkeypatch):
+    """A filter estimated at SAY_GABOR_S or more is announced (with its estimate) before it starts."""
+    from torch_appearance.pipelines.wood import fit as fit_module
+    from torch_appearance.pipelines.wood import WoodFitConfig
+    from torch_appearance.rings.gabor import curved_gabor_seconds
+
+    _board(tmp_path / "board.png")
+    said = []
+
+    def stop(*args):
+        said.append("work")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit_module, "detect_board", stop)
+    cfg = WoodFitConfig(photo=str(tmp_path / "board.png"), out=str(tmp_path / "fit"), p=200, q=50, preview=False)
+    expected = curved_gabor_seconds((128, 128), 200, 50)
+    monkeypatch.setattr(fit_module, "SAY_GABOR_S", expected * 0.99)
+    with pytest.raises(KeyboardInterrupt):
+        fit_module.fit_wood(cfg, progress=False, log=said.append)
+    assert len(said) == 2 and said[1] == "work", said
+    assert said[0].startswith("fit_wood: the curved Gabor filter of the 128 × 128 px photo with p = 200, q = 50 "
+                              f"takes about {expected:.0f} s"), said
+    said.clear()
+    monkeypatch.setattr(fit_module, "SAY_GABOR_S", expected * 1.01)
+    with pytest.raises(KeyboardInterrupt):
+        fit_module.fit_wood(cfg, progress=False, log=said.append)
+    assert said == ["work"]

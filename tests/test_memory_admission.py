@@ -177,12 +177,15 @@ def test_a_cuda_devices_free_memory_binds_and_is_named(monkeypatch):
 
 
 def test_the_wood_fit_admits_its_filter_on_its_device(tmp_path, monkeypatch):
-    """ta-fit-wood --p 100000 (a 13 GB chunk: a RuntimeError traceback from the allocator): refused in one line
-    naming --p/--q before anything is written; with --device cuda the GPU's free memory binds and is named."""
+    """ta-fit-wood --p 100000 (a 13 GB chunk: a RuntimeError traceback from the allocator) is refused by its work
+    bound (curves longer than the photo); a filter within it that the memory the process may use does not hold (here
+    a 16 MiB limit) is refused in one line naming --p/--q before anything is written; with --device cuda the GPU's
+    free memory binds and is named."""
     import numpy as np
     import torch
 
     from torch_appearance import io as ta_io
+    from torch_appearance.pipelines import runs
     from torch_appearance.testing import run_command
 
     photo = tmp_path / "board.png"
@@ -190,8 +193,13 @@ def test_the_wood_fit_admits_its_filter_on_its_device(tmp_path, monkeypatch):
     out = tmp_path / "fit"
     rc, _, err = run_command("fit_wood", photo, "--p", 100000, "--quiet", "--out", out)
     assert rc == 2 and err.count("\n") == 1, err
+    assert err.startswith("ta-fit-wood: error: --p: expected at most 128 (the 64 × 64 px photo's height + width"), err
+    with monkeypatch.context() as patch:
+        patch.setattr(runs, "memory_limits", lambda proc="/proc", device=None: {"MemAvailable": 16 << 20})
+        rc, _, err = run_command("fit_wood", photo, "--p", 128, "--quiet", "--out", out)
+    assert rc == 2 and err.count("\n") == 1, err
     assert err.startswith("ta-fit-wood: error: --p/--q: the curved Gabor filter of a 64 × 64 photo with curves of "
-                          "2p+1 = 200001"), err
+                          "2p+1 = 257"), err
     assert not out.exists()
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)

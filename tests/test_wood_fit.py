@@ -87,6 +87,14 @@ def test_run_folder(fitted):
     (dict(photometric_estimator="exact"), "photometric_estimator: expected"),
     (dict(photometric_anchor=-1.0), "photometric_anchor: expected"),
     (dict(photometric_color_lr=-0.1), "photometric_color_lr: expected"),
+    # issue 49: nonsense sizes refused before any work (max_size 0 was a cv2.error traceback, inf rates NaN fits)
+    (dict(max_size=0), r"max_size: expected an int >= 8 \(the photo's longest side"),
+    (dict(max_size=5), "max_size: expected an int >= 8"),
+    (dict(lr=math.inf), "lr: expected a finite value > 0, got inf"),
+    (dict(photometric_lr=math.inf), "photometric_lr: expected a finite value > 0"),
+    (dict(photometric_color_lr=math.inf), "photometric_color_lr: expected a finite value >= 0"),
+    (dict(coarse_to_fine=7), r"coarse_to_fine: expected at most 6 \(the 32 × 64-texel distortion texture"),
+    (dict(epochs=10 ** 11), "epochs: 100000000000 epochs take at least 3.17 years"),
 ])
 def test_bad_config(tmp_path, overrides, match):
     ta_io.write_png(str(tmp_path / "x.png"), np.full((16, 16, 3), 0.5, np.float32))
@@ -105,6 +113,11 @@ def test_bad_photos(tmp_path):
     ta_io.write_png(str(tmp_path / "tiny.png"), np.zeros((4, 4, 3), np.float32))
     with pytest.raises(ValueError, match="photo: expected at least 8×8"):
         load_photo(str(tmp_path / "tiny.png"))
+    ta_io.write_png(str(tmp_path / "strip.png"), np.zeros((10, 200, 3), np.float32))
+    with pytest.raises(ValueError, match=r"max_size: 100 px makes the 10 × 200 px photo 5 × 100 px; expected at "
+                                         r"least 8 px a side, so at least 160"):
+        load_photo(str(tmp_path / "strip.png"), max_size=100)
+    assert load_photo(str(tmp_path / "strip.png"), max_size=160)[0].shape == (8, 160, 3)
     ta_io.write_png(str(tmp_path / "flat.png"), np.full((64, 64, 3), 0.5, np.float32))
     with pytest.raises(ValueError, match="photo: found"):
         fit_wood(WoodFitConfig(photo=str(tmp_path / "flat.png"), out=str(tmp_path / "run"), p=8, q=8),

@@ -18,6 +18,7 @@ Examples:
     ta-fit-wood board.png --photometric --out results/board_photo
 """
 import argparse
+import math
 import sys
 
 from ..pipelines.wood.config import WoodFitConfig
@@ -25,7 +26,7 @@ from ..pipelines.wood.fit import fit_wood
 from .command import (CommandParser, check_output_folder, fail, flag_names, interrupted, interrupted_message,
                       owned_folder)
 
-__all__ = ["add_fit_arguments", "config_from_args", "parser", "main", "FIT_FLAGS"]
+__all__ = ["add_fit_arguments", "config_from_args", "parser", "main", "FIT_FLAGS", "stage3_flags_without_photometric"]
 
 PROG = "ta-fit-wood"
 
@@ -105,6 +106,18 @@ def config_from_args(args, **fields):
     return WoodFitConfig(**values)
 
 
+def stage3_flags_without_photometric(parser, args):
+    """The stage-3 flags (``--photometric-…``) that ``args`` sets to other than their defaults while stage 3 is off
+    (no ``--photometric``): they would change nothing."""
+    if getattr(args, "photometric", True):
+        return []
+    unused = []
+    for name, (flag, _, _) in FIT_FLAGS.items():
+        if name.startswith("photometric_") and hasattr(args, name) and getattr(args, name) != parser.get_default(name):
+            unused.append(flag)
+    return unused
+
+
 def parser(prog=PROG):
     """The ``fit_wood`` argument parser."""
     d = WoodFitConfig(photo="")
@@ -127,10 +140,14 @@ def main(argv=None, prog=PROG):
     p = parser(prog)
     args = p.parse_args(argv)
     check_output_folder(p, "--out", args.out)
+    if args.dpi is not None and not (math.isfinite(args.dpi) and args.dpi > 0):
+        p.error(f"--dpi: expected a finite value > 0, got {args.dpi}")
+    unused = stage3_flags_without_photometric(p, args)
+    if unused:
+        p.error(f"{'/'.join(unused)}: set for stage 3, which runs only with --photometric; add --photometric or "
+                f"leave {'them' if len(unused) > 1 else 'it'} out")
     pixel = args.pixel_size_mm if args.pixel_size_mm is not None else (
         25.4 / args.dpi if args.dpi else WoodFitConfig(photo="").pixel_size_mm)
-    if args.dpi is not None and args.dpi <= 0:
-        p.error(f"--dpi: expected > 0, got {args.dpi}")
     cfg = config_from_args(args, photo=args.photo, out=args.out, pixel_size_mm=pixel, preview=not args.no_preview)
     try:  # the folder is this command's while it fits: another tool's or one another fit writes is refused
         with owned_folder(PROG, args.out, "fit"):

@@ -5,7 +5,8 @@ from typing import Optional
 
 import torch
 
-__all__ = ["WoodFitConfig", "LOG_FIELDS", "POOR_FIT_PHASE_RMS", "MIN_RINGS_FOR_SCALE"]
+__all__ = ["WoodFitConfig", "LOG_FIELDS", "POOR_FIT_PHASE_RMS", "MIN_RINGS_FOR_SCALE", "MIN_PHOTO_SIDE", "MIN_EPOCH_S",
+           "MAX_JOB_S"]
 
 LOG_FIELDS = ["stage", "epoch", "wall_s", "phase_loss", "color_loss", "phase_rms", "photometric_loss"]
 POOR_FIT_PHASE_RMS = 0.8  # rad; fits above it are flagged (summary["fit_ok"] = False) and warned about
@@ -13,6 +14,12 @@ POOR_FIT_PHASE_RMS = 0.8  # rad; fits above it are flagged (summary["fit_ok"] = 
 # the pith and the board trades against the axis distance); measured on synthetic boards (eval_wood_synthetic.py):
 # s_r errors of 8-127 % with 2-4 visible rings, 3-7 % with 6-9.
 MIN_RINGS_FOR_SCALE = 6
+#: the least side of a photo the fit takes, in pixels (after --max-size's downscaling too)
+MIN_PHOTO_SIDE = 8
+#: the least time an epoch takes (one render of the board and an Adam step; 96² px take ~3 ms) and the longest job
+#: admitted: epochs that cannot end within a year even at that pace are refused before any work
+MIN_EPOCH_S = 1e-3
+MAX_JOB_S = 365.25 * 86400
 
 
 @dataclass
@@ -67,10 +74,25 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name}: expected an int >= 0, got {v!r}")
+            if v * MIN_EPOCH_S > MAX_JOB_S:
+                raise ValueError(f"{name}: {v} epochs take at least {v * MIN_EPOCH_S / MAX_JOB_S:.3g} years (an epoch "
+                                 f"takes at least {MIN_EPOCH_S * 1e3:g} ms); expected a job under a year, at most "
+                                 f"{int(MAX_JOB_S / MIN_EPOCH_S)} epochs")
         for name in ("p", "q", "coarse_to_fine"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        # the pyramid's levels halve the distortion texture down to 2 texels a side; further levels repeat the
+        # coarsest (2 × 2) and add only work
+        levels = max(1, int(math.log2(max(self.distortion_shape))))
+        if self.coarse_to_fine > levels:
+            raise ValueError(f"coarse_to_fine: expected at most {levels} (the {self.distortion_shape[0]} × "
+                             f"{self.distortion_shape[1]}-texel distortion texture halves {levels - 1} times before it "
+                             f"is 2 texels a side; more levels only repeat the coarsest), got {self.coarse_to_fine}")
+        if self.max_size is not None and (isinstance(self.max_size, bool) or not isinstance(self.max_size, int)
+                                          or self.max_size < MIN_PHOTO_SIDE):
+            raise ValueError(f"max_size: expected an int >= {MIN_PHOTO_SIDE} (the photo's longest side after "
+                             f"downscaling, in pixels), got {self.max_size!r}")
         for name in ("color_bins",):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 2:
@@ -92,13 +114,14 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite value >= 0, got {v!r}")
-        if not (isinstance(self.photometric_color_lr, (int, float)) and self.photometric_color_lr >= 0):
-            raise ValueError(f"photometric_color_lr: expected >= 0 (0: colour map frozen in stage 3), got "
-                             f"{self.photometric_color_lr!r}")
+        if not (isinstance(self.photometric_color_lr, (int, float)) and math.isfinite(self.photometric_color_lr)
+                and self.photometric_color_lr >= 0):
+            raise ValueError(f"photometric_color_lr: expected a finite value >= 0 (0: colour map frozen in stage 3), "
+                             f"got {self.photometric_color_lr!r}")
         for name in ("lr", "color_lr", "photometric_lr"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and v > 0):
-                raise ValueError(f"{name}: expected > 0, got {v!r}")
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a finite value > 0, got {v!r}")
         if self.lobe_shape is not None and (
                 not isinstance(self.lobe_shape, (tuple, list)) or len(self.lobe_shape) != 2
                 or any(isinstance(v, bool) or not isinstance(v, int) for v in self.lobe_shape)

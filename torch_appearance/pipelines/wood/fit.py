@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ... import io as ta_io
-from ...rings.gabor import curved_gabor_memory_bytes
+from ...rings.gabor import curved_gabor_memory_bytes, curved_gabor_seconds
 from ..runs import check_memory
 from .colour_stage import fit_colour_map, match_luminance_histogram
 from .config import LOG_FIELDS, MIN_RINGS_FOR_SCALE, POOR_FIT_PHASE_RMS, WoodFitConfig
@@ -29,7 +29,13 @@ from .photo import load_photo
 from .photometric_stage import photometric_stage
 from .report import cube_preview, figures, ring_overlay, save_gray, save_png
 
-__all__ = ["fit_wood", "detect_board"]
+__all__ = ["fit_wood", "detect_board", "check_against_photo", "PHOTOMETRIC_BYTES_PER_SAMPLE", "SAY_GABOR_S"]
+
+#: bytes per filter sample of one stage-3 step (the samples, their warp, colours and autograd graph): 2.8 kB measured
+#: on a 48² px float32 board with 16 and 64 spp (peak RSS), with a margin
+PHOTOMETRIC_BYTES_PER_SAMPLE = 4096
+#: the curved Gabor filter's estimated time is logged before it starts when it is at least this long (seconds)
+SAY_GABOR_S = 10.0
 
 
 def detect_board(cfg, rgb, gray):
@@ -83,6 +89,47 @@ def detect_board(cfg, rgb, gray):
     return gab, rings, estimate, pith_info, model, info, timings
 
 
+def _duration(seconds):
+    """``seconds`` in words: "40 s", "12 min", "3.5 h", "2.1 days"."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"
+
+
+def check_against_photo(cfg, h, w):
+    """Refuse (ValueError naming the field) the settings that a photo of ``h`` × ``w`` pixels makes pointless, before
+    any work: curves (``p``, ``q``) longer than the photo's height + width (every step beyond leaves the photo: only
+    work), more ``color_bins`` than that (no ring crosses more pixels, so further lateness samples hold none), a lobe
+    texture with more texels than the photo has pixels, and stage-3 levels that would leave fewer than 4 pixels a
+    side (stage 3 skipped them without a word)."""
+    side = h + w
+    for name in ("p", "q"):
+        v = getattr(cfg, name)
+        if v > side:
+            seconds = curved_gabor_seconds((h, w), cfg.p, cfg.q, cfg.device)
+            took = "" if seconds is None else f"; the filter would take about {_duration(seconds)}"
+            raise ValueError(f"{name}: expected at most {side} (the {h} × {w} px photo's height + width: a curve of "
+                             f"2{name}+1 = {2 * v + 1} px leaves the photo, so the steps beyond add only work{took}), "
+                             f"got {v}")
+    if cfg.color_bins > side:
+        raise ValueError(f"color_bins: expected at most {side} (the {h} × {w} px photo's height + width: no ring "
+                         f"crosses more pixels, so further lateness samples hold none), got {cfg.color_bins}")
+    if cfg.lobe_shape is not None and cfg.lobe_shape[0] * cfg.lobe_shape[1] > h * w:
+        raise ValueError(f"lobe_shape: expected at most {h * w} texels (the {h} × {w} px photo's pixels: the texels "
+                         f"beyond are held by the prior alone), got {cfg.lobe_shape[0]} × {cfg.lobe_shape[1]} = "
+                         f"{cfg.lobe_shape[0] * cfg.lobe_shape[1]}")
+    if cfg.photometric:
+        small = [f for f in cfg.photometric_levels if min(h // f, w // f) < 4]
+        if small:
+            largest = min(h, w) // 4
+            raise ValueError(f"photometric_levels: expected downsampling factors of at most {largest} (the {h} × {w} "
+                             f"px photo downsampled by more is under 4 px a side), got {' '.join(map(str, small))}")
+
+
 def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     """Fit a WoodModel to one board photo and write the run folder ``cfg.out``.
 
@@ -102,11 +149,23 @@ def fit_wood(cfg: WoodFitConfig, progress=True, log=print):
     torch.manual_seed(cfg.seed)
     rgb, gray = load_photo(cfg.photo, cfg.max_size)
     h, w = gray.shape
+    check_against_photo(cfg, h, w)
     # the filter's curves fit the memory the process may use (on the fit's device too), before any work
     check_memory("p/q", curved_gabor_memory_bytes((h, w), cfg.p, cfg.q, cfg.device),
                  f"the curved Gabor filter of a {h} × {w} photo with curves of 2p+1 = {2 * cfg.p + 1} and 2q+1 = "
                  f"{2 * cfg.q + 1} px", "lower p and q (the curves' half lengths across and along the rings)",
                  device=cfg.device)
+    if cfg.photometric and cfg.photometric_epochs > 0:  # the finest level's samples of one step
+        f = min(cfg.photometric_levels)
+        samples = (h // f) * (w // f) * cfg.photometric_spp
+        check_memory("photometric_spp", samples * PHOTOMETRIC_BYTES_PER_SAMPLE,
+                     f"stage 3's {samples} filter samples per step ({cfg.photometric_spp} per pixel of the "
+                     f"{h // f} × {w // f} px level)", "lower photometric_spp", device=cfg.device)
+    seconds = curved_gabor_seconds((h, w), cfg.p, cfg.q, cfg.device)
+    if seconds is not None and seconds >= SAY_GABOR_S:  # before the work: a long filter is not a silent one
+        log(f"fit_wood: the curved Gabor filter of the {h} × {w} px photo with p = {cfg.p}, q = {cfg.q} takes about "
+            f"{_duration(seconds)} on {torch.get_num_threads()} thread(s) (shorter curves or a smaller photo take "
+            f"less)")
     os.makedirs(cfg.out, exist_ok=True)  # only once the photo has been read: a refused photo leaves no run folder
     gab, rings, estimate, pith_info, model, info, timings = detect_board(cfg, rgb, gray)
     photo_phase = info["resolved_phase"].astype(np.float32)
@@ -188,9 +247,9 @@ def _outputs(cfg, model, rgb, photo_phase, rows, rings, info, pith_info, timings
     ring_width = effective_ring_width(model, h, w, cfg.pixel_size_mm)
     boundary = boundary_lateness(model, g_fit, rgb)  # read from the photo along the fitted G
     params = {"rotation_axis_angle_rad": model.rotation.tolist(), "translation_mm": model.translation.tolist(),
-              "ring_scale_mm": float(model.ring_scale),
+              "ring_scale_mm": float(model.ring_scale.detach()),
               "mean_ring_width_mm": ring_width, "boundary_lateness": boundary, "distortion": cfg.distortion,
-              "distortion_rms_mm": float(model.m_r.pow(2).mean().sqrt()) if model.m_r is not None else 0.0,
+              "distortion_rms_mm": float(model.m_r.detach().pow(2).mean().sqrt()) if model.m_r is not None else 0.0,
               "pixel_size_mm": cfg.pixel_size_mm, "image_hw": [h, w]}
     ta_io.write_json(os.path.join(folder, "params.json"), params)
     ssim = float(ssim_2d(fit_rgb, rgb))
@@ -202,7 +261,7 @@ def _outputs(cfg, model, rgb, photo_phase, rows, rings, info, pith_info, timings
             log(f"fit_wood: cube preview skipped ({type(exc).__name__}: {exc})")
     summary = {
         "photo": os.path.abspath(cfg.photo), "image_hw": [h, w], "rings_traced": len(rings),
-        "ring_scale_mm": float(model.ring_scale),
+        "ring_scale_mm": float(model.ring_scale.detach()),
         "mean_ring_width_mm": ring_width, "boundary_lateness": boundary, "initial_phase_rms": rows[0]["phase_rms"],
         "stage1_phase_rms": rows[cfg.epochs]["phase_rms"], "final_phase_rms": final_rms,
         "mean_abs_wrapped_phase_error": float(np.abs(err).mean()),

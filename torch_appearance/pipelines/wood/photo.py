@@ -1,4 +1,5 @@
 """Reading the board photo of a wood fit."""
+import math
 import os
 
 import numpy as np
@@ -15,7 +16,8 @@ def load_photo(path, max_size=None):
     grey is repeated over R, G, B, alpha is dropped; truncated or corrupt files are refused.
 
     Raises:
-        ValueError: missing, unreadable, truncated or corrupt file, or smaller than 8×8 pixels.
+        ValueError: missing, unreadable, truncated or corrupt file, or smaller than 8×8 pixels (also once
+            downscaled to ``max_size``).
     """
     import cv2
 
@@ -26,6 +28,11 @@ def load_photo(path, max_size=None):
         raise ValueError(f"photo: expected at least 8×8 pixels, got {rgb.shape[:2]}")
     if max_size is not None and max(rgb.shape[:2]) > max_size:
         f = max_size / max(rgb.shape[:2])
-        rgb = cv2.resize(rgb, (round(rgb.shape[1] * f), round(rgb.shape[0] * f)), interpolation=cv2.INTER_AREA)
+        size = (round(rgb.shape[1] * f), round(rgb.shape[0] * f))
+        if min(size) < 8:
+            raise ValueError(f"max_size: {max_size} px makes the {rgb.shape[0]} × {rgb.shape[1]} px photo "
+                             f"{size[1]} × {size[0]} px; expected at least 8 px a side, so at least "
+                             f"{math.ceil(8 * max(rgb.shape[:2]) / min(rgb.shape[:2]))}")
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
     gray = rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     return rgb.astype(np.float32), gray.astype(np.float32)
