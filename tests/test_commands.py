@@ -266,6 +266,56 @@ def test_eval_rings_refuses_header_only_labels(tmp_path, monkeypatch):
     assert out == "" and "nan" not in err
 
 
+EVAL_FILES = {
+    "d.csv": "index,x_px,y_px\n0,40,24\n1,80,24\n",
+    "hdr.csv": "index,x_px,y_px\n",
+    "empty.csv": "",
+    "nan.csv": "index,x_px,y_px\n0,41,24\n1,inf,24\n",
+    "semi.csv": "x_px;y_px\n40;24\n",
+    "tr.csv": "transect,x_px,y_px\n0,40,24\n1,80,24\n",
+    "tr_labels.csv": "transect,x_px,y_px\n0,40,24\n1,200,24\n",
+    "x_only.csv": "x_px\n41\n80\n",
+}
+
+
+@pytest.mark.parametrize("args, start", [
+    (["d.csv", "empty.csv"], "labels_csv: 'empty.csv' is empty; expected a CSV with an x_px column"),
+    (["empty.csv", "d.csv"], "detected_csv: 'empty.csv' is empty"),
+    (["d.csv", "missing.csv"], "labels_csv: no such file 'missing.csv'"),
+    (["d.csv", "."], "labels_csv: expected a CSV file, got the folder '.'"),
+    (["d.csv", "nan.csv"], "labels_csv: 'nan.csv': column x_px holds inf in data row 2"),  # was "labels contains"
+    (["d.csv", "semi.csv"], "labels_csv: 'semi.csv' has no x_px column (columns: x_px;y_px)"),
+    (["d.csv", "tr_labels.csv"], "labels_csv: 'tr_labels.csv' holds several transects, while detected_csv"),
+    (["tr.csv", "tr_labels.csv", "--transect", "2"], "--transect 2: detected_csv 'tr.csv' has no transect 2"),
+    (["d.csv", "d.csv", "--tolerance-px", "inf"], "--tolerance-px: expected a finite value > 0 (pixels), got inf"),
+    (["d.csv", "d.csv", "--tolerance-px", "nan"], "--tolerance-px: expected a finite value > 0 (pixels), got nan"),
+])
+def test_eval_rings_refuses_bad_files_in_one_line_naming_the_argument(args, start, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for name, text in EVAL_FILES.items():
+        (tmp_path / name).write_text(text)
+    rc, out, err = run_command("eval_rings", *args)
+    _one_line(rc, err, "ta-eval-rings: error: " + start)
+    assert out == ""
+
+
+def test_eval_rings_results_are_honest(tmp_path, monkeypatch):
+    """--transect K scores transect K of the labels too (all labels were scored against it: sensitivity 0.5 for a
+    perfect transect); a spreadsheet's byte-order mark is read; x only and nothing detected are said so."""
+    monkeypatch.chdir(tmp_path)
+    for name, text in EVAL_FILES.items():
+        (tmp_path / name).write_text(text)
+    (tmp_path / "bom.csv").write_text("x_px,y_px\n40,24\n80,24\n", encoding="utf-8-sig")
+    rc, out, err = run_command("eval_rings", "tr.csv", "tr_labels.csv", "--transect", "0")
+    assert rc == 0 and out.startswith("sensitivity 1.0000  precision 1.0000") and "labelled 1," in out, (out, err)
+    rc, out, err = run_command("eval_rings", "d.csv", "bom.csv")
+    assert rc == 0 and "F1 1.0000" in out and "x only" not in out, (out, err)
+    rc, out, err = run_command("eval_rings", "d.csv", "x_only.csv")
+    assert rc == 0 and out.rstrip().endswith("tolerance 3 px, x only: a file has no y_px)"), out
+    rc, out, err = run_command("eval_rings", "hdr.csv", "d.csv")
+    assert rc == 0 and "precision - (nothing detected)" in out and "detected 0," in out, out
+
+
 def test_ctrl_c_in_export_print_is_one_line(tmp_path, monkeypatch):
     from torch_appearance.cli import export_print
 

@@ -238,7 +238,7 @@ def test_cli_eval_bad_inputs(tmp_path, run_inproc):
     nocol = tmp_path / "l.csv"
     nocol.write_text("year,position\n2000,5\n")
     cases = [((good, good, "--tolerance-px", 0), "tolerance"), ((good, good, "--tolerance-px", -2), "tolerance"),
-             ((good, nocol), "x_px"), ((good, tmp_path / "missing.csv"), "cannot read")]
+             ((good, nocol), "x_px"), ((good, tmp_path / "missing.csv"), "labels_csv: no such file")]
     for args, msg in cases:
         rc, out, err = run_inproc("eval_rings", *args)
         assert rc not in (0, None) and msg in err and out == "", (args, err)
