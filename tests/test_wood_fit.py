@@ -91,6 +91,8 @@ def test_run_folder(fitted):
     (dict(max_size=0), r"max_size: expected an int >= 8 \(the photo's longest side"),
     (dict(max_size=5), "max_size: expected an int >= 8"),
     (dict(lr=math.inf), "lr: expected a finite value > 0, got inf"),
+    (dict(lr=1e12), r"lr: expected at most 1 \(a ring width per step\), got 1000000000000.0"),  # an IndexError
+    (dict(photometric_color_lr=2.0), r"photometric_color_lr: expected at most 1 \(a colour range per step\)"),
     (dict(photometric_lr=math.inf), "photometric_lr: expected a finite value > 0"),
     (dict(photometric_color_lr=math.inf), "photometric_color_lr: expected a finite value >= 0"),
     (dict(coarse_to_fine=7), r"coarse_to_fine: expected at most 6 \(the 32 × 64-texel distortion texture"),

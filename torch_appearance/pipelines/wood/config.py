@@ -122,6 +122,13 @@ class WoodFitConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a finite value > 0, got {v!r}")
+        # Adam moves a parameter by about its rate per step: more than a ring width (the geometry's unit, which the
+        # cyclic phase loss cannot tell from none) or than the whole colour range [0, 1] only throws the fit away
+        # (--lr 1e12 ended in NaN parameters and an IndexError)
+        for name, unit in (("lr", "ring width"), ("photometric_lr", "ring width"), ("color_lr", "colour range"),
+                           ("photometric_color_lr", "colour range")):
+            if getattr(self, name) > 1:
+                raise ValueError(f"{name}: expected at most 1 (a {unit} per step), got {getattr(self, name)!r}")
         if self.lobe_shape is not None and (
                 not isinstance(self.lobe_shape, (tuple, list)) or len(self.lobe_shape) != 2
                 or any(isinstance(v, bool) or not isinstance(v, int) for v in self.lobe_shape)
