@@ -150,6 +150,8 @@ def test_render_object_refuses_bad_values_in_one_line(args, start, tmp_path, mon
     (["--mesh", "missing.obj", "--height-mm", "5"], "--mesh: no such file 'missing.obj'"),
     (["--mesh", "missing.obj"], "--height-mm: an object print needs the object's height in mm"),
     (["--remap-baseline"], "--remap-baseline: the 2.5D remapped baseline is for objects (--mesh)"),
+    (["--ior", "nan"], "--ior: expected a finite value >= 1, got nan"),  # was a JSON writer's error, not naming it
+    (["--threads", "1000000000000"], "--threads: expected 1 ... "),  # was torch's overflow, a traceback
 ])
 def test_optimize_print_messages_name_its_flags(args, start, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -246,6 +248,22 @@ def test_voxelize_refuses_a_units_guess_it_would_not_apply(tmp_path, monkeypatch
     rc, out, err = run_command("voxelize", spot, "--scale", "1", "--dpi", "100", "--out", "v", "--no-previews",
                                "--quiet")
     assert rc == 0, err
+
+
+def test_voxelize_grid_too_large_names_dpi(tmp_path, monkeypatch):
+    """A grid beyond the memory limit is refused naming --dpi (it read voxel_size:, the library's name)."""
+    monkeypatch.chdir(tmp_path)
+    spot = os.path.join(ROOT, "tests", "data", "meshes", "spot", "spot_triangulated.obj")
+    rc, _, err = run_command("voxelize", spot, "--height-mm", "5000", "--out", "v", "--no-previews", "--quiet")
+    line = _one_line(rc, err, "ta-voxelize: error: --dpi: 0.0846667 mm gives a 59058×58113×32423 grid that needs")
+    assert "voxel_size" not in line
+    assert os.listdir(tmp_path) == []
+    # absurd heights refused before the mesh is loaded (1e12 mm: a numpy RuntimeWarning from trimesh, then refused)
+    for height, start in (("1e12", "--height-mm: 1e+12 mm at 300 DPI is 1.18e+13 voxels tall; expected at most"),
+                          ("nan", "--height-mm: expected a finite value > 0, got nan")):
+        rc, _, err = run_command("voxelize", spot, "--height-mm", height, "--out", "v", "--no-previews", "--quiet")
+        _one_line(rc, err, "ta-voxelize: error: " + start)
+    assert os.listdir(tmp_path) == []
 
 
 def test_voxelize_hint_names_the_flag(tmp_path, monkeypatch):

@@ -101,6 +101,7 @@ def test_selection_ranks_all_sets_and_resumes(cli, tmp_path, capsys):
     (["--user-inks", "missing.json"], "--user-inks: no such file"),
     (["--spp", "0"], "spp: expected > 0"),
     (["--target", "no_such_image.png"], "target: expected a built-in target"),
+    (["--threads", "1000000000000"], "--threads: expected 1 ... "),  # issue 49: torch's overflow, a traceback
 ])
 def test_bad_input_exit_code_2(cli, tmp_path, capsys, extra, match):
     inks = _user_inks(tmp_path / "inks.json")

@@ -271,3 +271,36 @@ def test_render_wood_volume_script_writes_its_outputs(tmp_path, capsys):
     assert {"figure.png", "summary.json"} <= names
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["veneer"]["thickness_mm"] == pytest.approx(1.8) and "total_s" in summary["timings_s"]
+
+
+@pytest.mark.parametrize("args, start", [  # issue 49: found by the new-user trial's numeric sweep
+    (["--synthetic-size", "1000000000000", "1000000000000"], "--synthetic-size: a 1000000000000 × 1000000000000 px "
+                                                             "synthetic board needs about"),  # a traceback (4 TB)
+    (["--synthetic-size", "4", "40"], "--synthetic-size: expected at least 8 × 8 px, got 4 × 40"),
+    (["--synthetic-pixel-mm", "1e12"], "--synthetic-pixel-mm: expected at most 1 mm"),  # a MemoryError traceback
+    (["--pixel-mm", "0"], "--pixel-mm: expected finite values > 0, got 0"),  # a ZeroDivisionError traceback
+    (["--pixel-mm", "nan"], "--pixel-mm: expected finite values > 0, got nan"),
+    (["--pixel-mm", "1e12"], "--pixel-mm: expected at most 12 mm (2 pixels across"),  # a 1-pixel image, then NaN
+    (["--veneer-max-mm", "nan"], "--veneer-max-mm: expected finite values > 0, got nan"),  # a JSON error at the end
+    (["--veneer-voxel-mm", "1e12", "0.1"], "--veneer-voxel-mm: expected at most 6 0.9 mm"),  # one voxel, silently
+    (["--thickness-mm", "nan"], "--thickness-mm: expected finite values > 0, got nan"),
+    (["--shade-voxel-mm", "1e12"], "--shade-voxel-mm: expected at most the shade's wall, 1 mm"),  # "sdf: ..."
+    (["--shade", "0", "3", "5", "0.8"], "--shade: expected finite values > 0, got 0 3 5 0.8"),
+    (["--shade", "4", "3", "5", "7"], "--shade: expected < 2·min(radii)"),  # was thickness_mm: (the veneer's flag)
+    (["--shade-light-deg", "200"], "--shade-light-deg: expected a finite value in (0, 180]"),  # angular_radius_deg:
+    (["--synthetic-size", "2", "40", "--synthetic", "1"], "--synthetic-size: expected at least 8 × 8 px"),
+    (["--synthetic", "-1"], "--synthetic: expected a seed >= 0, got -1"),  # "expected non-negative integer"
+    (["--passes", "1000000000000"], "--passes: 1000000000000 passes take at least 31.7 years"),  # ran for ever
+    (["--threads", "1000000000000"], "--threads: expected at most"),  # "Overflow when unpacking long"
+    (["--spp", "0"], "--spp: expected an int >= 1, got 0"),
+])
+def test_render_wood_volume_refuses_bad_sizes_in_one_line(args, start, tmp_path, monkeypatch):
+    from torch_appearance.testing import run_command
+
+    monkeypatch.chdir(tmp_path)
+    if "--synthetic" not in args:
+        args = ["--synthetic", "3", *args]
+    rc, _, err = run_command("render_wood_volume", *args, "--device", "cpu", "--quiet", "--out", "v")
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("ta-render-wood-volume: error: " + start), err
+    assert "Traceback" not in err and os.listdir(tmp_path) == []

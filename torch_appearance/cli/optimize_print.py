@@ -307,8 +307,8 @@ def main(argv=None, prog=PROG):
     except ValueError as error:
         return fail(prog, error)
     if args.threads is not None:
-        if args.threads < 1:
-            p.error(f"--threads: expected >= 1, got {args.threads}")
+        if not 1 <= args.threads <= (os.cpu_count() or 1):  # torch overflowed on 10**12
+            p.error(f"--threads: expected 1 ... {os.cpu_count() or 1} (this machine's CPUs), got {args.threads}")
         torch.set_num_threads(args.threads)
     absolute_paths(args)
     cfg = resumed_config(p, args, argv) if args.resume else config_from_args(args)

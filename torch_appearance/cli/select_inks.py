@@ -197,8 +197,9 @@ def make_plan(args):
     clash = [v for v in folders.values() if len(v) > 1]
     if clash:
         raise SelectionError(f"--candidates: ink names {clash} give the same folder name; rename them")
-    if args.threads is not None and args.threads < 1:
-        raise SelectionError(f"--threads: expected >= 1, got {args.threads}")
+    if args.threads is not None and not 1 <= args.threads <= (os.cpu_count() or 1):
+        raise SelectionError(f"--threads: expected 1 ... {os.cpu_count() or 1} (this machine's CPUs), got "
+                             f"{args.threads}")
     if args.table_steps < 1:
         raise SelectionError(f"--table-steps: expected >= 1, got {args.table_steps}")
 
@@ -488,7 +489,7 @@ def run(args):
 
 def main(argv=None):
     args = parse_args(argv)
-    if args.threads is not None and args.threads >= 1:
+    if args.threads is not None and 1 <= args.threads <= (os.cpu_count() or 1):  # else refused in run()
         import torch
         torch.set_num_threads(args.threads)
     try:  # the folder is this command's while it runs: another tool's, or one another selection writes, is refused

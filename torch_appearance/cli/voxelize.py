@@ -24,6 +24,7 @@ Examples:
 import contextlib
 import inspect
 import json
+import math
 import os
 import resource
 import signal
@@ -42,6 +43,9 @@ from torch_appearance.pipelines.runs import claim_run_folder
 from .command import (INTERRUPTED, CommandParser, check_output_folder, fail, flag_names, folder_listing, in_flags,
                       interrupted, undo_partial)
 
+#: the most voxels along the height the command admits before loading the mesh (88 m at 300 DPI: no grid of such an
+#: object fits in memory, and the mesh scaled to it overflowed trimesh's vertex merging)
+MAX_AXIS_VOXELS = 1 << 20
 PROG = "ta-voxelize"
 NOTHING_WRITTEN = "nothing written (object.npz was not finished)"
 
@@ -107,15 +111,22 @@ def _main(argv, state):
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = p.parse_args(argv)
     check_output_folder(p, "--out", args.out)
-    if not args.dpi > 0:
-        p.error(f"--dpi: expected > 0, got {args.dpi}")
+    if not (math.isfinite(args.dpi) and args.dpi > 0):
+        p.error(f"--dpi: expected a finite value > 0, got {args.dpi}")
+    if args.height_mm is not None and not (math.isfinite(args.height_mm) and args.height_mm > 0):
+        p.error(f"--height-mm: expected a finite value > 0, got {args.height_mm}")
+    if args.height_mm is not None and args.height_mm * args.dpi / 25.4 > MAX_AXIS_VOXELS:
+        # before loading: the mesh scaled to it overflowed trimesh's vertex merging (a RuntimeWarning on stderr)
+        p.error(f"--height-mm: {args.height_mm:g} mm at {args.dpi:g} DPI is {args.height_mm * args.dpi / 25.4:.3g} "
+                f"voxels tall; expected at most {MAX_AXIS_VOXELS} ({MAX_AXIS_VOXELS * 25.4 / args.dpi:g} mm at "
+                f"--dpi {args.dpi:g})")
     load_kwargs = dict(height_mm=args.height_mm, scale=args.scale)
     if args.texture is not None:
         if not _accepts_keyword(load_mesh, "texture"):
             p.error("--texture: this version of torch_appearance.geometry.load_mesh takes no texture= yet")
         load_kwargs["texture"] = args.texture
     progress = Progress(args.quiet)
-    flags = flag_names(p)
+    flags = flag_names(p, voxel_size="--dpi")  # the library's voxel edge is 25.4 / --dpi mm
     before = folder_listing(args.out)
     with contextlib.ExitStack() as stack:
         try:  # the folder is this command's from here: another tool's, or one another process writes, is refused

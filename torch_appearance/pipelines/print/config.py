@@ -159,6 +159,9 @@ class PrintConfig:
             raise ValueError(f"ema_beta: expected a number in [0, 1), got {self.ema_beta!r}")
         if self.optimizer not in ("adagrad", "adam"):
             raise ValueError(f"optimizer: expected 'adagrad' or 'adam', got {self.optimizer!r}")
+        if self.ior is not None and (isinstance(self.ior, bool) or not isinstance(self.ior, (int, float))
+                                     or not math.isfinite(self.ior) or self.ior < 1):  # nan reached the JSON writer
+            raise ValueError(f"ior: expected a finite value >= 1, got {self.ior!r}")
         if len(tuple(self.gamma)) != 3 or min(self.gamma) < 0 or sum(self.gamma) <= 0:
             raise ValueError(f"gamma: expected three weights >= 0 with a positive sum, got {self.gamma!r}")
         if len(tuple(self.printer_dpi)) != 3 or min(self.printer_dpi) <= 0:
