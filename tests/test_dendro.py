@@ -232,6 +232,21 @@ def test_cli_bad_inputs(core_png, tmp_path, run_inproc):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.png"]  # no partial or temporary files
 
 
+@pytest.mark.parametrize("args, start", [  # issue 49: accepted silently outside the mode that reads them
+    (["--helpers", "-1"], "--helpers: expected an int >= 0"),
+    (["--half-width", "0"], "--half-width: expected an int >= 1 (px), got 0"),
+    (["--cell-px", "nan"], "--cell-px: expected a finite value > 0, got nan"),
+    (["--cell-px", "0"], "--cell-px: expected a finite value > 0, got 0.0"),
+    (["--dpi", "nan"], "--dpi: expected a finite value > 0, got nan"),
+    (["--pixel-size-mm", "inf"], "--pixel-size-mm: expected a finite value > 0, got inf"),
+])
+def test_cli_refuses_nonsense_numbers_in_any_mode(args, start, tmp_path, run_inproc):
+    rc, out, err = run_inproc("detect_rings", tmp_path / "core.png", "--out", tmp_path / "o.csv", *args)
+    assert rc == 2 and err.strip().splitlines() == [err.strip()] and \
+        err.startswith("ta-detect-rings: error: " + start), err
+    assert os.listdir(tmp_path) == []
+
+
 def test_cli_eval_bad_inputs(tmp_path, run_inproc):
     good = tmp_path / "d.csv"
     good.write_text("index,x_px,y_px\n0,1,1\n")
@@ -374,7 +389,8 @@ def test_cli_section_mode(tmp_path, run_inproc):
     mask = cv2.imread(os.path.join(DATA, "mask_00002.png"), cv2.IMREAD_GRAYSCALE)
     assert boundary_f_measure(pts, mask_centerline(mask), 3)["f1"] >= 0.9
     out.unlink(), ovl.unlink()
-    for args, msg in [(("--cell-px", 0), "cell_px"), (("--bark", "left"), "do not apply")]:
+    for args, msg in [(("--cell-px", 0), "--cell-px: expected a finite value > 0"),
+                      (("--bark", "left"), "do not apply")]:
         rc, _, err = run_inproc("detect_rings", img, "--mode", "section", "--out", out, "--overlay", ovl, *args)
         assert rc not in (0, None) and msg in err, (args, err)
         assert not out.exists() and not ovl.exists()

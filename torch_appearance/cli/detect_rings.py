@@ -32,6 +32,7 @@ Examples:
     ta-detect-rings disc.jpg --mode disc --dpi 600 --out disc.csv --pos disc.pos --rwl disc.rwl --last-year 2019
     ta-detect-rings section.png --mode section --out boundary.csv --overlay boundary.png
 """
+import math
 import os
 import re
 import sys
@@ -306,10 +307,14 @@ def run_disc(args, rgb):
 
 def main(argv=None):
     args = parse_args(argv)
-    if args.dpi is not None and not args.dpi > 0:
-        return fail(PROG, f"--dpi must be > 0; got {args.dpi}")
-    if args.pixel_size_mm is not None and not args.pixel_size_mm > 0:
-        return fail(PROG, f"--pixel-size-mm must be > 0; got {args.pixel_size_mm}")
+    for flag, value in (("--dpi", args.dpi), ("--pixel-size-mm", args.pixel_size_mm), ("--cell-px", args.cell_px)):
+        if value is not None and not (math.isfinite(value) and value > 0):  # --dpi 1e12 is a size, nan is not
+            return fail(PROG, f"{flag}: expected a finite value > 0, got {value}")
+    # checked in every mode (they were accepted silently outside the one that reads them)
+    if args.helpers < 0:
+        return fail(PROG, f"--helpers: expected an int >= 0 (helper transects between neighbours), got {args.helpers}")
+    if args.half_width < 1:
+        return fail(PROG, f"--half-width: expected an int >= 1 (px), got {args.half_width}")
     if args.rings is not None and args.mode in ("core", "section"):
         return fail(PROG, f"--rings is disc mode; it does not combine with --mode {args.mode}")
     implied = args.pith is not None or args.angles is not None or args.edge or args.rings is not None
