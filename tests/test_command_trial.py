@@ -3,7 +3,6 @@ second process on one --out for the commands that had neither."""
 import os
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -69,3 +68,26 @@ def test_ctrl_c_in_select_inks_is_one_line(tmp_path):
                                 lambda: (out / "inks.json").exists(), env=_env(), wait_s=240)
     assert rc == 130 and err == (f"ta-select-inks: interrupted; finished sets are kept; run the same command again "
                                  f"to resume the selection in {str(out)!r}\n"), err
+
+
+def _trial_module():
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "eval",
+                        "new_user_trial.py")
+    spec = importlib.util.spec_from_file_location("new_user_trial", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_trials_numeric_sweep_reads_each_commands_options():
+    """--sweep sets every numeric option, read from the parser that main() builds (stopped at parse_args), to
+    nonsense values; nargs options get one value per argument."""
+    trial = _trial_module()
+    assert trial.numeric_options("ta-eval-rings") == [("--tolerance-px", float, None), ("--transect", int, None)]
+    options = {flag: (kind, nargs) for flag, kind, nargs in trial.numeric_options("ta-fit-wood")}
+    assert options["--lobe-shape"] == (int, 2) and options["--max-size"] == (int, None) and "--out" not in options
+    cases = trial.sweep_cases("ta-eval-rings", {"detected": "d.csv", "labels": "l.csv"}, "/tmp/w")
+    assert [args[-2:] for _, args, _ in cases] == [["--tolerance-px", v] for v in ("0", "nan", "1e12")] + \
+        [["--transect", v] for v in ("0", "-1", str(10 ** 12))]

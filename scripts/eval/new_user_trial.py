@@ -15,6 +15,12 @@ OMP_NUM_THREADS=1. The cases:
     sigint       SIGINT once the command is working (every command that writes something)
     concurrent   two processes at once to one --out (every command that writes a folder)
     ulimit       ta-optimize-print of a 300² target 10 mm thick (about 4 GiB) under ``ulimit -v`` (import size + 2 GiB)
+    help         ``--help`` (exit 0, a usage line on stdout)
+    no-input     the command without any argument (where it needs one: exit 2, one line)
+    numeric      with ``--sweep``: every numeric option of the command (read from its parser) set to nonsense values
+                 (ints 0, -1, 10**12; floats 0, nan, 1e12; every value of an option with nargs) on the tiny
+                 invocation; exit 0 is recorded as ``accepted`` for a person to judge (a seed of 0 is fine, a size of
+                 0 is not), a run past ``SWEEP_TIMEOUT_S`` fails (work accepted without a word)
 
 Recorded per case: the command line, the exit status, whether stderr holds a Python traceback, the last line of
 stderr (the one-line message), the number of stderr lines, and the state of the output: ``absent``, ``complete``
@@ -73,6 +79,12 @@ COMPLETE = {
 
 #: seconds after the command has imported (a first stderr line or file, or IMPORT_S) before SIGINT is sent
 SIGINT_AFTER = 4.0
+#: seconds a numeric-sweep case may run (the tiny invocations end within ~30 s on one thread)
+SWEEP_TIMEOUT_S = 90
+#: nonsense values of the numeric sweep, by the option's type
+SWEEP_VALUES = {int: ["0", "-1", str(10 ** 12)], float: ["0", "nan", "1e12"]}
+#: the commands that run without any argument (the rest need an input: exit 2 without one)
+RUN_WITHOUT_ARGUMENTS = {"ta-optimize-print", "ta-select-inks", "ta-render-object", "ta-render-wood-volume"}
 
 
 def _env():
@@ -267,6 +279,51 @@ def bad_cases(command, p, w):
     return cases
 
 
+def numeric_options(command):
+    """``[(flag, type, nargs)]`` of every option of ``command`` that takes numbers (its parser, as ``main`` builds
+    it: ``main`` is run up to ``parse_args``, which is stopped)."""
+    import importlib
+
+    from torch_appearance.cli.command import CommandParser
+
+    class _Built(Exception):
+        pass
+
+    module = importlib.import_module(f"torch_appearance.cli.{COMMANDS[command]}")
+    original = CommandParser.parse_args
+
+    def stop(self, *args, **kwargs):
+        raise _Built(self)
+
+    CommandParser.parse_args = stop
+    try:
+        module.main([])
+    except _Built as built:
+        parser = built.args[0]
+    finally:
+        CommandParser.parse_args = original
+    options = []
+    for action in parser._actions:
+        kind = action.type if action.type in (int, float) else None
+        if kind is None or not action.option_strings:
+            continue
+        options.append((action.option_strings[-1], kind, action.nargs))
+    return options
+
+
+def sweep_cases(command, p, w):
+    """(case, argv, out) of the numeric sweep of ``command``: its tiny invocation with one numeric option set to
+    each of :data:`SWEEP_VALUES` (the last of a repeated option wins in argparse)."""
+    cases = []
+    for flag, kind, nargs in numeric_options(command):
+        count = nargs if isinstance(nargs, int) else 1
+        for value in SWEEP_VALUES[kind]:
+            name = f"{COMMANDS[command]}_sweep{flag.replace('-', '_')}_{value.replace('.', '')}"
+            out = os.path.join(w, name + (".csv" if command == "ta-detect-rings" else ""))
+            cases.append(("numeric", [*tiny(command, out, p), flag, *[value] * count], out))
+    return cases
+
+
 # ------------------------------------------------------------------------------------------------ one case
 def output_state(command, path, before=None):
     """``absent``, ``complete``, ``resumable``, ``as-before``, ``partial`` or ``n/a`` (see the module's doc)."""
@@ -333,8 +390,12 @@ def _record(command, case, args, out, rc, err, before=None, note=""):
         problems.append("partial output")
     if rc == 0 and state == "absent" and COMPLETE[command] is not None:
         problems.append("exit 0 without output")
-    if case not in ("ok", "sigint", "concurrent") and rc == 0:
+    if case not in ("ok", "sigint", "concurrent", "help", "numeric") and rc == 0:
         problems.append("bad input accepted")
+    if case == "numeric" and rc == 0:
+        note = (note + "; " if note else "") + "accepted"
+    if case == "help" and rc == 0:
+        problems = [p for p in problems if p != "exit 0 without output"]
     return {"command": command, "case": case, "argv": [str(a) for a in args], "exit": rc, "traceback": tb,
             "message": message, "stderr_lines": n_lines, "output": state, "note": note,
             "pass": not problems, "problems": problems}
@@ -346,14 +407,18 @@ def run_case(command, case, args, out, timeout_s=240, preexec=None, wrap=None):
     if wrap:
         argv = wrap(argv)
     t0 = time.monotonic()
+    stdout = ""
     try:
         proc = subprocess.run(argv, capture_output=True, text=True, env=_env(), timeout=timeout_s,
                               preexec_fn=preexec or _sigint_default, stdin=subprocess.DEVNULL)
-        rc, err = proc.returncode, proc.stderr
+        rc, err, stdout = proc.returncode, proc.stderr, proc.stdout
     except subprocess.TimeoutExpired as expired:
         rc, err = "timeout", (expired.stderr or b"").decode(errors="replace") if isinstance(expired.stderr, bytes) \
             else (expired.stderr or "")
     rec = _record(command, case, args, out, rc, err, before)
+    if case == "help" and not (rc == 0 and stdout.startswith(f"usage: {command} ")):
+        rec["problems"].append("no usage on stdout")
+        rec["pass"] = False
     rec["seconds"] = round(time.monotonic() - t0, 1)
     return rec
 
@@ -435,7 +500,7 @@ def _mapped_after_import(module):
 
 
 # ------------------------------------------------------------------------------------------------ the trial
-def trial(commands, work, jobs=2, log=print):
+def trial(commands, work, jobs=2, log=print, sweep=False):
     p = make_inputs(work)
     w = os.path.join(work, "outs")
     os.makedirs(w)
@@ -484,8 +549,13 @@ def trial(commands, work, jobs=2, log=print):
             p["detected"] = out
 
     cases = [(c, case, args, out) for c in wanted for case, args, out in bad_cases(c, p, w)]
+    cases += [(c, "help", ["--help"], None) for c in wanted]
+    cases += [(c, "no-input", [], None) for c in wanted if c not in RUN_WITHOUT_ARGUMENTS]
+    slow = []
+    if sweep:
+        slow = [(c, case, args, out, SWEEP_TIMEOUT_S) for c in wanted for case, args, out in sweep_cases(c, p, w)]
     with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-        for future in concurrent.futures.as_completed([pool.submit(run_case, *c) for c in cases]):
+        for future in concurrent.futures.as_completed([pool.submit(run_case, *c) for c in cases + slow]):
             add(future.result())  # as they end: one slow case does not hold back the log
 
     ready = {"ta-optimize-print": "checkpoint.pt", "ta-voxelize": "summary.json"}
@@ -539,6 +609,8 @@ def main(argv=None):
     p.add_argument("--commands", default=",".join(COMMANDS), help="comma-separated ta- commands (default: all)")
     p.add_argument("--jobs", type=int, default=2, help="bad-input cases run at once (default: 2)")
     p.add_argument("--keep", action="store_true", help="keep the scratch folder (its path is printed)")
+    p.add_argument("--sweep", action="store_true", help="also set every numeric option to nonsense values (slow: "
+                                                        "three runs per option)")
     args = p.parse_args(argv)
     commands = [c.strip() for c in args.commands.split(",") if c.strip()]
     unknown = [c for c in commands if c not in COMMANDS]
@@ -548,7 +620,7 @@ def main(argv=None):
     work = tempfile.mkdtemp(prefix="ta-trial-")
     t0 = time.monotonic()
     try:
-        records = trial(commands, work, args.jobs, log=lambda s: print(s, flush=True))
+        records = trial(commands, work, args.jobs, log=lambda s: print(s, flush=True), sweep=args.sweep)
     finally:
         if args.keep:
             print(f"scratch folder: {work}")
