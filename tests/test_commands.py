@@ -150,6 +150,7 @@ def test_render_object_refuses_bad_values_in_one_line(args, start, tmp_path, mon
     (["--mesh", "missing.obj", "--height-mm", "5"], "--mesh: no such file 'missing.obj'"),
     (["--mesh", "missing.obj"], "--height-mm: an object print needs the object's height in mm"),
     (["--remap-baseline"], "--remap-baseline: the 2.5D remapped baseline is for objects (--mesh)"),
+    (["--table-steps", "1000000000000"], "--table-steps: 1000000000000 steps give 4.17e+46 mixtures of the 5 inks"),
     (["--ior", "nan"], "--ior: expected a finite value >= 1, got nan"),  # was a JSON writer's error, not naming it
     (["--threads", "1000000000000"], "--threads: expected 1 ... "),  # was torch's overflow, a traceback
 ])

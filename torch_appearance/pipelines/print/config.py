@@ -53,6 +53,9 @@ AUTO_EVAL_SAMPLE_SHARE = 1 / 4
 #: a year even at that pace (``--iterations 10**12``) is refused before any work; the time of a job that starts is
 #: logged once its first iteration has been timed
 MIN_ITERATION_S = 1e-3
+#: the most mixtures the naive baseline's table may hold (each is a render of a homogeneous slab: the default 6 steps
+#: of 4 inks are 84, of 6 inks 462)
+MAX_TABLE_ENTRIES = 20000
 MAX_JOB_S = 365.25 * 86400
 
 
@@ -129,6 +132,14 @@ class PrintConfig:
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size", "view_spp"):
             if getattr(self, name) is not None or name not in SCHEDULES["slab"]:
                 positive(name, getattr(self, name), integer=True)
+        inks = self.inks.split(",") if isinstance(self.inks, str) else getattr(self.inks, "names", self.inks)
+        n_inks = len(inks) if hasattr(inks, "__len__") else 0
+        if isinstance(self.table_steps, int) and n_inks > 1:
+            entries = math.comb(self.table_steps + n_inks - 1, n_inks - 1)
+            if entries > MAX_TABLE_ENTRIES:  # --table-steps 10**12 ran without end (the table is listed, then rendered)
+                raise ValueError(f"table_steps: {self.table_steps} steps give {entries:.3g} mixtures of the "
+                                 f"{n_inks} inks, each rendered for the naive baseline's table; expected at most "
+                                 f"{MAX_TABLE_ENTRIES} mixtures")
         texels = self.eval_texels
         if texels is not None and texels != "auto" and (isinstance(texels, bool) or not isinstance(texels, int) or
                                                          texels < 0 or 0 < texels < 1024):
