@@ -371,8 +371,8 @@ class _Run:
 
     def picture(self, indices, renders):
         """(*texels) the colours to save as the picture of a quantised print (``indices``, or as prepared) with
-        evaluation ``renders``: their mean where they cover every texel, else one render of every texel at the training's
-        spp (the print is scored on the subset; the picture is for looking at)."""
+        evaluation ``renders``: their mean where they cover every texel, else one render of every texel at the
+        training's spp (the print is scored on the subset; the picture is for looking at)."""
         if self.subset is None:
             return renders.mean(0)
         t0 = time.perf_counter()
