@@ -71,7 +71,9 @@ def optimize_print(cfg: PrintConfig, progress=True, log=print, target=None):
     """Run one print optimisation of a slab or, with ``cfg.mesh``, of a textured object, and write ``cfg.out``.
 
     Run folder (fixed names other tools rely on): ``config.json``; ``log.csv`` (:data:`.run_folder.LOG_FIELDS`:
-    iteration, wall_s, loss, E1, E2, E3; at evaluations the error free of render noise ``dE00_mean`` ±
+    iteration, wall_s, loss, E1, E2, E3 — the loss whose gradient the step took: with the ``ema`` estimator that of
+    the running mean of the renders before the step's own (rows 1 and 2 both hold the first render's), else of the
+    step's render; at evaluations the error free of render noise ``dE00_mean`` ±
     ``dE00_mean_se``, ``dE00_p95`` ± ``dE00_p95_se``, ``dE76_rms``, the evaluation render's raw ``dE00_mean_raw``,
     ``dE00_p95_raw``, ``dE76_mean_raw`` and its noise ``dE00_noise``; seed); ``convergence.png``;
     ``ink_usage_by_depth.png``; the texel colours of ``target``, ``baseline`` (naive extrusion, quantised),
