@@ -288,6 +288,8 @@ def test_render_wood_volume_script_writes_its_outputs(tmp_path, capsys):
     (["--shade", "0", "3", "5", "0.8"], "--shade: expected finite values > 0, got 0 3 5 0.8"),
     (["--shade", "4", "3", "5", "7"], "--shade: expected < 2·min(radii)"),  # was thickness_mm: (the veneer's flag)
     (["--shade-light-deg", "200"], "--shade-light-deg: expected a finite value in (0, 180]"),  # angular_radius_deg:
+    (["--shade", "1e12", "1e12", "1e12", "1e12"], "--shade: expected a bottom radius larger than the top"),  # named
+    # --shade-light-deg with 0.0: a shade no wider at the bottom leaves the default light (0.9 × its tilt) no room
     (["--synthetic-size", "2", "40", "--synthetic", "1"], "--synthetic-size: expected at least 8 × 8 px"),
     (["--synthetic", "-1"], "--synthetic: expected a seed >= 0, got -1"),  # "expected non-negative integer"
     (["--passes", "1000000000000"], "--passes: 1000000000000 passes take at least 31.7 years"),  # ran for ever

@@ -261,6 +261,12 @@ class WoodVolumeConfig:
         check_device("device", self.device)
         if self.mapping not in ("table", "elek"):
             raise ValueError(f"mapping: expected 'table' or 'elek', got {self.mapping!r}")
+        if self.shade_light_deg is None and not self.shade.wall_tilt_deg > 0:
+            # the default light is a disc of 0.9 × the wall's tilt below the shade: a shade no wider at the bottom
+            # leaves it no room to light the inside only
+            raise ValueError(f"shade: expected a bottom radius larger than the top radius (the default light, 0.9 × "
+                             f"the wall's tilt, lights the inside through the lower opening), got bottom "
+                             f"{self.shade.bottom_radius_mm:g} mm and top {self.shade.top_radius_mm:g} mm")
         return self
 
 
