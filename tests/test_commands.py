@@ -407,6 +407,7 @@ def test_an_interrupted_fit_over_an_earlier_one_drops_its_summary(tmp_path):
     (["--color-bins", "100000000"], "--color-bins: expected at most 256 (the 128 × 128 px photo's height + width"),
     (["--lobe-shape", "100000", "100000"], "--lobe-shape: expected at most 16384 texels"),  # 40 GB: a traceback
     (["--lobe-shape", "4"], "--lobe-shape: expected 2 arguments"),
+    (["--lobe-shape", "2", "1"], "--lobe-shape: expected 0 0 (no lobe texture) or HTHETA >= 4 and HP >= 2, got 2 1"),
     (["--p", "1000"], "--p: expected at most 256 (the 128 × 128 px photo's height + width: a curve of 2p+1 = 2001 px "
                       "leaves the photo, so the steps beyond add only work; the filter would take about"),
     (["--q", "100000"], "--q: expected at most 256"),

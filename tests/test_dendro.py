@@ -422,5 +422,7 @@ def test_cli_refuses_a_core_width_that_adds_only_work(core_png, tmp_path, run_in
                           "width across its axis (48 px) and the curved Gabor's longest contour (82 px): a wider "
                           "resampling adds no detail, only time and memory"), err
     assert err.rstrip().endswith("got 100000") and not out.exists()
+    rc, _, err = run_inproc("detect_rings", path, "--out", out, "--bark", "right", "--width-px", 3)
+    assert rc == 2 and err == "ta-detect-rings: error: --width-px: expected an int >= 8 (px), got 3\n", err  # "or None"
     rc, _, err = run_inproc("detect_rings", path, "--out", out, "--bark", "right", "--width-px", 82)
     assert rc == 0 and out.exists(), err

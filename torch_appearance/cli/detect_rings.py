@@ -315,6 +315,8 @@ def main(argv=None):
         return fail(PROG, f"--helpers: expected an int >= 0 (helper transects between neighbours), got {args.helpers}")
     if args.half_width < 1:
         return fail(PROG, f"--half-width: expected an int >= 1 (px), got {args.half_width}")
+    if args.width_px < 8:  # the library's message offers None, which the command line cannot give
+        return fail(PROG, f"--width-px: expected an int >= 8 (px), got {args.width_px}")
     if args.rings is not None and args.mode in ("core", "section"):
         return fail(PROG, f"--rings is disc mode; it does not combine with --mode {args.mode}")
     implied = args.pith is not None or args.angles is not None or args.edge or args.rings is not None

@@ -142,6 +142,9 @@ def main(argv=None, prog=PROG):
     check_output_folder(p, "--out", args.out)
     if args.dpi is not None and not (math.isfinite(args.dpi) and args.dpi > 0):
         p.error(f"--dpi: expected a finite value > 0, got {args.dpi}")
+    shape = getattr(args, "lobe_shape", None)  # the library's message offers None; the command line gives 0 0
+    if shape is not None and list(shape) != [0, 0] and (shape[0] < 4 or shape[1] < 2):
+        p.error(f"--lobe-shape: expected 0 0 (no lobe texture) or HTHETA >= 4 and HP >= 2, got {shape[0]} {shape[1]}")
     unused = stage3_flags_without_photometric(p, args)
     if unused:
         p.error(f"{'/'.join(unused)}: set for stage 3, which runs only with --photometric; add --photometric or "
