@@ -5,6 +5,7 @@ selection, never a render.)"""
 import csv
 import json
 import os
+import re
 
 import pytest
 import torch
@@ -94,6 +95,29 @@ def test_auto_takes_a_gpu_when_torch_sees_one(tmp_path, monkeypatch):
     assert rc == 0, err
     assert out.splitlines()[0] == "device: cuda:0 (--device auto: Faked GPU)"
     assert [cfg.device for cfg in started] == ["cuda:0"]
+
+
+def test_one_usability_check_for_the_library_and_the_commands(tmp_path, monkeypatch, capsys):
+    """``cuda_launch.device_unusable`` decides for ``optimize_print`` and ``--device`` alike: with one faked GPU,
+    cuda:1 is refused by both in their own words, cuda:0 and the CPU pass."""
+    from torch_appearance.cli.command import CommandParser, resolve_device
+    from torch_appearance.pipelines.print.loop import _check_device_usable
+    from torch_appearance.render import cuda_launch
+
+    monkeypatch.setattr(cuda_launch, "cuda_unavailable", lambda: None)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "Faked GPU")
+    expected = "expected cuda:0 ... cuda:0 (the GPUs torch sees), got cuda:1"
+    assert cuda_launch.device_unusable("cuda:1") == expected
+    assert cuda_launch.device_unusable("cuda:0") is None and cuda_launch.device_unusable("cpu") is None
+    assert cuda_launch.device_unusable("meta") == "expected the CPU or a CUDA device, got meta"
+    with pytest.raises(ValueError, match=r"^device: " + re.escape(expected) + r"; use device='cpu'$"):
+        _check_device_usable("cuda:1")
+    _check_device_usable("cuda:0")
+    with pytest.raises(SystemExit):
+        resolve_device(CommandParser("ta-x", "X."), "cuda:1")
+    assert f"--device: {expected}; use --device cpu or auto (see ta-x --help)" in capsys.readouterr().err
+    assert resolve_device(CommandParser("ta-x", "X."), "cuda:0") == torch.device("cuda", 0)
 
 
 def test_a_resumed_run_may_change_its_device():

@@ -71,7 +71,7 @@ def resolve_device(parser, value, log=None):
     """
     import torch
 
-    from ..render.cuda_launch import cuda_unavailable
+    from ..render.cuda_launch import cuda_unavailable, device_unusable
 
     text = str(value).strip().lower()
     if text == "auto":
@@ -85,16 +85,13 @@ def resolve_device(parser, value, log=None):
         if log is not None:
             log("device: cpu")
         return torch.device("cpu")
-    match = re.fullmatch(r"cuda(?::(\d+))?", text)
-    if match is None:
+    if re.fullmatch(r"cuda(?::\d+)?", text) is None:
         parser.error(f"--device: expected auto, cpu, cuda or cuda:N, got {value!r}")
-    missing = cuda_unavailable()
-    if missing:
-        parser.error(f"--device: {value} cannot be used here: {missing}; use --device cpu or auto")
-    index = int(match.group(1)) if match.group(1) else torch.cuda.current_device()
-    if index >= torch.cuda.device_count():
-        parser.error(f"--device: expected cuda:0 ... cuda:{torch.cuda.device_count() - 1} (the GPUs torch sees), "
-                     f"got {value}")
+    why = device_unusable(text)
+    if why:
+        parser.error(f"--device: {why}; use --device cpu or auto")
+    index = torch.device(text).index
+    index = torch.cuda.current_device() if index is None else index
     device = torch.device("cuda", index)
     if log is not None:
         log(f"device: {device} ({torch.cuda.get_device_name(device)})")

@@ -66,6 +66,28 @@ def cuda_unavailable():
     return None
 
 
+def device_unusable(device):
+    """None when tensors on ``device`` (a ``torch.device`` or its name) can be rendered here, else one line naming
+    it and saying why not: CUDA missing (:func:`cuda_unavailable`), an index past the GPUs torch sees, or a device
+    that is neither the CPU nor CUDA. The one check behind ``--device`` and ``PrintConfig.device``.
+
+    Example:
+        >>> device_unusable("cpu") is None
+        True
+    """
+    device = torch.device(device)
+    if device.type == "cpu":
+        return None
+    if device.type != "cuda":
+        return f"expected the CPU or a CUDA device, got {device}"
+    missing = cuda_unavailable()
+    if missing:
+        return f"{device} cannot be used here: {missing}"
+    if (device.index or 0) >= torch.cuda.device_count():
+        return f"expected cuda:0 ... cuda:{torch.cuda.device_count() - 1} (the GPUs torch sees), got {device}"
+    return None
+
+
 def tracer_for(*tensors, names=None):
     """The entry points for ``tensors`` (those that are not None): the C++ extension ``_C`` for CPU tensors, this
     module for CUDA tensors of one device.

@@ -190,19 +190,13 @@ TOOL = "ta-optimize-print"
 
 
 def _check_device_usable(device):
-    """A CUDA ``device`` on a machine where CUDA tensors cannot be rendered: ValueError naming ``device``, before any
-    work."""
-    device = torch.device(device)
-    if device.type != "cuda":
-        return
-    from ...render.cuda_launch import cuda_unavailable
+    """A ``device`` where tensors cannot be rendered (:func:`~torch_appearance.render.cuda_launch.device_unusable`):
+    ValueError naming ``device``, before any work."""
+    from ...render.cuda_launch import device_unusable
 
-    missing = cuda_unavailable()
-    if missing:
-        raise ValueError(f"device: {device} cannot be used here: {missing}; use device='cpu'")
-    if (device.index or 0) >= torch.cuda.device_count():
-        raise ValueError(f"device: expected cuda:0 ... cuda:{torch.cuda.device_count() - 1} (the GPUs torch sees), "
-                         f"got {device}")
+    why = device_unusable(device)
+    if why:
+        raise ValueError(f"device: {why}; use device='cpu'")
 
 
 def _to_cpu(value):
