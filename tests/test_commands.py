@@ -153,6 +153,7 @@ def test_render_object_refuses_bad_values_in_one_line(args, start, tmp_path, mon
     (["--table-steps", "1000000000000"], "--table-steps: 1000000000000 steps give 4.17e+46 mixtures of the 5 inks"),
     (["--ior", "nan"], "--ior: expected a finite value >= 1, got nan"),  # was a JSON writer's error, not naming it
     (["--threads", "1000000000000"], "--threads: expected 1 ... "),  # was torch's overflow, a traceback
+    (["--lr", "1000000000000"], "--lr: expected at most 100 (a step moves each of the mixture's parameters"),
 ])
 def test_optimize_print_messages_name_its_flags(args, start, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -170,6 +171,22 @@ def test_optimize_print_advice_names_flags(tmp_path, monkeypatch):
     rc, _, err = run_command("optimize_print", "--out", "r", "--quiet")
     line = _one_line(rc, err, "ta-optimize-print: error: --out: 'r' already holds a run")
     assert "pass --resume to continue it" in line and "resume=True" not in line
+
+
+def test_view_options_on_a_slab_are_warned_in_one_line(tmp_path, monkeypatch):
+    """``--views``/``--view-size``/``--view-spp`` make camera views of objects; on a slab they were ignored without
+    a word. The run itself is replaced: only the command's reading of its flags is checked."""
+    from torch_appearance.cli import optimize_print as command
+
+    monkeypatch.chdir(tmp_path)
+    started = []
+    monkeypatch.setattr(command, "optimize_print", lambda cfg, **kwargs: started.append(cfg))
+    rc, _, err = run_command("optimize_print", "--views", "2", "--view-spp=8", "--out", "r", "--quiet")
+    assert rc == 0 and len(started) == 1, err
+    assert err.strip().splitlines() == ["ta-optimize-print: warning: --views, --view-spp: camera views are made of "
+                                        "objects (--mesh); a slab has none: ignored"]
+    rc, _, err = run_command("optimize_print", "--out", "r2", "--quiet")
+    assert rc == 0 and "warning" not in err, err
 
 
 def test_slab_aspect_change_is_warned_in_one_line():
@@ -414,6 +431,9 @@ def test_an_interrupted_fit_over_an_earlier_one_drops_its_summary(tmp_path):
     (["--coarse-to-fine", "100000"], "--coarse-to-fine: expected at most 6"),  # ran for hours
     (["--lr", "inf"], "--lr: expected a finite value > 0, got inf"),  # was an IndexError traceback
     (["--dpi", "inf"], "--dpi: expected a finite value > 0, got inf"),  # named --pixel-size-mm
+    (["--dpi", "1000000000000"], "--dpi: expected 2.54 ... 254000 (pixels of 10 ... 0.0001 mm"),  # was taken
+    (["--pixel-size-mm", "1000000000000"], "--pixel-size-mm: expected 0.0001 ... 10 mm per pixel"),  # was taken
+    (["--lobe-radius-rings", "1000000000000"], "--lobe-radius-rings: expected at most 50 ring widths"),  # was taken
     (["--photometric-epochs", "5"], "--photometric-epochs: set for stage 3, which runs only with --photometric"),
     (["--photometric", "--photometric-levels", "1000"],  # stage 3 skipped the level without a word
      "--photometric-levels: expected downsampling factors of at most 32"),

@@ -233,8 +233,10 @@ def test_cli_bad_inputs(core_png, tmp_path, run_inproc):
 
 
 @pytest.mark.parametrize("args, start", [  # issue 49: accepted silently outside the mode that reads them
-    (["--helpers", "-1"], "--helpers: expected an int >= 0"),
-    (["--half-width", "0"], "--half-width: expected an int >= 1 (px), got 0"),
+    (["--helpers", "-1"], "--helpers: expected 0 ... 16 (helper transects between neighbours), got -1"),
+    (["--helpers", "1000000000000"], "--helpers: expected 0 ... 16"),  # was taken in core mode; disc: a library line
+    (["--half-width", "1"], "--half-width: expected 2 ... 200 (px of arc either side of a transect"),  # library's
+    (["--half-width", "1000000000000"], "--half-width: expected 2 ... 200"),  # taken in core mode; disc: library's
     (["--cell-px", "nan"], "--cell-px: expected a finite value > 0, got nan"),
     (["--cell-px", "0"], "--cell-px: expected a finite value > 0, got 0.0"),
     (["--dpi", "nan"], "--dpi: expected a finite value > 0, got nan"),

@@ -45,7 +45,7 @@ from torch_appearance.io import atomic_write_bytes, read_image, write_csv
 from torch_appearance.rings.dendro import detect_core_boundaries, detect_transect_boundaries
 from torch_appearance.rings.section import detect_section_boundaries
 from torch_appearance.rings.coorecorder import write_pos
-from torch_appearance.rings.disc import detect_disc_boundaries
+from torch_appearance.rings.disc import MAX_HALF_WIDTH, MAX_HELPERS, MIN_HALF_WIDTH, detect_disc_boundaries
 from torch_appearance.rings.ring_polygons import draw_ring_polygons, labelme_json, ring_polygons
 from torch_appearance.rings.tucson import RingSeries, write_rwl
 
@@ -311,10 +311,12 @@ def main(argv=None):
         if value is not None and not (math.isfinite(value) and value > 0):  # --dpi 1e12 is a size, nan is not
             return fail(PROG, f"{flag}: expected a finite value > 0, got {value}")
     # checked in every mode (they were accepted silently outside the one that reads them)
-    if args.helpers < 0:
-        return fail(PROG, f"--helpers: expected an int >= 0 (helper transects between neighbours), got {args.helpers}")
-    if args.half_width < 1:
-        return fail(PROG, f"--half-width: expected an int >= 1 (px), got {args.half_width}")
+    if not 0 <= args.helpers <= MAX_HELPERS:
+        return fail(PROG, f"--helpers: expected 0 ... {MAX_HELPERS} (helper transects between neighbours), got "
+                          f"{args.helpers}")
+    if not MIN_HALF_WIDTH <= args.half_width <= MAX_HALF_WIDTH:
+        return fail(PROG, f"--half-width: expected {MIN_HALF_WIDTH} ... {MAX_HALF_WIDTH} (px of arc either side of a "
+                          f"transect; the cost grows with it), got {args.half_width}")
     if args.width_px < 8:  # the library's message offers None, which the command line cannot give
         return fail(PROG, f"--width-px: expected an int >= 8 (px), got {args.width_px}")
     if args.rings is not None and args.mode in ("core", "section"):

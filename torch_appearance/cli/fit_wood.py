@@ -21,7 +21,7 @@ import argparse
 import math
 import sys
 
-from ..pipelines.wood.config import WoodFitConfig
+from ..pipelines.wood.config import PIXEL_SIZE_MM_RANGE, WoodFitConfig
 from ..pipelines.wood.fit import fit_wood
 from .command import (CommandParser, check_output_folder, fail, flag_names, interrupted, interrupted_message,
                       owned_folder)
@@ -142,6 +142,11 @@ def main(argv=None, prog=PROG):
     check_output_folder(p, "--out", args.out)
     if args.dpi is not None and not (math.isfinite(args.dpi) and args.dpi > 0):
         p.error(f"--dpi: expected a finite value > 0, got {args.dpi}")
+    if args.dpi is not None:  # the pixel pitch's range in the flag's own unit
+        low, high = (25.4 / mm for mm in reversed(PIXEL_SIZE_MM_RANGE))
+        if not low <= args.dpi <= high:
+            p.error(f"--dpi: expected {low:g} ... {high:g} (pixels of {PIXEL_SIZE_MM_RANGE[1]:g} ... "
+                    f"{PIXEL_SIZE_MM_RANGE[0]:g} mm: a ring is at least ~4 px wide), got {args.dpi:g}")
     shape = getattr(args, "lobe_shape", None)  # the library's message offers None; the command line gives 0 0
     if shape is not None and list(shape) != [0, 0] and (shape[0] < 4 or shape[1] < 2):
         p.error(f"--lobe-shape: expected 0 0 (no lobe texture) or HTHETA >= 4 and HP >= 2, got {shape[0]} {shape[1]}")

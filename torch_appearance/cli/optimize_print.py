@@ -327,6 +327,10 @@ def main(argv=None, prog=PROG):
         check_render_memory(cfg)
     except (ValueError, TypeError) as error:
         return fail(prog, error, flags, vars(args))
+    given = {a.split("=", 1)[0] for a in argv if a.startswith("--")}
+    ignored = [f for f in ("--views", "--view-size", "--view-spp") if f in given]
+    if cfg.mesh is None and ignored:  # they were ignored without a word
+        warn(f"{', '.join(ignored)}: camera views are made of objects (--mesh); a slab has none: ignored")
     if int(os.environ.get("RANK", "0")) == 0:  # under torchrun one rank says it
         for line in device_lines:
             print(line)

@@ -133,6 +133,12 @@ class DiscBoundaries:
     info: dict = field(default_factory=dict)
 
 
+#: the most helper transects between two neighbouring transects (each costs a transect's filtering)
+MAX_HELPERS = 16
+#: the strips either side of a transect, px of arc: their filtering's cost grows with 2 half_width + 1 (default 16)
+MIN_HALF_WIDTH, MAX_HALF_WIDTH = 2, 200
+
+
 def _number(value, name, lo=None, hi=None, *, integer=False):
     ok = not isinstance(value, bool) and isinstance(value, (int, np.integer) if integer else
                                                      (int, float, np.integer, np.floating))
@@ -548,7 +554,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         >>> # res.transects[0].points  # (N, 2) x, y
     """
     ps = _pixel_size(dpi, pixel_size_mm)
-    _number(half_width, "half_width", 2, 200, integer=True)
+    _number(half_width, "half_width", MIN_HALF_WIDTH, MAX_HALF_WIDTH, integer=True)
     _number(band, "band", 1e-6, 1.0)
     _number(background_tol, "background_tol", 0.0, 2.0)
     _number(min_ring_px, "min_ring_px", 0.0)
@@ -563,7 +569,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     if fine_scale is not None:
         _number(fine_scale, "fine_scale", 0.05, 0.95)
     _number(narrow_gap, "narrow_gap", 0.0, 10.0)
-    _number(helpers, "helpers", 0, 16, integer=True)
+    _number(helpers, "helpers", 0, MAX_HELPERS, integer=True)
     _number(whole_min_support, "whole_min_support", 0.0, 1.0)
     for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone), ("whole_rings", whole_rings),
                        ("whole_place", whole_place), ("whole_drop", whole_drop)):

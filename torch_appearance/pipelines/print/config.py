@@ -19,6 +19,10 @@ __all__ = ["PrintConfig", "load_inks", "iteration_seed", "RESUME_MAY_CHANGE", "c
 #: device it runs on (a checkpoint holds CPU tensors: a run started on a GPU resumes on the CPU and the other way)
 RESUME_MAY_CHANGE = frozenset({"out", "resume", "iterations", "checkpoint_s", "device"})
 
+#: the largest learning rate admitted: Adagrad's and Adam's first step moves each parameter of the mixture (a logit
+#: under the sigmoid or softmax) by about lr, so at 100 it is already saturated (its gradients vanish)
+MAX_LR = 100.0
+
 #: the schedule of a run by the kind of its target, for the :class:`PrintConfig` fields left at None. Slabs: the
 #: paper's 32 spp, with 300 iterations (a 20 mm ColorChecker slab takes seconds per iteration) and evaluations every
 #: 50 at 128 spp: free of render noise (:mod:`torch_appearance.print_error`) they read the same as at 256 spp every 25
@@ -128,6 +132,9 @@ class PrintConfig:
 
         for name in ("thickness_mm", "dpi", "lr", "shell_mm", "checkpoint_s"):
             positive(name, getattr(self, name))
+        if self.lr > MAX_LR:  # --lr 1e12 was taken: the first step saturated the mixture, then nothing moved
+            raise ValueError(f"lr: expected at most {MAX_LR:g} (a step moves each of the mixture's parameters by "
+                             f"about lr; at {MAX_LR:g} the first one already saturates it), got {self.lr:g}")
         check_device("device", self.device)
         for name in ("spp", "eval_spp", "eval_every", "iterations", "table_steps", "view_size", "view_spp"):
             if getattr(self, name) is not None or name not in SCHEDULES["slab"]:

@@ -20,6 +20,11 @@ MIN_PHOTO_SIDE = 8
 #: admitted: epochs that cannot end within a year even at that pace are refused before any work
 MIN_EPOCH_S = 1e-3
 MAX_JOB_S = 365.25 * 86400
+#: the pixel pitches admitted, mm: a ring is found only when it is at least ~4 px wide, so above 10 mm per pixel the
+#: rings would be 4 cm and wider (wider than trees grow); below 0.1 µm the photo is a micrograph of cell walls
+PIXEL_SIZE_MM_RANGE = (1e-4, 10.0)
+#: the lobes are of the innermost rings (default 4): beyond this many ring widths they would cover the whole board
+MAX_LOBE_RADIUS_RINGS = 50.0
 
 
 @dataclass
@@ -70,6 +75,11 @@ class WoodFitConfig:
         if not (isinstance(self.pixel_size_mm, (int, float)) and math.isfinite(self.pixel_size_mm)
                 and self.pixel_size_mm > 0):
             raise ValueError(f"pixel_size_mm: expected a finite value > 0, got {self.pixel_size_mm!r}")
+        low, high = PIXEL_SIZE_MM_RANGE
+        if not low <= self.pixel_size_mm <= high:  # 1e12 was taken: a board of 1e11 m, its rings metres wide
+            raise ValueError(f"pixel_size_mm: expected {low:g} ... {high:g} mm per pixel (a ring is at least ~4 px "
+                             f"wide: above {high:g} mm per pixel it would be wider than trees grow), got "
+                             f"{self.pixel_size_mm:g}")
         for name in ("epochs", "color_epochs", "photometric_epochs"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
@@ -137,6 +147,9 @@ class WoodFitConfig:
         if not (isinstance(self.lobe_radius_rings, (int, float)) and not isinstance(self.lobe_radius_rings, bool)
                 and math.isfinite(self.lobe_radius_rings) and self.lobe_radius_rings > 0):
             raise ValueError(f"lobe_radius_rings: expected a finite value > 0, got {self.lobe_radius_rings!r}")
+        if self.lobe_radius_rings > MAX_LOBE_RADIUS_RINGS:
+            raise ValueError(f"lobe_radius_rings: expected at most {MAX_LOBE_RADIUS_RINGS:g} ring widths (the lobes "
+                             f"are of the innermost rings), got {self.lobe_radius_rings:g}")
         if self.distortion not in ("radial", "azimuthal"):
             raise ValueError(f"distortion: expected 'radial' or 'azimuthal', got {self.distortion!r}")
         if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):
