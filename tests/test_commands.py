@@ -269,10 +269,11 @@ def test_voxelize_refuses_a_units_guess_it_would_not_apply(tmp_path, monkeypatch
 
 
 def test_voxelize_grid_too_large_names_dpi(tmp_path, monkeypatch):
-    """A grid beyond the memory limit is refused naming --dpi (it read voxel_size:, the library's name)."""
+    """A grid beyond the memory limit is refused naming --dpi (it read voxel_size:, the library's name), in one line
+    without --quiet too (the refusal came after two progress lines)."""
     monkeypatch.chdir(tmp_path)
     spot = os.path.join(ROOT, "tests", "data", "meshes", "spot", "spot_triangulated.obj")
-    rc, _, err = run_command("voxelize", spot, "--height-mm", "5000", "--out", "v", "--no-previews", "--quiet")
+    rc, _, err = run_command("voxelize", spot, "--height-mm", "5000", "--out", "v", "--no-previews")
     line = _one_line(rc, err, "ta-voxelize: error: --dpi: 0.0846667 mm gives a 59058×58113×32423 grid that needs")
     assert "voxel_size" not in line
     assert os.listdir(tmp_path) == []

@@ -35,7 +35,7 @@ import time
 import numpy as np
 
 from torch_appearance import io as ta_io
-from torch_appearance.geometry import load_mesh, voxelize
+from torch_appearance.geometry import check_grid_size, load_mesh, voxelize
 from torch_appearance.geometry.preview import write_previews
 
 from torch_appearance.pipelines.runs import claim_run_folder
@@ -180,19 +180,21 @@ def _voxelize_and_write(args, load_kwargs, progress, flags, state, before):
 def _load_and_voxelize(args, load_kwargs, progress, flags):
     """(object, load report, t0, t1, t2) of the mesh of ``args``, or the exit status of a refusal."""
     try:
-        t0 = time.perf_counter()
-        progress(f"loading {args.model}" + (f" with texture {args.texture}" if args.texture else "") + " …")
+        t0 = time.perf_counter()  # no line before the refusals below: a refused model gets the one line only
         mesh, report = load_mesh(args.model, **load_kwargs)
         t1 = time.perf_counter()
         if args.height_mm is None and args.scale is None and report["units_guess"] != "mm":
             return fail(PROG, units_refusal(report))
+        size = 25.4 / args.dpi
+        check_grid_size(mesh, size)  # a grid too large is refused before any line (it was after two)
         if report.get("hint"):
             progress(f"hint: {in_flags(report['hint'], flags)}")
-        size = 25.4 / args.dpi
         extent = mesh.bounds[1] - mesh.bounds[0]
         dims = " × ".join(str(int(round(e / size))) for e in extent)
-        progress(f"loaded {report.get('triangles')} triangles, colour {report.get('colour')}, {extent[0]:.1f} × "
-                 f"{extent[1]:.1f} × {extent[2]:.1f} mm (x × y × z); voxelising at {size:.4g} mm (about {dims} voxels) …")
+        progress(f"loaded {args.model}" + (f" with texture {args.texture}" if args.texture else "") +
+                 f" in {t1 - t0:.1f} s: {report.get('triangles')} triangles, colour {report.get('colour')}, "
+                 f"{extent[0]:.1f} × {extent[1]:.1f} × {extent[2]:.1f} mm (x × y × z); voxelising at {size:.4g} mm "
+                 f"(about {dims} voxels) …")
         obj = voxelize(mesh, size, shell_mm=args.shell_mm)
         t2 = time.perf_counter()
     except (ValueError, TypeError) as error:

@@ -23,7 +23,7 @@ import torch
 from ..checks import check_int, check_real
 from .surface import surface_attributes
 
-__all__ = ["VoxelObject", "voxelize", "MAX_GRID_BYTES"]
+__all__ = ["VoxelObject", "voxelize", "check_grid_size", "MAX_GRID_BYTES"]
 
 #: Refuse grids whose SDF corners and per-voxel arrays would need more than this (bytes); ``voxelize`` names the
 #: size it would need.
@@ -219,6 +219,30 @@ def _parity_inside(mesh_merged, xs, ys, z0, z_step, nz, rng):
     return inside, todo
 
 
+def check_grid_size(mesh, voxel_size, *, padding=1, max_bytes=MAX_GRID_BYTES):
+    """The (W, H, D) voxel counts of ``mesh``'s grid at ``voxel_size`` (mm) with ``padding`` empty voxels round it;
+    ValueError naming ``voxel_size`` when voxelising it would need more than ``max_bytes`` (what :func:`voxelize`
+    allocates: the corners' float32 SDF, masks and labels, the voxels' occupancy, masks, depth and shell). Cheap: a
+    command asks it before any work.
+
+    Example:
+        >>> import trimesh
+        >>> check_grid_size(trimesh.creation.box((3.0, 2.0, 1.0)), 0.2).tolist()
+        [17, 12, 7]
+    """
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    lo, hi = V.min(0), V.max(0)
+    # (W, H, D); the tolerance keeps an extent of exactly n voxels (3.0 / 0.2 = 15.000000000000002) at n
+    dims = np.ceil((hi - lo) / voxel_size - 1e-9).astype(np.int64) + 2 * padding
+    w, hh, d = (int(n) for n in dims)
+    need = (d + 1) * (hh + 1) * (w + 1) * (4 + 1 + 1 + 4) + d * hh * w * (1 + 1 + 1 + 4 + 1)
+    if need > max_bytes:
+        raise ValueError(f"voxel_size: {voxel_size:g} mm gives a {d}×{hh}×{w} grid that needs about "
+                         f"{need / 2**30:.1f} GiB (limit {max_bytes / 2**30:.1f} GiB); use a larger voxel or a "
+                         f"smaller object")
+    return dims
+
+
 def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_bytes=MAX_GRID_BYTES, seed=0):
     """Voxelise a triangle mesh (mm) at ``voxel_size`` mm.
 
@@ -275,16 +299,9 @@ def voxelize(mesh, voxel_size, *, shell_mm=None, padding=1, band_voxels=3, max_b
 
     V0 = np.asarray(mesh.vertices, dtype=np.float64)
     lo, hi = V0.min(0), V0.max(0)
-    # (W, H, D); the tolerance keeps an extent of exactly n voxels (3.0 / 0.2 = 15.000000000000002) at n
-    dims = np.ceil((hi - lo) / h - 1e-9).astype(np.int64) + 2 * padding
+    dims = check_grid_size(mesh, h, padding=padding, max_bytes=max_bytes)
     origin = lo - padding * h - (dims * h - (hi - lo) - 2 * padding * h) / 2  # centre the object in its grid
     w, hh, d = (int(n) for n in dims)
-    # float32 SDF, candidate and far masks at the corners (+ int32 labels for open meshes); occupancy, border
-    # masks, depth and shell per voxel
-    need = (d + 1) * (hh + 1) * (w + 1) * (4 + 1 + 1 + 4) + d * hh * w * (1 + 1 + 1 + 4 + 1)
-    if need > max_bytes:
-        raise ValueError(f"voxel_size: {h:g} mm gives a {d}×{hh}×{w} grid that needs about {need / 2**30:.1f} GiB "
-                         f"(limit {max_bytes / 2**30:.1f} GiB); use a larger voxel or a smaller object")
     mesh, V, F, closed, fixes = _oriented(mesh)
     lap("prepare")
     band = band_voxels * h
