@@ -13,6 +13,8 @@ OMP_NUM_THREADS=1. The cases:
     out-proc     --out /proc/x (a place where no folder can be made)
     out-file     --out afile/sub (a file on the way)
     sigint       SIGINT once the command is working (every command that writes something)
+    resume       after a SIGINT that left a resumable folder: the command that resumes it (ta-optimize-print
+                 --resume; ta-select-inks the same command again) must end 0 with its output complete
     concurrent   two processes at once to one --out (every command that writes a folder)
     ulimit       ta-optimize-print of a 300² target 10 mm thick (about 4 GiB) under ``ulimit -v`` (import size + 2 GiB)
     help         ``--help`` (exit 0, a usage line on stdout)
@@ -351,6 +353,8 @@ def output_state(command, path, before=None):
         return "complete"
     if command == "ta-optimize-print" and "checkpoint.pt" in names and "config.json" in names:
         return "resumable"
+    if command == "ta-select-inks" and "runs" in names and "summary.json" not in names:
+        return "resumable"  # finished sets keep their summary.json, the running one its checkpoint
     return "partial"
 
 
@@ -390,7 +394,7 @@ def _record(command, case, args, out, rc, err, before=None, note=""):
         problems.append("partial output")
     if rc == 0 and state == "absent" and COMPLETE[command] is not None:
         problems.append("exit 0 without output")
-    if case not in ("ok", "sigint", "concurrent", "help", "numeric") and rc == 0:
+    if case not in ("ok", "sigint", "resume", "concurrent", "help", "numeric") and rc == 0:
         problems.append("bad input accepted")
     if case == "numeric" and rc == 0:
         note = (note + "; " if note else "") + "accepted"
@@ -563,7 +567,16 @@ def trial(commands, work, jobs=2, log=print, sweep=False):
         if COMPLETE[command] is None:
             continue
         out = os.path.join(w, COMMANDS[command] + "_sigint" + (".csv" if command == "ta-detect-rings" else ""))
-        add(run_sigint(command, tiny(command, out, p, long=True), out, ready.get(command)))
+        args = tiny(command, out, p, long=True)
+        rec = run_sigint(command, args, out, ready.get(command))
+        add(rec)
+        if rec["output"] == "resumable":  # what the message promises: the command that resumes it ends complete
+            resumed = run_case(command, "resume", [*args, "--resume"] if command == "ta-optimize-print" else args,
+                               out, timeout_s=600)
+            if resumed["exit"] == 0 and resumed["output"] != "complete":
+                resumed["pass"] = False
+                resumed["problems"].append(f"output {resumed['output']} after the resume")
+            add(resumed)
 
     for command in wanted:
         if COMPLETE[command] in (None, "file"):
@@ -617,6 +630,13 @@ def main(argv=None):
     if unknown:
         p.error(f"--commands: unknown {unknown}; expected some of {list(COMMANDS)}")
     os.makedirs(args.out, exist_ok=True)
+    # the commit under trial, read before the first case (a commit made while it runs is not what it tried), and
+    # whether the working tree differed from it
+    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                           text=True).stdout.strip()
+    commit += " with uncommitted changes" if dirty else ""
     work = tempfile.mkdtemp(prefix="ta-trial-")
     t0 = time.monotonic()
     try:
@@ -626,8 +646,6 @@ def main(argv=None):
             print(f"scratch folder: {work}")
         else:
             shutil.rmtree(work, ignore_errors=True)
-    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
     meta = {"date": datetime.date.today().isoformat(), "commit": commit, "cases": len(records),
             "passed": sum(r["pass"] for r in records), "seconds": time.monotonic() - t0,
             "machine": f"{os.cpu_count()} CPUs, OMP_NUM_THREADS=1",
