@@ -297,6 +297,21 @@ def test_threads_and_chunks_do_not_change_the_result():
     assert torch.get_num_threads() >= 1
 
 
+def test_unrefined_orientation_changes_no_other_field():
+    # refine_orientation=False (disc mode) skips the orientation from the phase image and nothing else
+    img, _ = _straight_rings(40, 48, 0.4, 9.0)
+    img = img + 0.2 * np.random.default_rng(4).standard_normal(img.shape).astype(np.float32)
+    theta = np.full(img.shape, 0.4, np.float32)
+    for th in (None, theta):
+        a = curved_gabor(img, theta=th, p=12, q=8)
+        b = curved_gabor(img, theta=th, p=12, q=8, refine_orientation=False)
+        assert a.orientation is not None and b.orientation is None
+        for name in ("magnitude", "phase", "frequency", "curvature", "theta", "normal"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    with pytest.raises(TypeError, match="refine_orientation"):
+        curved_gabor(img, refine_orientation=1)
+
+
 def test_large_filter_256_p80_q80_is_finite():
     """The issue's size (256², p = q = 80) runs through and gives finite output. Its time is a benchmark target
     (≤ 5 s on 2 idle cores: ``scripts/bench/bench_ring_filters.py``), not a test: a shared machine took 16.5 s."""

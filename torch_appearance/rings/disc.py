@@ -354,8 +354,9 @@ def _strip_boundaries(v, wood, *, period, p_periods, band, p, q, f_max, min_rel_
         theta = _strip_orientation(v, max_tilt_deg)
     calls.append(v.shape)
     vf = v - ndimage.gaussian_filter1d(v, highpass * period, axis=1, mode="nearest") if highpass > 0 else v
+    # the refined orientation (from the phase image) is not read here: not computed
     res = curved_gabor(vf.astype(np.float32), theta=theta, p=p, q=q, freq_range=(1.0 / p, f_max),
-                       normal_reference=(1.0, 0.0), device=device, num_workers=num_workers)
+                       normal_reference=(1.0, 0.0), device=device, num_workers=num_workers, refine_orientation=False)
     yc = (S - 1) / 2.0
     half = max(0.5, band * S / 2.0)
     rows = np.arange(S)[np.abs(np.arange(S) - yc) <= half]

@@ -50,7 +50,8 @@ __all__ = ["GaborResult", "curved_gabor", "curved_gabor_memory_bytes", "curved_g
 
 @dataclass
 class GaborResult:
-    """Per-pixel output of :func:`curved_gabor`; every field is a float32 numpy array.
+    """Per-pixel output of :func:`curved_gabor`; every field is a float32 numpy array (``orientation`` None when not
+    refined).
 
     Attributes:
         magnitude: ``(H, W)`` ``|R|``, the local ring amplitude in image intensity units.
@@ -59,7 +60,8 @@ class GaborResult:
         frequency: ``(H, W)`` local ring frequency across the rings in cycles per pixel (ring spacing ``1/f`` px).
         curvature: ``(H, W)`` absolute ring curvature in radians per pixel (``1/R`` for circles of radius ``R`` px):
             turn of the orientation between the centre and the two ends of the along-contour, divided by ``q``.
-        orientation: ``(H, W)`` refined ring orientation in ``[0, pi)`` computed from the phase image.
+        orientation: ``(H, W)`` refined ring orientation in ``[0, pi)`` computed from the phase image (None when
+            :func:`curved_gabor` was asked not to, ``refine_orientation=False``).
         theta: ``(H, W)`` input ring orientation in ``[0, pi)`` used to build the curved patches.
         normal: ``(H, W, 2)`` unit ``(x, y)`` normal along which ``phase`` increases (the sign convention used).
     """
@@ -273,7 +275,7 @@ def curved_gabor_seconds(shape, p, q, device="cpu", num_workers=None):
 def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float | None = None,
                  sigma_across: float | None = None, device="cpu", *, freq_range: tuple[float, float] | None = None,
                  normal_reference=None, sigma_smooth: float | None = None, window: int | None = None, chunk_size: int = 16384,
-                 num_workers: int | None = None, barrier=None
+                 num_workers: int | None = None, barrier=None, refine_orientation: bool = True
                  ) -> GaborResult:
     """Curved Gabor filter of a grayscale wood image: local ring phase, amplitude, frequency and curvature.
 
@@ -312,9 +314,14 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
             bends the phase of the innermost ring on both sides; with the barrier each side is filtered on its
             own. A pixel whose own value is 0 has no barrier (its curves see both sides). Default None: no
             barrier.
+        refine_orientation: compute the refined ``orientation`` from the phase image
+            (:func:`~torch_appearance.rings.orientation.orientation_from_phase`). False: ``orientation`` is None, and
+            with ``theta`` given the dominant period (which only sets ``sigma_smooth`` / ``window``) is not
+            estimated either; every other field is the same bit for bit (disc mode reads none of the two).
 
     Returns:
-        :class:`GaborResult` with ``(H, W)`` float32 arrays (``normal`` is ``(H, W, 2)``).
+        :class:`GaborResult` with ``(H, W)`` float32 arrays (``normal`` is ``(H, W, 2)``; ``orientation`` None when
+        not ``refine_orientation``).
 
     Raises:
         TypeError: ``gray`` / ``theta`` are not real numeric arrays or tensors.
@@ -333,6 +340,8 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
     chunk_size = _int_at_least(chunk_size, "chunk_size", 1)
     if num_workers is not None:
         num_workers = _int_at_least(num_workers, "num_workers", 1)
+    if not isinstance(refine_orientation, bool):
+        raise TypeError(f"refine_orientation: expected a bool, got {type(refine_orientation).__name__}")
     sigma_along = _positive(sigma_along, "sigma_along", allow_none=True)
     sigma_across = _positive(sigma_across, "sigma_across", allow_none=True)
     if sigma_along is None:
@@ -356,7 +365,8 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
         barrier = _as_image(barrier, "barrier", device=device)
         if barrier.shape != img.shape:
             raise ValueError(f"barrier must have the shape of gray {tuple(img.shape)}; got {tuple(barrier.shape)}")
-    if sigma_smooth is None or window is None:
+    # sigma_smooth and window serve the orientation field (theta None) and its refinement only
+    if (sigma_smooth is None or window is None) and (theta is None or refine_orientation):
         period = _dominant_period(img, f_min, f_max)
         if sigma_smooth is None:
             sigma_smooth = min(4.0, max(1.0, period / 20.0))
@@ -371,7 +381,8 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
             raise ValueError(f"theta must have the shape of gray {tuple(img.shape)}; got {tuple(th.shape)}")
         th = torch.remainder(th, math.pi)
         ref_weight = torch.ones_like(th)
-        _check_params(sigma_smooth, window)  # validate for the refinement step
+        if refine_orientation:
+            _check_params(sigma_smooth, window)  # validate for the refinement step
     c2, s2 = torch.cos(2.0 * th), torch.sin(2.0 * th)
 
     if normal_reference is None:
@@ -487,7 +498,8 @@ def curved_gabor(gray, theta=None, p: int = 80, q: int = 80, sigma_along: float 
 
     phase_np = phase.view(H, W).cpu().numpy()
     mag_np = magnitude.view(H, W).cpu().numpy()
-    orientation, _ = orientation_from_phase(phase_np, sigma_smooth, window, magnitude=mag_np)
+    orientation = orientation_from_phase(phase_np, sigma_smooth, window, magnitude=mag_np)[0] \
+        if refine_orientation else None
     return GaborResult(magnitude=mag_np, phase=phase_np, frequency=frequency.view(H, W).cpu().numpy(),
                        curvature=curvature.view(H, W).cpu().numpy(), orientation=orientation,
                        theta=th.cpu().numpy().astype(np.float32), normal=normal.cpu().numpy().astype(np.float32))
