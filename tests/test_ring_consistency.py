@@ -235,3 +235,60 @@ def test_bad_link_arguments(wide_disc):
         detect_disc_boundaries(rgb, PITH, helpers=-1)
     with pytest.raises(TypeError, match="link"):
         detect_disc_boundaries(rgb, PITH, link="yes")
+
+
+def _trace_curves_naive(E, thetas, starts, smooth=3.0, max_tilt_deg=40.0, snap_px=2):
+    """:func:`trace_curves` written out one start, ray and radius at a time (the slow, obviously right reference)."""
+    J, R = E.shape
+    dth = abs(thetas[1] - thetas[0])
+    tilt = math.tan(math.radians(max_tilt_deg))
+    m = int(min(R - 1, 63, math.ceil(tilt * (R - 1) * dth) + 1))
+    arrive, score, paths = [], [], np.zeros((len(starts), J))
+    for n, r0 in enumerate(starts):
+        S = [-math.inf] * R
+        r0 = int(np.clip(np.round(r0), 0, R - 1))
+        for k in (-1, 0, 1):
+            rr = min(max(r0 + k, 0), R - 1)
+            S[rr] = E[0, rr] - (0.0 if k == 0 else 0.1)
+        back = [[0] * R for _ in range(J)]
+        for j in range(1, J):
+            new = []
+            for r in range(R):
+                arc = max(r * dth, 1e-3)
+                best, arg = -math.inf, 0
+                for k, sh in enumerate(range(-m, m + 1)):  # from r - sh; the first best move wins
+                    pen = smooth * (abs(sh) / arc) if abs(sh) <= tilt * arc + 1.0 else math.inf
+                    val = S[r - sh] - pen if 0 <= r - sh < R else -math.inf
+                    if val > best:
+                        best, arg = val, k
+                new.append(best + E[j, r])
+                back[j][r] = arg
+            S = new
+        cur = int(np.argmax(S))
+        score.append(S[cur] / J)
+        end = cur
+        for j in range(J - 1, -1, -1):
+            paths[n, j] = cur
+            if j > 0:
+                cur = cur - (back[j][cur] - m)
+        lo = min(max(end - snap_px, 0), R - 1)
+        win = [E[-1, min(max(lo + i, 0), R - 1)] for i in range(2 * snap_px + 1)]
+        arrive.append(float(min(max(lo + int(np.argmax(win)), 0), R - 1)))
+    return np.array(arrive), np.array(score), paths
+
+
+def test_trace_curves_matches_the_naive_dynamic_programme():
+    # ridges of equal worth, moves of 2 px forbidden (steeper than the tilt at every radius here), starts at the ends
+    # of the radius range; without a cost per move (smooth 0) most moves tie, and the first best must win as in the
+    # reference
+    rng = np.random.default_rng(7)
+    J, R = 9, 28
+    E = np.where(rng.random((J, R)) < 0.3, 1.0, 0.0)
+    E[:, 10] = 0.95
+    th = np.linspace(0.0, 0.25, J)  # m = 2 at R = 28
+    starts = [0.0, 9.6, 14.5, 27.0]
+    for smooth in (3.0, 0.0):
+        got = trace_curves(E, th, starts, smooth=smooth)
+        ref = _trace_curves_naive(E, th, starts, smooth=smooth)
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)

@@ -90,3 +90,54 @@ def test_disc_mode_traces_whole_rings_and_does_not_place_them_by_default(monkeyp
     calls.clear()
     off = detect_disc_boundaries(rgb, PITH, angles_deg=[0.0, 90.0, 180.0, 270.0], whole_rings=False)
     assert off.info["rings_polar"]["whole"] is None and off.info["whole_rings_seconds"] is None and not calls
+
+
+def _band_trace_naive(Eb, u0, pen, close_px):
+    """:func:`_band_trace` written out one seed, ray and height at a time (the slow, obviously right reference)."""
+    N, J1, B = Eb.shape
+    m = (pen.shape[2] - 1) // 2
+    paths, score = np.zeros((N, J1), dtype=int), np.zeros(N)
+    for n in range(N):
+        S = [-math.inf] * B
+        u = int(np.clip(np.round(u0[n]), 0, B - 1))
+        for k in (-1, 0, 1):
+            uu = min(max(u + k, 0), B - 1)
+            S[uu] = Eb[n, 0, uu] - 0.1 * abs(k)
+        back = [[0] * B for _ in range(J1)]
+        for i in range(1, J1):
+            new = []
+            for v in range(B):
+                best, arg = -math.inf, 0
+                for k in range(2 * m + 1):  # from height v + k - m, a move of m - k; the first best move wins
+                    w = v + k - m
+                    val = S[w] - pen[n, i - 1, k] if 0 <= w < B else -math.inf
+                    if val > best:
+                        best, arg = val, k
+                new.append(best + Eb[n, i, v])
+                back[i][v] = arg
+            S = new
+        S = [s if abs(v - u) <= close_px else -math.inf for v, s in enumerate(S)]
+        cur = int(np.argmax(S))
+        score[n] = S[cur] / J1
+        for i in range(J1 - 1, -1, -1):
+            paths[n, i] = cur
+            if i > 0:
+                cur = cur + back[i][cur] - m
+    return paths, score
+
+
+def test_band_trace_matches_the_naive_dynamic_programme():
+    # small integer responses and symmetric move costs: many ties, which the first best move must break as the
+    # reference does; a band edge of -1 and a seed near the top (moves out of the band are impossible)
+    from torch_appearance.rings.ring_polygons import _band_trace
+    rng = np.random.default_rng(5)
+    N, J1, B, m = 3, 14, 11, 3
+    Eb = rng.integers(0, 3, size=(N, J1, B)).astype(np.float64)
+    Eb[:, :, -2:] = -1.0
+    pen = np.broadcast_to(0.5 * np.abs(np.arange(m, -m - 1, -1)).astype(np.float64), (N, J1 - 1, 2 * m + 1))
+    pen = pen + 0.25 * rng.integers(0, 2, size=(N, J1 - 1, 1))
+    u0 = np.array([2.0, 5.4, 10.0])
+    paths, score = _band_trace(Eb, u0, pen, close_px=2.0)
+    ref_paths, ref_score = _band_trace_naive(Eb, u0, pen, 2.0)
+    np.testing.assert_array_equal(paths, ref_paths)
+    np.testing.assert_array_equal(score, ref_score)

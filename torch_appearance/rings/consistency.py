@@ -160,13 +160,13 @@ def trace_curves(E, thetas, starts, *, smooth=3.0, max_tilt_deg=40.0, snap_px=2)
     better = np.empty((N, R), dtype=bool)
     for j in range(1, J):
         pad[:, m:m + R] = S
-        best.fill(-np.inf)
-        arg = back[j]
-        for k, sh in enumerate(shifts):  # arriving at r from r - sh
-            np.subtract(pad[:, m - sh:m - sh + R], pen[k], out=cand)
+        arg = back[j]  # zeros: the first shift unless a later one is strictly better (the first maximum wins)
+        np.subtract(pad[:, 2 * m:2 * m + R], pen[0], out=best)  # arriving at r from r - shifts[0]
+        for k in range(1, 2 * m + 1):  # arriving at r from r - shifts[k]
+            np.subtract(pad[:, 2 * m - k:2 * m - k + R], pen[k], out=cand)
             np.greater(cand, best, out=better)
-            np.copyto(best, cand, where=better)
-            arg[better] = k
+            np.putmask(arg, better, k)       # (putmask and maximum: 3x faster here than where= / mask indexing)
+            np.maximum(best, cand, out=best)
         np.add(best, E32[j], out=S)
     end = np.argmax(S, axis=1)
     score = S[np.arange(N), end] / J

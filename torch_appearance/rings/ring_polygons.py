@@ -145,13 +145,23 @@ def _band_trace(Eb, u0, pen, close_px):
         S[np.arange(N), np.clip(u0 + k, 0, B - 1)] = Eb[np.arange(N), 0, np.clip(u0 + k, 0, B - 1)] - 0.1 * abs(k)
     back = np.zeros((J1, N, B), dtype=np.int8)
     pad = np.full((N, B + 2 * m), -np.inf)
+    pen_k = np.ascontiguousarray(pen.transpose(1, 2, 0))[..., None]  # (J, 2 m + 1, N, 1)
+    best = np.empty((N, B))
+    cand = np.empty((N, B))
+    better = np.empty((N, B), dtype=bool)
     for i in range(1, J1):
         pad[:, m:m + B] = S
-        # window k of u holds pad[u + k] = S[u + k - m]: arriving at u from u + k - m, a move of m - k
-        win = np.lib.stride_tricks.sliding_window_view(pad, 2 * m + 1, axis=1) - pen[:, i - 1, None, :]
-        k = np.argmax(win, axis=2)
-        back[i] = k
-        S = np.take_along_axis(win, k[..., None], 2)[..., 0] + Eb[:, i]
+        # window k of u holds pad[u + k] = S[u + k - m]: arriving at u from u + k - m, a move of m - k; the first
+        # best window wins (argmax's rule), the windows compared one by one (cheaper here than
+        # sliding_window_view, argmax and take_along_axis over the short window axis; the same numbers)
+        arg = back[i]
+        np.subtract(pad[:, 0:B], pen_k[i - 1, 0], out=best)
+        for k in range(1, 2 * m + 1):
+            np.subtract(pad[:, k:k + B], pen_k[i - 1, k], out=cand)
+            np.greater(cand, best, out=better)
+            np.putmask(arg, better, k)
+            np.maximum(best, cand, out=best)
+        S = best + Eb[:, i]
     uu = np.arange(B)
     S = np.where(np.abs(uu[None, :] - u0[:, None]) <= close_px, S, -np.inf)
     end = np.argmax(S, axis=1)
