@@ -141,3 +141,21 @@ def test_band_trace_matches_the_naive_dynamic_programme():
     ref_paths, ref_score = _band_trace_naive(Eb, u0, pen, 2.0)
     np.testing.assert_array_equal(paths, ref_paths)
     np.testing.assert_array_equal(score, ref_score)
+
+
+def test_a_value_blurred_once_gives_the_same_whole_rings_and_links():
+    # disc mode blurs the photo's value once for the linking and the whole rings (value_blurred=True)
+    from torch_appearance.rings.consistency import blurred_value, link_transects
+    rgb, radius = synthetic_disc(seed=4)
+    value = hsv_value(rgb)
+    radii = [radius(math.radians(a))[:-1].copy() for a in ANGLES]
+    lengths = [float(radius(math.radians(a))[-1]) for a in ANGLES]
+    a = trace_whole_rings(value, PITH, ANGLES, radii, lengths, period_px=11.0)
+    b = trace_whole_rings(blurred_value(value), PITH, ANGLES, radii, lengths, period_px=11.0, value_blurred=True)
+    for key in ("thetas", "rings", "scores", "crossings", "support"):
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    la = link_transects(value, PITH, ANGLES, radii, lengths, period_px=11.0)
+    lb = link_transects(blurred_value(value), PITH, ANGLES, radii, lengths, period_px=11.0, value_blurred=True)
+    for x, y in zip(la, lb):
+        for key in ("radius_px", "inferred", "confirmed", "closed", "closed_crossings"):
+            np.testing.assert_array_equal(x[key], y[key], err_msg=key)

@@ -54,7 +54,14 @@ import math
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["closed_rings", "link_transects", "sector_edges", "trace_curves"]
+__all__ = ["blurred_value", "closed_rings", "link_transects", "sector_edges", "trace_curves"]
+
+
+def blurred_value(value):
+    """The photo's HSV value as the edge maps read it: ``(H, W)`` float64, Gaussian blur of sigma 1 px (border:
+    nearest). :func:`link_transects` and :func:`~torch_appearance.rings.ring_polygons.trace_whole_rings` blur their
+    ``value`` so; a caller of both blurs it once and passes ``value_blurred=True`` (disc mode)."""
+    return ndimage.gaussian_filter(np.asarray(value, dtype=np.float64), 1.0, mode="nearest")
 
 
 def _radial_derivative(value, pith, thetas, R, sigma_px):
@@ -96,6 +103,17 @@ def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_
         ``(E, thetas)``: ``E`` ``(J, R)`` float64 (ray ``j`` at ``thetas[j]``, radius ``0 .. R - 1`` px; 0 outside
         the image), ``thetas[0] = theta_a``, ``thetas[-1] = theta_b`` (not periodic).
     """
+    E, thetas, _ = _sector_edges(value, pith, theta_a, theta_b, r_max, arc_step_px=arc_step_px,
+                                 edge_sigma_px=edge_sigma_px, along_px=along_px, period_px=period_px,
+                                 ridge_level=ridge_level, n_rays=n_rays, periodic=periodic, ridge_px=ridge_px)
+    return E, thetas
+
+
+def _sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px, edge_sigma_px, along_px, period_px,
+                  ridge_level, n_rays, periodic, ridge_px):
+    """:func:`sector_edges` plus the radial derivative it starts from, ``(E, thetas, d)`` with ``d`` ``(J, R)``
+    (:func:`_radial_derivative`, not smoothed along the ring): whether the photo rises outwards, for the closed
+    rings' test, without sampling the rays twice."""
     R = int(math.floor(r_max)) + 1
     if n_rays is None:
         J = max(2, int(math.ceil((theta_b - theta_a) * r_max / arc_step_px)) + 1)
@@ -104,8 +122,8 @@ def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_
         arc_step_px = (theta_b - theta_a) * r_max / (J if periodic else J - 1)
     thetas = np.linspace(theta_a, theta_b, J, endpoint=not periodic)
     along = "wrap" if periodic else "nearest"
-    d, inside = _radial_derivative(value, pith, thetas, R, edge_sigma_px)
-    d = ndimage.gaussian_filter1d(d, along_px / arc_step_px, axis=0, mode=along)
+    d0, inside = _radial_derivative(value, pith, thetas, R, edge_sigma_px)
+    d = ndimage.gaussian_filter1d(d0, along_px / arc_step_px, axis=0, mode=along)
     e = np.where(inside, np.maximum(d, 0.0), 0.0)
     scale = ndimage.gaussian_filter(e, (2.0, period_px), mode=(along, "nearest"))
     E = np.log1p(e / (scale + 1e-6 + 1e-3 * max(float(scale.max()), 1e-12)))
@@ -115,7 +133,7 @@ def sector_edges(value, pith, theta_a, theta_b, r_max, *, arc_step_px=6.0, edge_
     # widened to 3 px with shoulders worth 0.95 of the centre: a curve may ride one pixel beside a ridge, but ties
     # never pull it (or the snap to the largest response) to one side
     E = np.maximum(c, 0.95 * ndimage.maximum_filter1d(c, 3, axis=1, mode="nearest"))
-    return E, thetas
+    return E, thetas, d0
 
 
 def trace_curves(E, thetas, starts, *, smooth=3.0, max_tilt_deg=40.0, snap_px=2):
@@ -210,10 +228,10 @@ def closed_rings(value, pith, angles_rad, r_min, r_max, *, arc_step_px=4.0, smoo
     if not (0 <= r_min < r_max and math.isfinite(r_max)):
         raise ValueError(f"r_min, r_max: expected 0 <= r_min < r_max (finite), got {r_min!r}, {r_max!r}")
     J = max(8, int(math.ceil(2 * math.pi * r_max / arc_step_px)))
-    E, thetas = sector_edges(value, pith, 0.0, 2 * math.pi, r_max, n_rays=J, periodic=True,
-                             edge_sigma_px=edge_sigma_px, along_px=along_px, period_px=period_px,
-                             ridge_level=ridge_level)
-    rise = _radial_derivative(value, pith, thetas, E.shape[1], edge_sigma_px)[0] > 0
+    E, thetas, d = _sector_edges(value, pith, 0.0, 2 * math.pi, r_max, arc_step_px=arc_step_px, n_rays=J,
+                                 periodic=True, edge_sigma_px=edge_sigma_px, along_px=along_px, period_px=period_px,
+                                 ridge_level=ridge_level, ridge_px=5)
+    rise = d > 0
     found, scores = [], []
     for a in np.asarray(angles_rad, dtype=np.float64).reshape(-1):
         j0 = int(round((a % (2 * math.pi)) / (2 * math.pi) * J)) % J
@@ -255,11 +273,13 @@ def _tolerance(pos, x, tol_rings, min_tol_px):
 
 def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_step_px=6.0, smooth=3.0,
                    edge_sigma_px=1.5, along_px=18.0, ridge_level=0.5, max_tilt_deg=40.0, tol_rings=0.3,
-                   min_tol_px=3.0, inner_px=None, agree_px=4.0, closed_px=None, closed_gap=0.5):
+                   min_tol_px=3.0, inner_px=None, agree_px=4.0, closed_px=None, closed_gap=0.5,
+                   value_blurred=False):
     """Confirm and infer ring boundaries across neighbouring transects of one disc (module docstring).
 
     Args:
-        value: ``(H, W)`` HSV value of the photo (float; blurred here with sigma 1 px).
+        value: ``(H, W)`` HSV value of the photo (float; blurred here with sigma 1 px, :func:`blurred_value`, unless
+            ``value_blurred``: then it is that already and used as it is).
         pith: ``(x, y)`` in pixels.
         angles_deg: ``(T,)`` transect directions (degrees from +x towards +y), ``T >= 3``.
         radii: list of ``T`` arrays of boundary radii (px from the pith).
@@ -297,7 +317,7 @@ def link_transects(value, pith, angles_deg, radii, lengths, *, period_px, arc_st
     if T < 3:
         return out
     inner = 0.5 * period_px if inner_px is None else float(inner_px)
-    vb = ndimage.gaussian_filter(np.asarray(value, dtype=np.float64), 1.0, mode="nearest")
+    vb = np.asarray(value, dtype=np.float64) if value_blurred else blurred_value(value)
     ang = np.radians(np.asarray(angles_deg, dtype=np.float64) % 360.0)
     order = np.argsort(ang, kind="stable")
     arrivals = [[] for _ in range(T)]  # per transect: (radius, source transect)

@@ -207,6 +207,11 @@ def _polar_sample(channels, pith, angle_deg, length, half_width):
     return np.stack(out, -1), X, Y
 
 
+def _value(rgb):
+    """The photo's HSV value ``(H, W)`` float32 from its ``(H, W, C)`` channels (C = 1: the channel itself)."""
+    return hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
+
+
 def _background_colour(rgb, tol):
     """Median colour ``(C,)`` of the image border, or None when the border is not one uniform colour (half of its
     pixels, averaged over 9 along the border, farther than ``tol / 2`` from the median: the disc fills the frame,
@@ -596,9 +601,13 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         if pith != "auto":
             raise ValueError(f"pith: expected (x, y) in pixels or 'auto', got {pith!r}")
         from .pith import detect_pith
-        estimate = detect_pith(a)
+        # the pith is found on the photo's HSV value (detect_pith's own first step), kept for the linking below
+        value = _value(rgb)
+        estimate = detect_pith(value)
         pith = estimate.xy
         pith_info = dict(auto=True, xy=estimate.xy.copy(), sigma_px=estimate.sigma_px)
+    else:
+        value = None
     c = _check_pith(pith, (H, W))
     dirs = []  # (angle_deg, requested length)
     if angles_deg is not None:
@@ -744,12 +753,14 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     link_s, rings_polar, whole_s = None, None, None
     usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
     if link and len(usable) >= 3:
-        from .consistency import link_transects
+        from .consistency import blurred_value, link_transects
         t0 = time.perf_counter()
-        value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
+        # one blurred value for the linking and the whole rings (both read it so)
+        vb = blurred_value(_value(rgb) if value is None else value)
         lengths = [prepared[k][4] if prepared[k][4] is not None else prepared[k][5] - 1 for k in usable]
-        linked = link_transects(value, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable], lengths,
-                                period_px=found[usable[0]][1]["period_px"], closed_px=None if trace_closed else 0.0)
+        linked = link_transects(vb, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable], lengths,
+                                period_px=found[usable[0]][1]["period_px"], closed_px=None if trace_closed else 0.0,
+                                value_blurred=True)
         for k, lk in zip(usable, linked):
             found[k] = (lk["radius_px"], found[k][1])
             inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
@@ -764,8 +775,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         if whole_rings:
             from .ring_polygons import place_whole_rings, trace_whole_rings
             period = found[usable[0]][1]["period_px"]
-            wr = trace_whole_rings(value, c, rings_polar["angles_deg"], [found[k][0] for k in usable], lengths,
-                                   period_px=period)
+            wr = trace_whole_rings(vb, c, rings_polar["angles_deg"], [found[k][0] for k in usable], lengths,
+                                   period_px=period, value_blurred=True)
             rings_polar["whole"] = wr
             for i, k in enumerate(usable):
                 pos0 = found[k][0]

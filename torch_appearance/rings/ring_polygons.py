@@ -168,17 +168,18 @@ def _band_trace(Eb, u0, pen, close_px):
     score = S[np.arange(N), end] / J1
     paths = np.zeros((N, J1), dtype=int)
     cur = end.copy()
+    nn = np.arange(N)
     for i in range(J1 - 1, -1, -1):
         paths[:, i] = cur
         if i > 0:
-            cur = cur + back[i, np.arange(N), cur].astype(int) - m
+            cur = cur + back[i, nn, cur].astype(int) - m
     return paths, score
 
 
 def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc_step_px=6.0, edge_sigma_px=1.0,
                       along_px=10.0, ridge_level=0.5, smooth=8.0, max_step_px=3, gap_px=2.0, close_px=3.0,
                       min_score=0.6, min_rise=0.85, tol_rings=0.3, min_tol_px=3.0, inner_px=None, anchor=2.0,
-                      pressure=0.05, ridge_px=3):
+                      pressure=0.05, ridge_px=3, value_blurred=False):
     """Every ring of a disc as a closed curve round the pith, traced outwards one ring at a time (issue 48).
 
     The whole circle is one polar edge map (:func:`~torch_appearance.rings.consistency.sector_edges`, periodic,
@@ -205,7 +206,9 @@ def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc
     the TRAS discs (3000 x 3200 px, 8 transects, 21 - 22 rings) 10 - 30 s on a loaded machine.
 
     Args:
-        value: ``(H, W)`` HSV value of the photo (blurred here with sigma 1 px).
+        value: ``(H, W)`` HSV value of the photo (blurred here with sigma 1 px,
+            :func:`~torch_appearance.rings.consistency.blurred_value`, unless ``value_blurred``: then it is that already
+            and used as it is).
         pith: ``(x, y)`` pixels.
         angles_deg: ``(T,)`` transect directions (degrees from +x towards +y).
         radii: ``T`` arrays of boundary radii (px) on the transects.
@@ -221,9 +224,7 @@ def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc
     """
     import time
 
-    from scipy import ndimage
-
-    from .consistency import _radial_derivative, _snap_to_ridge, sector_edges
+    from .consistency import _sector_edges, _snap_to_ridge, blurred_value
 
     t0 = time.perf_counter()
     T = len(angles_deg)
@@ -236,11 +237,12 @@ def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc
     inner = 0.5 * period_px if inner_px is None else float(inner_px)
     r_max = float(lengths.max())
     J = max(16, int(math.ceil(2 * math.pi * r_max / arc_step_px)))
-    vb = ndimage.gaussian_filter(np.asarray(value, np.float64), 1.0, mode="nearest")
-    E, thetas = sector_edges(vb, pith, 0.0, 2 * math.pi, r_max, n_rays=J, periodic=True, edge_sigma_px=edge_sigma_px,
-                             along_px=along_px, period_px=period_px, ridge_level=ridge_level, ridge_px=ridge_px)
+    vb = np.asarray(value, np.float64) if value_blurred else blurred_value(value)
+    E, thetas, d = _sector_edges(vb, pith, 0.0, 2 * math.pi, r_max, arc_step_px=arc_step_px, n_rays=J,
+                                 periodic=True, edge_sigma_px=edge_sigma_px, along_px=along_px, period_px=period_px,
+                                 ridge_level=ridge_level, ridge_px=ridge_px)
     R = E.shape[1]
-    rise = _radial_derivative(vb, pith, thetas, R, edge_sigma_px)[0] > 0
+    rise = d > 0                                                          # the photo rises outwards (unsmoothed)
     ang = np.radians(np.asarray(angles_deg, np.float64)) % (2 * math.pi)
     o = np.argsort(ang)
     lim = np.interp(thetas, ang[o], lengths[o], period=2 * math.pi)       # the wood's edge round the disc
@@ -251,6 +253,7 @@ def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc
     for t in range(T):
         used[t] |= (radii[t] < inner) | (radii[t] > lengths[t] - 1)
     prev = np.full(J, int(math.ceil(inner)))                              # the last ring found (integer px)
+    E_ext = np.pad(E, ((0, 0), (0, R)), mode="edge")                      # room for a band beyond the edge map
     rings, scores = [], []
     shifts = np.arange(max_step_px, -max_step_px - 1, -1)                 # window k: a move of m - k
     ii = np.arange(J + 1)
@@ -266,9 +269,12 @@ def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc
         B = int(min(R, max(16, math.ceil(2.5 * max(s[2] for s in seeds) + 3 * close_px + 2))))
         rays = (jt[[s[0] for s in seeds]][:, None] + ii[None, :]) % J       # (N, J + 1)
         base = prev[rays] + int(gap_px)                                    # radius of u = 0
-        r_abs = base[..., None] + np.arange(B)[None, None, :]              # (N, J + 1, B)
-        inside = r_abs <= lim[rays][..., None]
-        Eb = np.where(inside, E[rays[..., None], np.minimum(r_abs, R - 1)], -1.0)
+        # the band of every ray: B radii from its base, copied as rows (the edge map runs on past the image; those
+        # radii lie beyond the wood's edge and read -1)
+        if int(base.max()) + B > E_ext.shape[1]:
+            E_ext = np.pad(E, ((0, 0), (0, int(base.max()) + B - R)), mode="edge")
+        Eb = np.lib.stride_tricks.sliding_window_view(E_ext, B, axis=1)[rays, base]    # (N, J + 1, B)
+        np.putmask(Eb, np.arange(B)[None, None, :] > (lim[rays] - base)[..., None], -1.0)
         u0 = np.array([s[2] for s in seeds])
         # a little pressure towards the inner ring (the next ring is the nearest one that closes) ...
         Eb -= pressure * np.arange(B)[None, None, :] / np.maximum(u0, 2.0)[:, None, None]
