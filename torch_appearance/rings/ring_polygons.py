@@ -143,36 +143,37 @@ def _band_trace(Eb, u0, pen, close_px):
     u0 = np.clip(np.round(u0).astype(int), 0, B - 1)
     for k in (-1, 0, 1):
         S[np.arange(N), np.clip(u0 + k, 0, B - 1)] = Eb[np.arange(N), 0, np.clip(u0 + k, 0, B - 1)] - 0.1 * abs(k)
-    back = np.zeros((J1, N, B), dtype=np.int8)
     pad = np.full((N, B + 2 * m), -np.inf)
     pen_k = np.ascontiguousarray(pen.transpose(1, 2, 0))[..., None]  # (J, 2 m + 1, N, 1)
     best = np.empty((N, B))
     cand = np.empty((N, B))
-    better = np.empty((N, B), dtype=bool)
+    hist = np.empty((J1, N, B))  # the best scores on every ray; the moves are recovered on the path only
+    hist[0] = S
     for i in range(1, J1):
-        pad[:, m:m + B] = S
-        # window k of u holds pad[u + k] = S[u + k - m]: arriving at u from u + k - m, a move of m - k; the first
-        # best window wins (argmax's rule), the windows compared one by one (cheaper here than
-        # sliding_window_view, argmax and take_along_axis over the short window axis; the same numbers)
-        arg = back[i]
+        pad[:, m:m + B] = hist[i - 1]
+        # window k of u holds pad[u + k] = S[u + k - m]: arriving at u from u + k - m, a move of m - k; the windows
+        # compared one by one (cheaper here than sliding_window_view and a reduction over the short window axis)
         np.subtract(pad[:, 0:B], pen_k[i - 1, 0], out=best)
         for k in range(1, 2 * m + 1):
             np.subtract(pad[:, k:k + B], pen_k[i - 1, k], out=cand)
-            np.greater(cand, best, out=better)
-            np.putmask(arg, better, k)
             np.maximum(best, cand, out=best)
-        S = best + Eb[:, i]
+        np.add(best, Eb[:, i], out=hist[i])
     uu = np.arange(B)
-    S = np.where(np.abs(uu[None, :] - u0[:, None]) <= close_px, S, -np.inf)
+    S = np.where(np.abs(uu[None, :] - u0[:, None]) <= close_px, hist[-1], -np.inf)
     end = np.argmax(S, axis=1)
     score = S[np.arange(N), end] / J1
     paths = np.zeros((N, J1), dtype=int)
     cur = end.copy()
     nn = np.arange(N)
+    ks = np.arange(2 * m + 1)
     for i in range(J1 - 1, -1, -1):
         paths[:, i] = cur
         if i > 0:
-            cur = cur + back[i, nn, cur].astype(int) - m
+            # the move into the path's height on ray i, as the forward pass scored it; the first best wins
+            src = cur[:, None] + ks[None, :] - m                                     # (N, 2 m + 1)
+            ok = (src >= 0) & (src < B)
+            came = np.where(ok, hist[i - 1][nn[:, None], np.clip(src, 0, B - 1)], -np.inf) - pen[:, i - 1, :]
+            cur = cur + np.argmax(came, axis=1) - m
     return paths, score
 
 
