@@ -204,7 +204,8 @@ def trace_whole_rings(value, pith, angles_deg, radii, lengths, *, period_px, arc
     used up and the next ones tried. The band ends at the wood's edge (``lengths`` interpolated round the disc).
 
     Cost: one band of ``J x B`` per round (``J`` rays, ``B`` about 2.5 ring widths), vectorised over the seeds; on
-    the TRAS discs (3000 x 3200 px, 8 transects, 21 - 22 rings) 10 - 30 s on a loaded machine.
+    the TRAS discs (3000 x 3200 px, 8 transects, 21 - 22 rings) 3 - 4 CPU s (5 before issue 48 item 5's
+    speed-ups, 10 - 30 s wall on a loaded machine; ``docs/bench_log.md``).
 
     Args:
         value: ``(H, W)`` HSV value of the photo (blurred here with sigma 1 px,
