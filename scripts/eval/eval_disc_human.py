@@ -206,6 +206,8 @@ def main(argv=None):
                    help="do not trace the rings near the pith as closed curves (detect_disc_boundaries(closed=False))")
     p.add_argument("--no-whole-rings", action="store_true",
                    help="do not trace the rings round the disc (detect_disc_boundaries(whole_rings=False))")
+    p.add_argument("--pith-edge", action="store_true",
+                   help="put the pith's own edge on every transect (detect_disc_boundaries(pith_edge=True))")
     p.add_argument("--helpers", type=int, default=1,
                    help="helper transects between neighbouring transects when linking (default: %(default)s)")
     p.add_argument("--match", choices=("2d", "radial"), default="2d",
@@ -227,7 +229,7 @@ def main(argv=None):
                                      half_width=args.half_width,
                                      edge_level=args.edge_level, include_edge=args.include_edge,
                                      link=not args.no_link, helpers=args.helpers, closed=not args.no_closed,
-                                     whole_rings=not args.no_whole_rings))
+                                     whole_rings=not args.no_whole_rings, pith_edge=args.pith_edge))
         except (OSError, ValueError) as e:
             print(f"{PROG}: error: {disc}: {e}", file=sys.stderr)
             return 2

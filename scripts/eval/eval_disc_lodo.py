@@ -49,6 +49,10 @@ CANDIDATES = {
     "whole_place": {"off": {}, "on": dict(whole_place=True)},  # "on" the default at 8b360e1 (disc_lodo_whole_rings)
     "whole_drop": {"on": {}, "off": dict(whole_drop=False)},
     "whole_support": {"0.5": {}, "0.75": dict(whole_min_support=0.75)},
+    # the pith's own edge put on every transect as ring 0 (issue 48 item 3), and the share of the circle it must
+    # rise round
+    "pith_edge": {"off": {}, "on": dict(pith_edge=True), "on, support 0.9": dict(pith_edge=True,
+                                                                                   pith_edge_min_support=0.9)},
 }
 
 

@@ -18,9 +18,10 @@ Each ring boundary is then followed round the disc to the neighbouring transects
 transects between them); a ring that the curves from both neighbours agree on and that the transect missed is
 added as inferred (torch_appearance.rings.consistency; --no-link to turn this off).
 Writes one CSV with columns transect,angle_deg,index,kind,x_px,y_px,radius_px,width_px,width_mm (kind: ring,
-inferred, or edge for the disc edge with --edge), the whole rings that close round the disc as labelme-style JSON
-polygons (--rings, default NAME_rings.json beside --out; torch_appearance.rings.ring_polygons) and one overlay with
-all transects (inferred boundaries: a tick with a dot) and the rings' polygons.
+inferred, pith_edge for the pith's own edge with --pith-edge, or edge for the disc edge with --edge), the whole rings
+that close round the disc as labelme-style JSON polygons (--rings, default NAME_rings.json beside --out;
+torch_appearance.rings.ring_polygons) and one overlay with all transects (inferred boundaries: a tick with a dot) and
+the rings' polygons.
 Section mode (--mode section): a stained microscopy cross-section; writes the boundary polyline (index,x_px,y_px,
 about 1 px apart; header only if none was found); --cell-px is the typical cell diameter in pixels.
 
@@ -77,6 +78,10 @@ def parse_args(argv=None):
     p.add_argument("--rings", default=None,
                    help="disc mode: the whole rings (closed curves chained round the disc from the linked transects) "
                         "as labelme-style JSON polygons (default: beside --out, NAME_rings.json); drawn on --overlay")
+    p.add_argument("--pith-edge", action="store_true",
+                   help="disc mode: find the pith's own edge as a closed curve round the pith and put it on every "
+                        "transect as the innermost boundary (kind pith_edge), dropping boundaries inside it; off by "
+                        "default (it gained on one human-labelled disc and lost on the other)")
     p.add_argument("--no-link", action="store_true",
                    help="disc mode: do not follow the rings between transects (no inferred rings)")
     p.add_argument("--helpers", type=int, default=1,
@@ -205,7 +210,8 @@ _COLOURS = [(0, 0, 255), (0, 200, 0), (255, 128, 0), (255, 0, 255), (0, 200, 255
 def disc_overlay_png(rgb, res, polygons=()):
     """PNG bytes of the disc with the whole rings' polygons (yellow and magenta in turn), each transect (its own
     colour), a tick across it at every boundary (with a dot when inferred from the neighbouring transects, a circle
-    at the edge) and its number at the outer end; the pith is a white cross."""
+    at the edge) and its number at the outer end; the pith is a white cross, the pith's edge (``--pith-edge``) a white
+    curve round it."""
     img = np.ascontiguousarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
     draw_ring_polygons(img, polygons)
     h, w = img.shape[:2]
@@ -227,6 +233,11 @@ def disc_overlay_png(rgb, res, polygons=()):
                     cv2.circle(img, (int(round(x)), int(round(y))), thick + 1, col, -1)
         pos = (int(np.clip(end[0], 0, w - 30)), int(np.clip(end[1], 15, h - 5)))
         cv2.putText(img, str(k), pos, cv2.FONT_HERSHEY_SIMPLEX, 0.5 * thick, col, thick)
+    pe = res.info.get("pith_edge")
+    if pe is not None and pe["found"]:  # the pith's edge round the pith (--pith-edge), white
+        pts = np.c_[c[0] + pe["radius"] * np.cos(pe["thetas"]), c[1] + pe["radius"] * np.sin(pe["thetas"])]
+        cv2.polylines(img, [np.round(pts).astype(np.int32).reshape(-1, 1, 2)], True, (255, 255, 255), thick,
+                      cv2.LINE_AA)
     cx, cy = int(round(c[0])), int(round(c[1]))
     cv2.drawMarker(img, (cx, cy), (255, 255, 255), cv2.MARKER_CROSS, 4 * tick, thick)
     ok, buf = cv2.imencode(".png", img)
@@ -266,7 +277,8 @@ def run_disc(args, rgb):
         try:
             res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
                                          half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,
-                                         link=not args.no_link, helpers=args.helpers, progress=progress)
+                                         link=not args.no_link, helpers=args.helpers, pith_edge=args.pith_edge,
+                                         progress=progress)
             polygons = ring_polygons(res)
             png = disc_overlay_png(rgb, res, polygons) if args.overlay else None
         except ValueError as e:

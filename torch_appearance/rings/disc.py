@@ -85,6 +85,16 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    of the rings it placed there were on no human ring), so it is off. On the independent synthetic discs neither
    changes a boundary. Figures: ``docs/bench_log.md`` (issue 48, whole rings).
 
+8. **The pith's edge** (``pith_edge``, off by default). The pith, or the first year's wood round it, often ends in a
+   sharp dark -> light step a few px out (on C13C 15 - 17 px, inside the quarter ring period where the transects
+   find nothing), which people mark as the innermost boundary. It is found as one closed curve round the pith
+   (:func:`~torch_appearance.rings.pith_region.pith_edge`: a polar edge map within half a ring period of the pith
+   and a closed dynamic programme round it) and, when it is a rise round most of the circle as sharp as the rings
+   nearby, put on every transect as ring 0 with the boundaries inside it dropped
+   (:func:`~torch_appearance.rings.pith_region.place_pith_edge`). Leave-one-disc-out on the TRAS discs it gained on
+   C13C and lost on C17C (there it found the 6 px edge of the dark pith, which the people marked on one transect of
+   four), so it stays off; figures in ``docs/bench_log.md`` (issue 48, the pith's edge).
+
 The cost is ``O(n_transects * R * (2 half_width + 1) * (p + q))`` (about 1.5 times that with the fine pass, twice
 that again with one helper transect between neighbours) instead of ``O(n_transects * H W (p + q))``.
 """
@@ -113,7 +123,8 @@ class DiscBoundaries:
         pith: ``(2,)`` float64 ``(x, y)`` pith position in pixels.
         transects: list of :class:`~torch_appearance.rings.dendro.RingBoundaries`, one per transect, points
             ordered pith -> bark; ``info["kind"]`` is a list of ``"ring"`` / ``"inferred"`` (from the neighbouring
-            transects) / ``"edge"`` per point, ``info["radius_px"]`` the distance of each point from the pith,
+            transects) / ``"pith_edge"`` (the pith's own edge, ``pith_edge``) / ``"edge"`` per point,
+            ``info["radius_px"]`` the distance of each point from the pith,
             ``info["confirmed"]`` (per ring or inferred point: a neighbour's ring curve met it) and
             ``info["moved_px"]`` (``(from, to)`` radii of boundaries moved onto their ring's curve),
             ``info["closed"]`` (per point: inferred from a closed ring round the pith), ``info["dropped_px"]``
@@ -123,7 +134,8 @@ class DiscBoundaries:
         angles_deg: ``(T,)`` transect directions in degrees (from +x towards +y, i.e. clockwise on screen).
         info: ``filtered_px`` (pixels passed to the Gabor filter, all transects), ``filter_calls``, background,
             ``pith`` (``auto``, ``xy``, ``sigma_px``: the automatic pith's jackknife standard error, or None),
-            ``helpers_deg`` (the helper transects' angles), ``link_seconds`` (None when not linked).
+            ``helpers_deg`` (the helper transects' angles), ``link_seconds`` (None when not linked), ``pith_edge``
+            (None, or :func:`~torch_appearance.rings.pith_region.pith_edge`'s curve, support, contrast, ``found``).
     """
 
     pith: np.ndarray
@@ -488,7 +500,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            p_periods: float = 2.0, highpass_periods: float = 1.0, fine_scale: float | None = 0.5,
                            narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
                            bark_zone: bool = True, whole_rings: bool = True, whole_place: bool = False,
-                           whole_drop: bool = True, whole_min_support: float = 0.5, device="cpu",
+                           whole_drop: bool = True, whole_min_support: float = 0.5, pith_edge: bool = False,
+                           pith_edge_min_support: float = 0.75, device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -537,6 +550,13 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             miss it (kind ``"inferred"``, ``info["whole"]``; off by default: leave-one-disc-out it helped C13C and
             hurt C17C); only rings found on at least ``whole_min_support`` of the transects act so
             (:func:`~torch_appearance.rings.ring_polygons.place_whole_rings`).
+        pith_edge: find the pith's own edge as a closed curve round the pith
+            (:func:`~torch_appearance.rings.pith_region.pith_edge`, module docstring step 8) and, when it is found
+            (a rise round at least ``pith_edge_min_support`` of the circle, as sharp as the rings nearby), put it on
+            every transect as its innermost boundary (kind ``"pith_edge"``) and drop the boundaries inside it
+            (``info["dropped_px"]``); ``info["pith_edge"]`` holds the curve. Off by default: leave-one-disc-out on
+            the TRAS discs it gained on C13C (whose people marked the pith's edge) and lost on C17C (whose people did
+            not, on 3 of 4 transects).
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.
@@ -577,8 +597,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     _number(narrow_gap, "narrow_gap", 0.0, 10.0)
     _number(helpers, "helpers", 0, MAX_HELPERS, integer=True)
     _number(whole_min_support, "whole_min_support", 0.0, 1.0)
+    _number(pith_edge_min_support, "pith_edge_min_support", 0.0, 1.0)
     for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone), ("whole_rings", whole_rings),
-                       ("whole_place", whole_place), ("whole_drop", whole_drop)):
+                       ("whole_place", whole_place), ("whole_drop", whole_drop), ("pith_edge", pith_edge)):
         if not isinstance(flag, bool):
             raise TypeError(f"{name}: expected a bool, got {type(flag).__name__}")
     trace_closed = closed  # (the name ``closed`` holds the per-transect flags below)
@@ -750,6 +771,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     closed_x = [np.zeros(0) for _ in found]
     dropped = [[] for _ in found]
     whole = [np.zeros(len(f[0]), bool) for f in found]
+    pithed = [np.zeros(len(f[0]), bool) for f in found]  # the pith's edge placed (pith_edge)
     link_s, rings_polar, whole_s = None, None, None
     usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
     if link and len(usable) >= 3:
@@ -792,6 +814,26 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 whole[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
                 dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
             whole_s = wr["seconds"]
+    pith_region = None
+    if pith_edge and usable:
+        from .pith_region import pith_edge as find_pith_edge, place_pith_edge
+        value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
+        pe = find_pith_edge(value, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable],
+                            period_px=found[usable[0]][1]["period_px"], min_support=pith_edge_min_support)
+        pith_region = {k_: v_ for k_, v_ in pe.items() if k_ != "crossings"}
+        if pe["found"]:
+            for i, k in enumerate(usable):
+                pos0 = found[k][0]
+                keep, new = place_pith_edge(pos0, pe["crossings"][i])
+                o = np.argsort(np.r_[pos0[keep], new], kind="stable")
+                ones, zeros = np.ones(len(new), bool), np.zeros(len(new), bool)
+                found[k] = (np.r_[pos0[keep], new][o], found[k][1])
+                inferred[k] = np.r_[np.asarray(inferred[k], bool)[keep], zeros][o]
+                confirmed[k] = np.r_[np.asarray(confirmed[k], bool)[keep], zeros][o]
+                closed[k] = np.r_[np.asarray(closed[k], bool)[keep], zeros][o]
+                whole[k] = np.r_[np.asarray(whole[k], bool)[keep], zeros][o]
+                pithed[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
+                dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
     out, ends_out = [], []
     for k in range(n_req):
         deg, u, v, wd, edge, Lc = prepared[k]
@@ -802,7 +844,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                                       pixel_size_mm=ps, info=dict(kind=[], radius_px=np.zeros(0), angle_deg=deg)))
             ends_out.append(c.copy())
             continue
-        kinds = ["inferred" if f else "ring" for f in inferred[k]]
+        kinds = ["pith_edge" if pe_ else "inferred" if f else "ring" for f, pe_ in zip(inferred[k], pithed[k])]
         conf, clos, wh = np.asarray(confirmed[k], bool), np.asarray(closed[k], bool), np.asarray(whole[k], bool)
         if include_edge and edge is not None:
             # the wood's edge is the last ring's outer boundary; a boundary within 3 px inside it (a ring step or
@@ -821,7 +863,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     info = dict(filtered_px=int(sum(s[0] * s[1] for s in calls)), filter_calls=len(calls), background=bg,
                 image_px=H * W, pith=pith_info or dict(auto=False, xy=c.copy(), sigma_px=None),
                 helpers_deg=np.array([d for d, _ in dirs[n_req:]]), link_seconds=link_s, whole_rings_seconds=whole_s,
-                rings_polar=rings_polar)
+                rings_polar=rings_polar, pith_edge=pith_region)
     return DiscBoundaries(pith=c, transects=out, ends=np.array(ends_out).reshape(-1, 2),
                           angles_deg=np.array([d for d, _ in dirs[:n_req]]), info=info)
 

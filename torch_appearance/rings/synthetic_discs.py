@@ -54,7 +54,8 @@ class SyntheticDisc:
         rgb: ``(H, W, 3)`` float32 in [0, 1].
         pith: ``(2,)`` ``(x, y)`` pixels.
         phis: ``(A,)`` angles (radians, from +x towards +y) at which the boundaries are tabulated.
-        radii: ``(K, A)`` boundary ``k``'s distance from the pith at each angle (the last row: the wood's edge).
+        radii: ``(K, A)`` boundary ``k``'s distance from the pith at each angle (the last row: the wood's edge;
+            with ``pith_px`` the first row the pith's edge).
         info: the options used.
     """
 
@@ -82,7 +83,7 @@ def _smooth_periodic(rng, A, harmonics, amplitude):
 def make_disc(*, size=(560, 560), n_rings=20, inner_width_px=30.0, outer_width_px=3.0, contrast_inner=0.30,
               contrast_outer=0.10, pith_frac=(0.5, 0.5), one_sided=0.12, wobble=0.08, bark="none",
               bark_px=12.0, blur_px=0.0, jpeg_quality=None, light_gradient=0.0, vignette=0.0, crack=False,
-              noise=0.015, background=(0.93, 0.93, 0.92), seed=0, ss=2) -> SyntheticDisc:
+              noise=0.015, background=(0.93, 0.93, 0.92), pith_px=0.0, seed=0, ss=2) -> SyntheticDisc:
     """One synthetic disc photo (module docstring).
 
     Args:
@@ -103,6 +104,9 @@ def make_disc(*, size=(560, 560), n_rings=20, inner_width_px=30.0, outer_width_p
         crack: a radial crack (background colour) from the bark inwards to 35 % of the radius.
         noise: Gaussian pixel noise.
         background: colour around the disc.
+        pith_px: a dark pith of about this radius (px; 0: none), as dark as the first ring's latewood and modulated
+            round the disc like the rings; its edge (a sharp dark -> light step inside the first ring) is then the
+            first boundary (``radii[0]``), and ``info["pith_radii"]`` holds it. At most half the first ring's width.
         seed: random seed.
         ss: supersampling per axis.
 
@@ -116,9 +120,12 @@ def make_disc(*, size=(560, 560), n_rings=20, inner_width_px=30.0, outer_width_p
         raise ValueError(f"n_rings: expected an integer >= 2, got {n_rings!r}")
     for name, v, lo in (("inner_width_px", inner_width_px, 1.0), ("outer_width_px", outer_width_px, 1.0),
                         ("contrast_inner", contrast_inner, 0.0), ("contrast_outer", contrast_outer, 0.0),
-                        ("blur_px", blur_px, 0.0), ("noise", noise, 0.0), ("bark_px", bark_px, 0.0)):
+                        ("blur_px", blur_px, 0.0), ("noise", noise, 0.0), ("bark_px", bark_px, 0.0),
+                        ("pith_px", pith_px, 0.0)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= lo):
             raise ValueError(f"{name}: expected a finite number >= {lo:g}, got {v!r}")
+    if pith_px > 0.5 * inner_width_px:
+        raise ValueError(f"pith_px: expected at most half of inner_width_px ({0.5 * inner_width_px:g}), got {pith_px!r}")
     if bark not in ("none", "dark", "light"):
         raise ValueError(f"bark: expected 'none', 'dark' or 'light', got {bark!r}")
     if jpeg_quality is not None and not (isinstance(jpeg_quality, int) and 1 <= jpeg_quality <= 100):
@@ -156,6 +163,11 @@ def make_disc(*, size=(560, 560), n_rings=20, inner_width_px=30.0, outer_width_p
     kk = np.minimum(k, n_rings - 1)
     lw = 1.0 / (1.0 + np.exp(-(f - (1 - late_frac[kk])) / softness[kk]))
     value = (0.80 + 0.06 * f) * (1 - contrast[kk] * lw)
+    pith_radii = None
+    if pith_px > 0:  # a dark pith, its edge modulated round the disc as the first ring is
+        pith_radii = pith_px * widths[0] / base_w[0]
+        pr = (pith_radii[a0] * (1 - t) + pith_radii[a1] * t).reshape(-1)
+        value = np.where(rf < pr, 0.80 * (1 - contrast[0]), value)
     # fibre streaks along the radius and speckle (texture of the wood, not of the rings)
     n_streak = _smooth_periodic(rng, 2048, 200, 0.02)
     value = value * (1 + n_streak[(phi.reshape(-1) / (2 * math.pi) * 2048).astype(int) % 2048])
@@ -195,7 +207,10 @@ def make_disc(*, size=(560, 560), n_rings=20, inner_width_px=30.0, outer_width_p
         rgb = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float64) / 255.0
     info = dict(n_rings=n_rings, inner_width_px=inner_width_px, outer_width_px=outer_width_px,
                 contrast_inner=contrast_inner, contrast_outer=contrast_outer, bark=bark, blur_px=blur_px,
-                jpeg_quality=jpeg_quality, light_gradient=light_gradient, vignette=vignette, crack=crack, seed=seed)
+                jpeg_quality=jpeg_quality, light_gradient=light_gradient, vignette=vignette, crack=crack, seed=seed,
+                pith_px=pith_px, pith_radii=pith_radii)
+    if pith_radii is not None:
+        radii = np.concatenate([pith_radii[None], radii], 0)
     return SyntheticDisc(rgb=rgb.astype(np.float32), pith=pith, phis=phis, radii=radii, info=info)
 
 

@@ -1,0 +1,76 @@
+"""The pith's own edge as a closed curve round the pith (rings.pith_region, issue 48 item 3), on synthetic discs of
+rings.synthetic_discs with a dark pith of known edge (``make_disc(pith_px=...)``): found where it is, not found where
+there is none, placed on every transect by disc mode as ring 0 (inside the quarter ring period where the transects
+themselves find nothing)."""
+import math
+
+import numpy as np
+import pytest
+
+from torch_appearance.rings.dendro import hsv_value
+from torch_appearance.rings.disc import detect_disc_boundaries
+from torch_appearance.rings.pith_region import pith_edge, place_pith_edge
+from torch_appearance.rings.synthetic_discs import make_disc
+
+ANGLES = (20.0, 110.0, 200.0, 290.0)
+# rings 40 -> 20 px wide: the disc's ring period is about 30 px, so disc mode drops everything within 7.5 px of the
+# pith, and a pith edge at about 6 px is found by nothing but the pith region's model
+WIDE = dict(size=(300, 300), n_rings=5, inner_width_px=40.0, outer_width_px=20.0)
+
+
+def _edge(disc, **kw):
+    truth = [disc.boundaries_along(a) for a in ANGLES]
+    skip = 1 if disc.info["pith_px"] > 0 else 0
+    return pith_edge(hsv_value(disc.rgb), disc.pith, ANGLES, [b[skip:] for b in truth], period_px=30.0, **kw), truth
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pith_edge_follows_the_known_edge(seed):
+    disc = make_disc(**WIDE, pith_px=6.0, seed=seed)
+    e, truth = _edge(disc)
+    assert e["found"] and e["support"] > 0.9 and e["contrast"] > 1.0
+    assert np.abs(e["crossings"] - [b[0] for b in truth]).max() < 1.0
+    # the whole curve round the pith, not only at the transects
+    true_curve = np.interp(e["thetas"], disc.phis, disc.radii[0], period=2 * math.pi)
+    assert np.mean(np.abs(e["radius"] - true_curve) <= 1.5) > 0.95
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_no_pith_edge_where_there_is_none(seed):
+    """Without a pith the locally normalised edge map still has ridges on most rays (support > 0.75): the contrast
+    against the rings' own rises is what says no."""
+    e, _ = _edge(make_disc(**WIDE, seed=seed))
+    assert not e["found"] and e["contrast"] < 0.3
+
+
+def test_place_pith_edge():
+    keep, new = place_pith_edge([2.0, 5.0, 40.0, 80.0], 16.0)
+    assert keep.tolist() == [False, False, True, True] and new.tolist() == [16.0]
+    keep, new = place_pith_edge([14.5, 40.0], 16.0)               # already there: nothing placed, nothing dropped
+    assert keep.tolist() == [True, True] and new.size == 0
+    keep, new = place_pith_edge([], 16.0)
+    assert keep.size == 0 and new.tolist() == [16.0]
+
+
+def test_disc_mode_puts_the_pith_edge_on_every_transect():
+    disc = make_disc(**WIDE, pith_px=6.0, seed=0)
+    off = detect_disc_boundaries(disc.rgb, disc.pith, angles_deg=ANGLES)
+    on = detect_disc_boundaries(disc.rgb, disc.pith, angles_deg=ANGLES, pith_edge=True)
+    assert off.info["pith_edge"] is None and on.info["pith_edge"]["found"]
+    for t_off, t_on, a in zip(off.transects, on.transects, ANGLES):
+        truth = disc.boundaries_along(a)
+        assert t_off.info["radius_px"][0] > 20.0 and "pith_edge" not in t_off.info["kind"]  # missed without it
+        assert t_on.info["kind"][0] == "pith_edge" and abs(t_on.info["radius_px"][0] - truth[0]) < 1.0
+        assert np.allclose(t_on.info["radius_px"][1:], t_off.info["radius_px"])  # the rest unchanged
+        assert np.allclose(t_on.points[0], disc.pith + t_on.info["radius_px"][0] * np.array(
+            [math.cos(math.radians(a)), math.sin(math.radians(a))]))
+
+
+def test_disc_mode_refuses_bad_pith_edge_options():
+    disc = make_disc(size=(64, 64), n_rings=3, inner_width_px=8.0, outer_width_px=6.0)
+    with pytest.raises(TypeError, match="pith_edge"):
+        detect_disc_boundaries(disc.rgb, disc.pith, pith_edge=1)
+    with pytest.raises(ValueError, match="pith_edge_min_support"):
+        detect_disc_boundaries(disc.rgb, disc.pith, pith_edge=True, pith_edge_min_support=1.5)
+    with pytest.raises(ValueError, match="pith_px"):
+        make_disc(inner_width_px=10.0, pith_px=6.0)
