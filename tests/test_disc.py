@@ -228,6 +228,24 @@ def test_disc_edge_at_a_light_bark_against_a_tinted_ruler():
         assert m["sensitivity"] == 1.0 and m["precision"] == 1.0, (deg, np.round(tr.info["radius_px"]), truth)
 
 
+def test_wood_edge_half_way_down_a_gradual_fall_into_the_bark():
+    """``bark_level``: a wood that fades over 20 px (0.80 -> 0.40) before a steep drop into a dark bark (0.20), on a
+    cloth: the steepest fall is the drop; half-way down the fall from the wood to the bark (0.50) lies 6 px before
+    it, inside the fade, where the TRAS discs' people click (C13C north: a 20 px fade, the click 6 px inside)."""
+    L = 400
+    v = np.full(L, 0.80)
+    v[300:320] = np.linspace(0.80, 0.40, 20)
+    v[320:] = 0.20
+    rows = np.repeat((v[:, None] * np.array([1.0, 0.75, 0.5]))[None], 9, axis=0)
+    rows = rows + np.random.default_rng(0).normal(0, 0.005, rows.shape)
+    steepest = disc_mod._wood_colour_end(rows)
+    half = disc_mod._wood_colour_end(rows, fall_level=0.5)
+    assert abs(steepest - 319) <= 1, steepest
+    assert abs(half - 314) <= 1, half                             # 0.80 - 0.5 * 0.6 = 0.50 at column 314.25
+    with pytest.raises(ValueError, match="bark_level"):
+        detect_disc_boundaries(np.full((64, 64, 3), 0.5, np.float32), (32, 32), bark_level=1.5)
+
+
 @pytest.mark.parametrize("mag_weight", [True, False])
 def test_crack_along_a_transect(disc, mag_weight):
     # an open crack (background colour) 25 px wide along the 0-degree transect hides 25 of the strip's 33 rows:

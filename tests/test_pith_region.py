@@ -74,3 +74,14 @@ def test_disc_mode_refuses_bad_pith_edge_options():
         detect_disc_boundaries(disc.rgb, disc.pith, pith_edge=True, pith_edge_min_support=1.5)
     with pytest.raises(ValueError, match="pith_px"):
         make_disc(inner_width_px=10.0, pith_px=6.0)
+
+
+@pytest.mark.parametrize("on", [False, True])
+def test_kinds_stay_one_per_boundary_when_linking_adds_some(on):
+    """On this disc the linking infers a ring on one transect (its boundary count grows after the pith-edge flags
+    could first have been sized): every transect still has one kind per boundary."""
+    disc = make_disc(size=(300, 300), n_rings=12, inner_width_px=20.0, outer_width_px=3.0, jpeg_quality=25)
+    res = detect_disc_boundaries(disc.rgb, disc.pith, angles_deg=ANGLES, pith_edge=on)
+    assert sum(tr.info["kind"].count("inferred") for tr in res.transects) > 0
+    for tr in res.transects:
+        assert len(tr.info["kind"]) == len(tr.info["radius_px"]) == len(tr.points)

@@ -236,7 +236,7 @@ def _background_colour(rgb, tol):
 
 
 def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, hue_deg=90.0, tail=0.8, min_tail=20, min_run=20,
-                     outer=0.6):
+                     outer=0.6, fall_level=None):
     """Where the wood ends along a transect whose photo has no uniform background (a cloth, a ruler, a label, a
     table around the disc): the last column of wood, or None.
 
@@ -248,7 +248,10 @@ def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, hue_deg=90.0, tai
     (bark and background lie outside; knots, stains and cracks inside must not end it) the wood ends at the first
     run of ``min_run`` dark columns (the bark, even when a wooden table lies beyond it), or at the first column from
     which at least ``tail`` of the rest (and ``min_tail`` px) is not wood; the last wood column is then the one
-    before the steepest fall of brightness within two smoothing widths of that column.
+    before the steepest fall of brightness within two smoothing widths of that column. With ``fall_level`` (a
+    fraction), it is instead the last column, up to 20 px before that steepest fall, still brighter than the wood
+    less ``fall_level`` of the fall from the wood (median of the 40 - 10 px before) to the bark (median of the 3 -
+    15 px after): on a gradual fall into the bark, ``0.5`` is half-way down it, where the TRAS discs' people clicked.
     """
     rgb = rows.mean(0)                                            # (L, 3)
     hi, lo = rgb.max(1), rgb.min(1)
@@ -279,8 +282,13 @@ def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, hue_deg=90.0, tai
     # the wood's edge itself: the steepest fall of the lightly smoothed brightness within two smoothing widths
     c = int(hits.min())
     a, b = max(1, c - int(2 * sigma)), min(L - 1, c + int(2 * sigma) + 1)
-    fall = np.diff(ndimage.gaussian_filter1d(hi, 1.5, mode="nearest"))[a - 1:b - 1]
-    return a - 1 + int(np.argmin(fall))
+    hs = ndimage.gaussian_filter1d(hi, 1.5, mode="nearest")
+    e0 = a - 1 + int(np.argmin(np.diff(hs)[a - 1:b - 1]))
+    if fall_level is None or e0 < 40 or e0 + 15 > L:
+        return e0
+    wood, bark = np.median(hs[e0 - 40:e0 - 10]), np.median(hs[e0 + 3:e0 + 15])
+    above = np.nonzero(hs[e0 - 20:e0 + 1] >= wood - fall_level * (wood - bark))[0]
+    return e0 - 20 + int(above[-1]) if len(above) and wood > bark else e0
 
 
 def _dark_bark_start(rows, *, dark=0.45, min_px=4, sigma=1.5):
@@ -501,7 +509,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
                            bark_zone: bool = True, whole_rings: bool = True, whole_place: bool = False,
                            whole_drop: bool = True, whole_min_support: float = 0.5, pith_edge: bool = False,
-                           pith_edge_min_support: float = 0.75, device="cpu",
+                           pith_edge_min_support: float = 0.75, bark_level: float | None = None, device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -557,6 +565,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             (``info["dropped_px"]``); ``info["pith_edge"]`` holds the curve. Off by default: leave-one-disc-out on
             the TRAS discs it gained on C13C (whose people marked the pith's edge) and lost on C17C (whose people did
             not, on 3 of 4 transects).
+        bark_level: where there is no uniform background, the wood ends this fraction of the way down the fall of
+            brightness from the wood into the bark (:func:`_wood_colour_end`); None: at the steepest point of the
+            fall. Off by default (issue 48 item 3, measured leave-one-disc-out: ``docs/bench_log.md``).
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.
@@ -598,6 +609,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     _number(helpers, "helpers", 0, MAX_HELPERS, integer=True)
     _number(whole_min_support, "whole_min_support", 0.0, 1.0)
     _number(pith_edge_min_support, "pith_edge_min_support", 0.0, 1.0)
+    if bark_level is not None:
+        _number(bark_level, "bark_level", 0.0, 1.0)
     for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone), ("whole_rings", whole_rings),
                        ("whole_place", whole_place), ("whole_drop", whole_drop), ("pith_edge", pith_edge)):
         if not isinstance(flag, bool):
@@ -692,7 +705,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             continue
         last = int(woody[-1])
         if bg is None and strip.shape[2] >= 3:  # no uniform background: the wood ends where its colour does
-            end = _wood_colour_end(strip[max(0, yc - S // 4):yc + S // 4 + 1])
+            end = _wood_colour_end(strip[max(0, yc - S // 4):yc + S // 4 + 1], fall_level=bark_level)
             if end is not None and end < last:
                 last = end
                 frac = frac.copy()
@@ -771,7 +784,6 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     closed_x = [np.zeros(0) for _ in found]
     dropped = [[] for _ in found]
     whole = [np.zeros(len(f[0]), bool) for f in found]
-    pithed = [np.zeros(len(f[0]), bool) for f in found]  # the pith's edge placed (pith_edge)
     link_s, rings_polar, whole_s = None, None, None
     usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
     if link and len(usable) >= 3:
@@ -815,6 +827,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
             whole_s = wr["seconds"]
     pith_region = None
+    pithed = [np.zeros(len(f[0]), bool) for f in found]  # the pith's edge placed (pith_edge)
     if pith_edge and usable:
         from .pith_region import pith_edge as find_pith_edge, place_pith_edge
         value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
