@@ -85,3 +85,31 @@ def test_kinds_stay_one_per_boundary_when_linking_adds_some(on):
     assert sum(tr.info["kind"].count("inferred") for tr in res.transects) > 0
     for tr in res.transects:
         assert len(tr.info["kind"]) == len(tr.info["radius_px"]) == len(tr.points)
+
+
+def test_cli_pith_edge(tmp_path):
+    """``ta-detect-rings --pith-edge``: ring 0 in the CSV as kind pith_edge on every transect, the curve drawn white
+    on the overlay; without the flag no such row."""
+    import csv
+
+    import cv2
+
+    from torch_appearance.testing import run_command
+
+    disc = make_disc(**WIDE, pith_px=6.0, seed=0)
+    path = tmp_path / "disc.png"
+    cv2.imwrite(str(path), (disc.rgb[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    pith = f"{disc.pith[0]:.2f},{disc.pith[1]:.2f}"
+    angles = ",".join(f"{a:g}" for a in ANGLES)
+    kinds = {}
+    for flag in ("--pith-edge", None):
+        out, ovl = tmp_path / f"{flag}.csv", tmp_path / f"{flag}.png"
+        args = [path, "--pith", pith, "--angles", angles, "--out", out, "--overlay", ovl] + ([flag] if flag else [])
+        rc, _, err = run_command("detect_rings", *args)
+        assert rc == 0, err
+        with open(out, newline="") as f:
+            kinds[flag] = [(int(r["transect"]), r["kind"], float(r["radius_px"])) for r in csv.DictReader(f)]
+    on = [(t, r) for t, k, r in kinds["--pith-edge"] if k == "pith_edge"]
+    assert [t for t, _ in on] == [0, 1, 2, 3]
+    assert all(abs(r - disc.boundaries_along(ANGLES[t])[0]) < 1.0 for t, r in on)
+    assert not [k for _, k, _ in kinds[None] if k == "pith_edge"]
