@@ -55,6 +55,8 @@ CANDIDATES = {
     # rise round
     "pith_edge": {"off": {}, "on": dict(pith_edge=True), "on, support 0.9": dict(pith_edge=True,
                                                                                    pith_edge_min_support=0.9)},
+    # narrow rings skipped in the last gaps before the bark (issue 48 item 3): how many gaps are searched
+    "bark_gaps": {"0": {}, "2": dict(bark_gaps=2), "3": dict(bark_gaps=3), "4": dict(bark_gaps=4)},
 }
 
 

@@ -76,6 +76,9 @@ def main(argv=None):
     p.add_argument("--no-edge", action="store_true", help="do not report the wood's edge as the last boundary")
     p.add_argument("--no-whole-rings", action="store_true",
                    help="do not trace the rings round the disc (detect_disc_boundaries(whole_rings=False))")
+    p.add_argument("--bark-gaps", type=int, default=0,
+                   help="search this many gaps before the bark for skipped narrow rings "
+                        "(detect_disc_boundaries(bark_gaps=...); default: %(default)s)")
     p.add_argument("--pith-edge", action="store_true",
                    help="put the pith's own edge on every transect (detect_disc_boundaries(pith_edge=True))")
     p.add_argument("--out", default="disc_synthetic.json", help="output JSON (default: %(default)s)")
@@ -91,13 +94,13 @@ def main(argv=None):
     for name, disc in discs.items():
         for mode in modes:
             r = score_disc(disc, disc.pith if mode == "true" else "auto", angles, include_edge=not args.no_edge,
-                           whole_rings=not args.no_whole_rings, pith_edge=args.pith_edge)
+                           whole_rings=not args.no_whole_rings, pith_edge=args.pith_edge, bark_gaps=args.bark_gaps)
             rows.append(dict(condition=name, pith=mode, **r))
             print(f"{name:14s} {mode:5s} {r['tol3']['f1']:5.2f} {r['tol5']['f1']:5.2f} {r['tol5']['sensitivity']:5.2f} "
                   f"{r['tol5']['precision']:5.2f} {r['pith_error_px']:8.1f} {r['seconds']:5.1f}", flush=True)
     blob = dict(command="python scripts/eval/eval_disc_synthetic.py " + " ".join(argv or sys.argv[1:]),
                 angles=angles, seed=args.seed, include_edge=not args.no_edge, whole_rings=not args.no_whole_rings,
-                pith_edge=args.pith_edge, rows=rows)
+                pith_edge=args.pith_edge, bark_gaps=args.bark_gaps, rows=rows)
     atomic_write_bytes(args.out, json.dumps(blob, indent=1).encode())
     print(f"-> {args.out}")
     return 0

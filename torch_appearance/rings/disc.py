@@ -483,6 +483,38 @@ def _bark_zone_boundaries(pos, v_prof, end, *, min_rel=0.2, min_gap_px=2.0, sigm
     return out
 
 
+def _gap_boundaries(pos, v_prof, end, *, gaps, min_rel=0.2, sigma=0.7, sep_frac=0.3, min_sep_px=5.0, n_ref=5):
+    """Narrow rings skipped between boundaries near the bark (``bark_gaps``, issue 48 item 3): in each of the last
+    ``gaps`` gaps before the wood's edge ``end`` (between the boundaries ``pos`` more than 3 px inside it, and from the
+    last of them to the edge), the strongest local maximum of the profile's outward rise (``v_prof`` smoothed with
+    sigma ``sigma`` px, as in :func:`_bark_zone_boundaries`) that reaches ``min_rel`` of the median rise at the
+    ``n_ref`` outermost boundaries and lies at least ``max(min_sep_px, sep_frac * gap)`` from both ends of its gap is
+    a boundary. Near the bark the rings narrow to a fraction of the disc's ring period, and both passes can run one
+    cycle over two rings there; the bark zone only looks beyond the last boundary. Returns the added positions
+    (sorted), at most one per gap."""
+    pos = np.sort(np.asarray(pos, np.float64))
+    if end is None or gaps < 1:
+        return np.zeros(0)
+    pos = pos[pos < end - 3.0]
+    if len(pos) < max(3, gaps):
+        return np.zeros(0)
+    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
+    L = len(dv)
+    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, L - 1)]
+    ref = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
+    if ref <= 0:
+        return np.zeros(0)
+    bounds = np.r_[pos[-gaps:], end]
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        sep = max(min_sep_px, sep_frac * (b - a))
+        cand = [i for i in range(max(1, int(math.ceil(a + sep))), min(L - 1, int(math.floor(b - sep)) + 1))
+                if dv[i] >= dv[i - 1] and dv[i] > dv[i + 1] and dv[i] >= min_rel * ref]
+        if cand:
+            out.append(float(max(cand, key=lambda i: dv[i])))
+    return np.asarray(out, np.float64)
+
+
 def _merge_close(pos, v_prof, min_gap):
     """Drop boundaries closer than ``min_gap`` to the previous kept one (keep the one with the larger V rise)."""
     if len(pos) < 2 or min_gap <= 0:
@@ -509,7 +541,8 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                            narrow_gap: float = 0.8, link: bool = True, helpers: int = 1, closed: bool = True,
                            bark_zone: bool = True, whole_rings: bool = True, whole_place: bool = False,
                            whole_drop: bool = True, whole_min_support: float = 0.5, pith_edge: bool = False,
-                           pith_edge_min_support: float = 0.75, bark_level: float | None = None, device="cpu",
+                           pith_edge_min_support: float = 0.75, bark_level: float | None = None,
+                           bark_gaps: int = 0, device="cpu",
                            num_workers: int | None = None, progress=None) -> DiscBoundaries:
     """Ring boundaries along several pith -> bark transects of a disc photo (module docstring).
 
@@ -568,6 +601,9 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
         bark_level: where there is no uniform background, the wood ends this fraction of the way down the fall of
             brightness from the wood into the bark (:func:`_wood_colour_end`); None: at the steepest point of the
             fall. Off by default (issue 48 item 3, measured leave-one-disc-out: ``docs/bench_log.md``).
+        bark_gaps: in each of this many gaps before the wood's edge, a narrow ring the passes skipped is added where
+            the profile rises sharply inside the gap (:func:`_gap_boundaries`, at most one per gap); 0: none (the
+            default; measured leave-one-disc-out: ``docs/bench_log.md``).
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.
@@ -611,6 +647,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     _number(pith_edge_min_support, "pith_edge_min_support", 0.0, 1.0)
     if bark_level is not None:
         _number(bark_level, "bark_level", 0.0, 1.0)
+    _number(bark_gaps, "bark_gaps", 0, 50, integer=True)
     for name, flag in (("link", link), ("closed", closed), ("bark_zone", bark_zone), ("whole_rings", whole_rings),
                        ("whole_place", whole_place), ("whole_drop", whole_drop), ("pith_edge", pith_edge)):
         if not isinstance(flag, bool):
@@ -847,6 +884,19 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 whole[k] = np.r_[np.asarray(whole[k], bool)[keep], zeros][o]
                 pithed[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
                 dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
+    if bark_gaps:  # narrow rings skipped near the bark (_gap_boundaries), on the transects returned
+        for k in range(n_req):
+            edge_k, (pos0, sinfo_k) = prepared[k][4], found[k]
+            if edge_k is None or "profile_v" not in sinfo_k:
+                continue
+            new = _gap_boundaries(pos0, sinfo_k["profile_v"], edge_k, gaps=bark_gaps)
+            if not len(new):
+                continue
+            o = np.argsort(np.r_[pos0, new], kind="stable")
+            found[k] = (np.r_[pos0, new][o], sinfo_k)
+            inferred[k], confirmed[k], closed[k], whole[k], pithed[k] = (
+                np.r_[np.asarray(f, bool), np.zeros(len(new), bool)][o]
+                for f in (inferred[k], confirmed[k], closed[k], whole[k], pithed[k]))
     out, ends_out = [], []
     for k in range(n_req):
         deg, u, v, wd, edge, Lc = prepared[k]
