@@ -176,6 +176,29 @@ def test_bark_zone_finds_the_narrow_rings_before_the_edge():
     assert len(disc_mod._bark_zone_boundaries(B[B <= 140], np.where(x > 141, v[141], v), end=172.0)) == 0
 
 
+def test_bark_gaps_find_a_narrow_ring_skipped_between_two_boundaries():
+    """``bark_gaps``: rings of 20 px, then 12 px ones towards the bark (like C17C north, where the passes ran one
+    cycle over two): a ring skipped inside the last gaps is found (one per gap, on its sharp rise), a gap further in
+    than ``gaps`` is not searched, and a flat gap or a weak rise adds nothing."""
+    x = np.arange(260, dtype=np.float64)
+    B = np.r_[np.arange(20.0, 161.0, 20.0), np.arange(172.0, 233.0, 12.0)]  # ... 160, then 172, 184, ..., 232
+    edges = np.r_[0.0, B, 260.0]
+    k = np.searchsorted(edges, x, side="right") - 1
+    v = 1.0 - 0.5 * (x - edges[k]) / np.diff(edges)[k]                 # sawtooth: darkening, then a sharp rise
+    found = np.array([b for b in B if b not in (172.0, 208.0)])         # two rings skipped
+    end = 244.0
+    add = disc_mod._gap_boundaries(found, v, end, gaps=3)              # the gaps 196 -> 220 -> 232 -> 244
+    assert match_boundaries(add, np.array([208.0]), 1.0)["f1"] == 1.0, add
+    add = disc_mod._gap_boundaries(found, v, end, gaps=6)              # reaches 160 -> 184 too
+    assert match_boundaries(add, np.array([172.0, 208.0]), 1.0)["f1"] == 1.0, add
+    assert len(disc_mod._gap_boundaries(found, v, end, gaps=0)) == 0
+    flat = np.where((x > 197) & (x < 219), v[197], v)                  # no rise inside 196 -> 220
+    assert len(disc_mod._gap_boundaries(found, flat, end, gaps=3)) == 0
+    weak = np.where((x > 197) & (x < 219), 1.0 - 0.05 * (x - 196.0) / 24.0, v)   # a rise a tenth of the others'
+    weak[208:219] += 0.03
+    assert len(disc_mod._gap_boundaries(found, weak, end, gaps=3)) == 0
+
+
 def _disc_on_a_cloth(bark_rgb, bark_px):
     """A 760² synthetic disc (12 rings, 30 -> 14 px) on a black cloth, with a bark of ``bark_px`` and a wooden table
     along the top: ``(rgb, radius, pith, rho, edge, xx)`` with ``rho`` the distance from the pith and ``edge`` the
