@@ -113,3 +113,5 @@ def test_cli_pith_edge(tmp_path):
     assert [t for t, _ in on] == [0, 1, 2, 3]
     assert all(abs(r - disc.boundaries_along(ANGLES[t])[0]) < 1.0 for t, r in on)
     assert not [k for _, k, _ in kinds[None] if k == "pith_edge"]
+    rc, _, err = run_command("detect_rings", path, "--pith", pith, "--bark-gaps", "-1", "--out", tmp_path / "x.csv")
+    assert rc != 0 and "--bark-gaps" in err

@@ -82,6 +82,9 @@ def parse_args(argv=None):
                    help="disc mode: find the pith's own edge as a closed curve round the pith and put it on every "
                         "transect as the innermost boundary (kind pith_edge), dropping boundaries inside it; off by "
                         "default (it gained on one human-labelled disc and lost on the other)")
+    p.add_argument("--bark-gaps", type=int, default=0,
+                   help="disc mode: look for a narrow ring the passes skipped in each of this many gaps before the "
+                        "bark, where the profile rises sharply (default: %(default)s, none)")
     p.add_argument("--no-link", action="store_true",
                    help="disc mode: do not follow the rings between transects (no inferred rings)")
     p.add_argument("--helpers", type=int, default=1,
@@ -278,6 +281,7 @@ def run_disc(args, rgb):
             res = detect_disc_boundaries(rgb, pith, angles_deg=angles, ends=ends or None, include_edge=args.edge,
                                          half_width=args.half_width, dpi=args.dpi, pixel_size_mm=args.pixel_size_mm,
                                          link=not args.no_link, helpers=args.helpers, pith_edge=args.pith_edge,
+                                         bark_gaps=args.bark_gaps,
                                          progress=progress)
             polygons = ring_polygons(res)
             png = disc_overlay_png(rgb, res, polygons) if args.overlay else None
@@ -329,6 +333,8 @@ def main(argv=None):
     if not MIN_HALF_WIDTH <= args.half_width <= MAX_HALF_WIDTH:
         return fail(PROG, f"--half-width: expected {MIN_HALF_WIDTH} ... {MAX_HALF_WIDTH} (px of arc either side of a "
                           f"transect; the cost grows with it), got {args.half_width}")
+    if not 0 <= args.bark_gaps <= 50:
+        return fail(PROG, f"--bark-gaps: expected an int in [0, 50] (gaps before the bark), got {args.bark_gaps}")
     if args.width_px < 8:  # the library's message offers None, which the command line cannot give
         return fail(PROG, f"--width-px: expected an int >= 8 (px), got {args.width_px}")
     if args.rings is not None and args.mode in ("core", "section"):
