@@ -54,7 +54,10 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    either pass resolves: between the last boundary and the disc edge (``bark_zone``), the profile's own sharp rises
    are boundaries when they reach 0.2 of the rises at the outermost boundaries found (:func:`_bark_zone_boundaries`;
    on the independent synthetic discs of :mod:`~torch_appearance.rings.synthetic_discs` this finds most of the
-   3 - 4 px rings the passes skip). Boundaries closer than ``min_ring_px`` to the previous one are merged (the
+   3 - 4 px rings the passes skip). With ``bark_gaps`` (off by default) the same rule looks inside the last gaps
+   before the edge too, at most one boundary per gap (:func:`_gap_boundaries`; on the TRAS discs it found one
+   skipped narrow ring on each, and on the synthetic light-bark disc it cost 0.006 at 3 px: ``docs/bench_log.md``).
+   Boundaries closer than ``min_ring_px`` to the previous one are merged (the
    weaker is dropped). With ``include_edge`` the disc edge (outer end of the last ring, where CS-TRD, and CooRecorder
    users at a clean bark, put the last boundary) is appended as a boundary of kind ``"edge"`` when the transect
    reaches it; a boundary within 3 px inside it is the same boundary and gives way to it.
