@@ -154,6 +154,11 @@ def _with_centre(estimate, c):
                                centre_point_px=(float(centre_pt[0]), float(centre_pt[1])))
 
 
+def _ring_fit_cost(estimate):
+    """RMS distance of the traced ring points from the estimate's circles, in ring widths."""
+    return estimate.fit_rms_mm / estimate.ring_scale_mm
+
+
 def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, rings=None, n_candidates=49,
                      min_gain=0.01):
     """Place the projected tree centre (the line where the phase sign flips) where the growth direction is
@@ -166,15 +171,21 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     scored by the fit itself: for every candidate line (``n_candidates`` offsets c across the board and beyond
     its edges, the estimate's axis direction, distance and tilt kept) the phase is resolved
     (:func:`resolve_phase_sign`) and scored by :func:`lateness_profile_score`. If the best candidate beats the
-    estimate by more than ``min_gain`` and lies more than half a ring away, :func:`estimate_board` is run again
-    with the centre restricted to one ring spacing around it, and the better-scoring of the two is returned.
+    estimate and lies more than half a ring away, :func:`estimate_board` is run again with the centre restricted
+    to one ring spacing around it, and the best-scoring of the estimate, the re-fit, and the re-fit with its line
+    moved to the best candidate (the ring fit can shift the line within its band) is returned. A gain below
+    ``min_gain`` (a symmetric ring profile, e.g. an abrupt latewood band, scores both growth directions nearly
+    alike) moves the line only where the traced rings also fit the re-fitted geometry better (lower RMS in ring
+    widths): the ring search scores lines off the photo too well on a board cut near the pith, and can miss the
+    geometry of a board whose rings bulge round a knot.
 
     Args:
         estimate: :class:`BoardEstimate` from :func:`estimate_board`.
         phase: ``(H, W)`` Gabor phase (rad). gray: ``(H, W)`` luminance of the photo.
         magnitude: optional ``(H, W)`` Gabor magnitude (score weights).
         rings: the ring polylines of ``estimate`` (default ``estimate.rings``), for the re-fit.
-        n_candidates: number of candidate offsets (>= 3). min_gain: R² gain needed to move the line.
+        n_candidates: number of candidate offsets (>= 3). min_gain: R² gain that moves the line on the lateness
+            score alone (a smaller gain needs a better ring fit as well).
 
     Returns:
         ``(estimate, info)``: the chosen :class:`BoardEstimate` and a dict with ``score_initial``,
@@ -203,8 +214,10 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     info = {"score_initial": s0, "score_chosen": s0, "moved": False, "candidates_mm": cands.tolist(),
             "candidate_scores": scores.tolist()}
     i = int(np.argmax(scores))
-    if scores[i] < s0 + min_gain or abs(cands[i] - estimate.centre_offset_mm) <= 0.5 * s_r:
+    if scores[i] <= s0 or abs(cands[i] - estimate.centre_offset_mm) <= 0.5 * s_r:
         return estimate, info
+    # a gain below min_gain moves the line only where the rings fit the re-fitted geometry better too
+    weak = scores[i] < s0 + min_gain
     hint = _with_centre(estimate, cands[i]).centre_point_px
     tol = max(s_r, float(cands[1] - cands[0]))
     rings = estimate.rings if rings is None else rings
@@ -213,8 +226,12 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     except ValueError:
         refit = None
     options = [(s0, estimate)]
-    if refit is not None:
+    if refit is not None and not (weak and _ring_fit_cost(refit) >= _ring_fit_cost(estimate)):
         options.append((score(refit), refit))
+        # the re-fitted geometry with the line where the lateness profile put it (the ring fit may shift it within
+        # its band, e.g. towards a ring traced along the pith line)
+        moved = _with_centre(refit, cands[i])
+        options.append((score(moved), moved))
     best_s, best = max(options, key=lambda t: t[0])
     info.update(score_chosen=best_s, moved=best is not estimate)
     return best, info
