@@ -172,8 +172,9 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     its edges, the estimate's axis direction, distance and tilt kept) the phase is resolved
     (:func:`resolve_phase_sign`) and scored by :func:`lateness_profile_score`. If the best candidate beats the
     estimate and lies more than half a ring away, :func:`estimate_board` is run again with the centre restricted
-    to one ring spacing around it, and the best-scoring of the estimate, the re-fit, and the re-fit with its line
-    moved to the best candidate (the ring fit can shift the line within its band) is returned. A gain below
+    to one ring spacing around it, and the best-scoring of the estimate, the re-fit, and (where the ring fit shifted
+    the line by more than half a ring within its band) the re-fit with its line moved to the best candidate is
+    returned. A gain below
     ``min_gain`` (a symmetric ring profile, e.g. an abrupt latewood band, scores both growth directions nearly
     alike) moves the line only where the traced rings also fit the re-fitted geometry better (lower RMS in ring
     widths): the ring search scores lines off the photo too well on a board cut near the pith, and can miss the
@@ -228,10 +229,12 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     options = [(s0, estimate)]
     if refit is not None and not (weak and _ring_fit_cost(refit) >= _ring_fit_cost(estimate)):
         options.append((score(refit), refit))
-        # the re-fitted geometry with the line where the lateness profile put it (the ring fit may shift it within
-        # its band, e.g. towards a ring traced along the pith line)
-        moved = _with_centre(refit, cands[i])
-        options.append((score(moved), moved))
+        # the re-fitted geometry with the line where the lateness profile put it, where the ring fit shifted it by
+        # more than half a ring within its band (e.g. towards a ring traced along the pith line; nearer, the score
+        # does not place the line better than the ring fit)
+        if abs(refit.centre_offset_mm - cands[i]) > 0.5 * s_r:
+            moved = _with_centre(refit, cands[i])
+            options.append((score(moved), moved))
     best_s, best = max(options, key=lambda t: t[0])
     info.update(score_chosen=best_s, moved=best is not estimate)
     return best, info
