@@ -172,13 +172,13 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     its edges, the estimate's axis direction, distance and tilt kept) the phase is resolved
     (:func:`resolve_phase_sign`) and scored by :func:`lateness_profile_score`. If the best candidate beats the
     estimate and lies more than half a ring away, :func:`estimate_board` is run again with the centre restricted
-    to one ring spacing around it, and the best-scoring of the estimate, the re-fit, and (where the ring fit shifted
-    the line by more than half a ring within its band) the re-fit with its line moved to the best candidate is
-    returned. A gain below
+    to one ring spacing around it, and the best-scoring of the estimate and the re-fit is returned. The ring fit
+    supports the move where the re-fit's line lies more than half a ring from the estimate's and the traced rings
+    fit it better (lower RMS in ring widths); then the re-fit with its line moved to the best candidate is a third
+    option, where the ring fit shifted the line by more than half a ring within its band. A gain below
     ``min_gain`` (a symmetric ring profile, e.g. an abrupt latewood band, scores both growth directions nearly
-    alike) moves the line only where the traced rings also fit the re-fitted geometry better (lower RMS in ring
-    widths): the ring search scores lines off the photo too well on a board cut near the pith, and can miss the
-    geometry of a board whose rings bulge round a knot.
+    alike) moves the line only where the ring fit supports it: the ring search scores lines off the photo too well
+    on a board cut near the pith, and can miss the geometry of a board whose rings bulge round a knot.
 
     Args:
         estimate: :class:`BoardEstimate` from :func:`estimate_board`.
@@ -227,14 +227,19 @@ def choose_pith_side(estimate: BoardEstimate, phase, gray, *, magnitude=None, ri
     except ValueError:
         refit = None
     options = [(s0, estimate)]
-    if refit is not None and not (weak and _ring_fit_cost(refit) >= _ring_fit_cost(estimate)):
+    # the ring fit itself supports the move: near the candidate it finds a line more than half a ring from the
+    # estimate's, with the traced rings closer to its circles (a re-fit that returns to the estimate's line, as
+    # it can when the band holds it, does not)
+    better_rings = (refit is not None and abs(refit.centre_offset_mm - estimate.centre_offset_mm) > 0.5 * s_r
+                    and _ring_fit_cost(refit) < _ring_fit_cost(estimate))
+    if refit is not None and (better_rings or not weak):
         options.append((score(refit), refit))
-        # the re-fitted geometry with the line where the lateness profile put it, where the ring fit shifted it by
-        # more than half a ring within its band (e.g. towards a ring traced along the pith line; nearer, the score
-        # does not place the line better than the ring fit)
-        if abs(refit.centre_offset_mm - cands[i]) > 0.5 * s_r:
-            moved = _with_centre(refit, cands[i])
-            options.append((score(moved), moved))
+    if better_rings and abs(refit.centre_offset_mm - cands[i]) > 0.5 * s_r:
+        # the rings fit better away from the estimate, but the ring fit shifted the line by more than half a ring
+        # within its band (e.g. towards a ring traced along the pith line): the re-fitted geometry with the line
+        # where the lateness profile put it is a third option (nearer, the score does not place it better)
+        moved = _with_centre(refit, cands[i])
+        options.append((score(moved), moved))
     best_s, best = max(options, key=lambda t: t[0])
     info.update(score_chosen=best_s, moved=best is not estimate)
     return best, info
