@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import torch_appearance.rings.disc as disc_mod
+from torch_appearance.rings import wood_edge
 from torch_appearance.rings.coorecorder import read_pos
 from torch_appearance.rings.dendro import match_boundaries
 from torch_appearance.rings.disc import detect_disc_boundaries, polar_strip, synthetic_disc
@@ -171,9 +172,9 @@ def test_bark_zone_finds_the_narrow_rings_before_the_edge():
     edges = np.r_[0.0, B, 200.0]
     k = np.searchsorted(edges, x, side="right") - 1
     v = 1.0 - 0.5 * (x - edges[k]) / np.diff(edges)[k]                 # sawtooth: darkening, then a sharp rise
-    add = disc_mod._bark_zone_boundaries(B[B <= 140], v, end=172.0)
+    add = wood_edge.bark_zone_boundaries(B[B <= 140], v, end=172.0)
     assert match_boundaries(add, B[B > 140], 1.0)["f1"] == 1.0, add
-    assert len(disc_mod._bark_zone_boundaries(B[B <= 140], np.where(x > 141, v[141], v), end=172.0)) == 0
+    assert len(wood_edge.bark_zone_boundaries(B[B <= 140], np.where(x > 141, v[141], v), end=172.0)) == 0
 
 
 def test_bark_gaps_find_a_narrow_ring_skipped_between_two_boundaries():
@@ -187,16 +188,16 @@ def test_bark_gaps_find_a_narrow_ring_skipped_between_two_boundaries():
     v = 1.0 - 0.5 * (x - edges[k]) / np.diff(edges)[k]                 # sawtooth: darkening, then a sharp rise
     found = np.array([b for b in B if b not in (172.0, 208.0)])         # two rings skipped
     end = 244.0
-    add = disc_mod._gap_boundaries(found, v, end, gaps=3)              # the gaps 196 -> 220 -> 232 -> 244
+    add = wood_edge.gap_boundaries(found, v, end, gaps=3)              # the gaps 196 -> 220 -> 232 -> 244
     assert match_boundaries(add, np.array([208.0]), 1.0)["f1"] == 1.0, add
-    add = disc_mod._gap_boundaries(found, v, end, gaps=6)              # reaches 160 -> 184 too
+    add = wood_edge.gap_boundaries(found, v, end, gaps=6)              # reaches 160 -> 184 too
     assert match_boundaries(add, np.array([172.0, 208.0]), 1.0)["f1"] == 1.0, add
-    assert len(disc_mod._gap_boundaries(found, v, end, gaps=0)) == 0
+    assert len(wood_edge.gap_boundaries(found, v, end, gaps=0)) == 0
     flat = np.where((x > 197) & (x < 219), v[197], v)                  # no rise inside 196 -> 220
-    assert len(disc_mod._gap_boundaries(found, flat, end, gaps=3)) == 0
+    assert len(wood_edge.gap_boundaries(found, flat, end, gaps=3)) == 0
     weak = np.where((x > 197) & (x < 219), 1.0 - 0.05 * (x - 196.0) / 24.0, v)   # a rise a tenth of the others'
     weak[208:219] += 0.03
-    assert len(disc_mod._gap_boundaries(found, weak, end, gaps=3)) == 0
+    assert len(wood_edge.gap_boundaries(found, weak, end, gaps=3)) == 0
 
 
 def _disc_on_a_cloth(bark_rgb, bark_px):
@@ -261,8 +262,8 @@ def test_wood_edge_half_way_down_a_gradual_fall_into_the_bark():
     v[320:] = 0.20
     rows = np.repeat((v[:, None] * np.array([1.0, 0.75, 0.5]))[None], 9, axis=0)
     rows = rows + np.random.default_rng(0).normal(0, 0.005, rows.shape)
-    steepest = disc_mod._wood_colour_end(rows)
-    half = disc_mod._wood_colour_end(rows, fall_level=0.5)
+    steepest = wood_edge.wood_colour_end(rows)
+    half = wood_edge.wood_colour_end(rows, fall_level=0.5)
     assert abs(steepest - 319) <= 1, steepest
     assert abs(half - 314) <= 1, half                             # 0.80 - 0.5 * 0.6 = 0.50 at column 314.25
     with pytest.raises(ValueError, match="bark_level"):

@@ -15,9 +15,9 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    beside a ruler and a label) gives no background. The disc edge along the transect is where the wood fraction of
    the strip's central rows last drops below one half; without a background, where the wood's colour ends beyond
    60 % of the transect (the first 20 px of bark darker than 0.45 of the wood, or a rest that is mostly dark, grey,
-   or bright and of another hue, like a tinted ruler against a light bark: :func:`_wood_colour_end`); with a
+   or bright and of another hue, like a tinted ruler against a light bark: :func:`.wood_edge.wood_colour_end`); with a
    background, a dark bark band between the wood and it (which the background mask counts as wood) ends the wood
-   where it starts (:func:`_dark_bark_start`). The strip is
+   where it starts (:func:`.wood_edge.dark_bark_start`). The strip is
    cut there, and the edge is never a ring boundary. Non-wood pixels are replaced by the mean of the wood pixels of
    their column (i.e. filled *along the ring*), so a crack along the transect does not hide the rings.
 3. **Filter.** The strip's HSV value is filtered with the curved Gabor filter (normal oriented pith -> bark), as in
@@ -52,11 +52,12 @@ on a 3000 x 3200 photo; here only a narrow *polar strip* around each transect is
    filters the strip only from two of its filter lengths before the first such narrow gap outwards
    (:func:`_fine_pass_start`). The last rings before the bark are often narrower still (3 - 6 px), below what
    either pass resolves: between the last boundary and the disc edge (``bark_zone``), the profile's own sharp rises
-   are boundaries when they reach 0.2 of the rises at the outermost boundaries found (:func:`_bark_zone_boundaries`;
-   on the independent synthetic discs of :mod:`~torch_appearance.rings.synthetic_discs` this finds most of the
-   3 - 4 px rings the passes skip). With ``bark_gaps`` (off by default) the same rule looks inside the last gaps
-   before the edge too, at most one boundary per gap (:func:`_gap_boundaries`; on the TRAS discs it found one
-   skipped narrow ring on each, and on the synthetic light-bark disc it cost 0.006 at 3 px: ``docs/bench_log.md``).
+   are boundaries when they reach 0.2 of the rises at the outermost boundaries found
+   (:func:`.wood_edge.bark_zone_boundaries`; on the independent synthetic discs of
+   :mod:`~torch_appearance.rings.synthetic_discs` this finds most of the 3 - 4 px rings the passes skip). With
+   ``bark_gaps`` (off by default) the same rule looks inside the last gaps before the edge too, at most one boundary
+   per gap (:func:`.wood_edge.gap_boundaries`; on the TRAS discs it found one skipped narrow ring on each, and on
+   the synthetic light-bark disc it cost 0.006 at 3 px: ``docs/bench_log.md``).
    Boundaries closer than ``min_ring_px`` to the previous one are merged (the
    weaker is dropped). With ``include_edge`` the disc edge (outer end of the last ring, where CS-TRD, and CooRecorder
    users at a clean bark, put the last boundary) is appended as a boundary of kind ``"edge"`` when the transect
@@ -114,6 +115,7 @@ from ..checks import check_point_in_image
 from .dendro import RingBoundaries, _cycle_boundaries, _gabor_params, _pixel_size, hsv_value, ring_widths_mm
 from .gabor import curved_gabor
 from .orientation import orientation_field
+from .wood_edge import background_colour, bark_zone_boundaries, dark_bark_start, gap_boundaries, wood_colour_end
 
 __all__ = ["DiscBoundaries", "detect_disc_boundaries", "polar_strip", "synthetic_disc", "transect_angles"]
 
@@ -225,96 +227,6 @@ def _polar_sample(channels, pith, angle_deg, length, half_width):
 def _value(rgb):
     """The photo's HSV value ``(H, W)`` float32 from its ``(H, W, C)`` channels (C = 1: the channel itself)."""
     return hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
-
-
-def _background_colour(rgb, tol):
-    """Median colour ``(C,)`` of the image border, or None when the border is not one uniform colour (half of its
-    pixels, averaged over 9 along the border, farther than ``tol / 2`` from the median: the disc fills the frame,
-    no background to mask)."""
-    # each border line averaged over 9 pixels along it: the noise of single pixels is not a second colour
-    border = np.concatenate([ndimage.uniform_filter1d(np.asarray(line, np.float64), 9, axis=0, mode="nearest")
-                             for line in (rgb[0], rgb[-1], rgb[:, 0], rgb[:, -1])])
-    bg = np.median(border, axis=0)
-    return bg if np.median(np.linalg.norm(border - bg, axis=1)) <= tol / 2 else None
-
-
-def _wood_colour_end(rows, *, sigma=6.0, dark=0.45, grey=0.45, hue_deg=90.0, tail=0.8, min_tail=20, min_run=20,
-                     outer=0.6, fall_level=None):
-    """Where the wood ends along a transect whose photo has no uniform background (a cloth, a ruler, a label, a
-    table around the disc): the last column of wood, or None.
-
-    A column is *dark* when the central rows' smoothed brightness (HSV V) is below ``dark`` times the wood's (the
-    median over the inner 60 % of the transect): bark, a dark cloth; it is *not wood* when dark or when its
-    saturation is below ``grey`` times the wood's (a white or grey ruler, paper), or when it is at least as bright
-    as the wood and its hue lies more than ``hue_deg`` from the wood's (a tinted ruler, a blue cloth or label; wood
-    runs from yellow to red-brown, and blue-stained sapwood is darker than the wood). Beyond ``outer`` of the transect
-    (bark and background lie outside; knots, stains and cracks inside must not end it) the wood ends at the first
-    run of ``min_run`` dark columns (the bark, even when a wooden table lies beyond it), or at the first column from
-    which at least ``tail`` of the rest (and ``min_tail`` px) is not wood; the last wood column is then the one
-    before the steepest fall of brightness within two smoothing widths of that column. With ``fall_level`` (a
-    fraction), it is instead the last column, up to 20 px before that steepest fall, still brighter than the wood
-    less ``fall_level`` of the fall from the wood (median of the 40 - 10 px before) to the bark (median of the 3 -
-    15 px after): on a gradual fall into the bark, ``0.5`` is half-way down it, where the TRAS discs' people clicked.
-    """
-    rgb = rows.mean(0)                                            # (L, 3)
-    hi, lo = rgb.max(1), rgb.min(1)
-    v = ndimage.gaussian_filter1d(hi, sigma, mode="nearest")
-    sat = ndimage.gaussian_filter1d(np.where(hi > 1e-6, (hi - lo) / np.maximum(hi, 1e-6), 0.0), sigma, mode="nearest")
-    L = len(v)
-    if L < 3 * min_run:
-        return None
-    inner = slice(0, int(outer * L))
-    v_wood, s_wood = np.median(v[inner]), np.median(sat[inner])
-    if v_wood <= 0 or s_wood <= 0.05:                              # grey wood (or a grey photo): no colour to follow
-        return None
-    is_dark = v < dark * v_wood
-    sm = ndimage.gaussian_filter1d(rgb, sigma, axis=0, mode="nearest")
-    hue = np.angle((2 * sm[:, 0] - sm[:, 1] - sm[:, 2]) + 1j * math.sqrt(3) * (sm[:, 1] - sm[:, 2]))  # radians
-    w = sat[inner]
-    hue_wood = np.angle((w * np.exp(1j * hue[inner])).sum())
-    off_hue = (np.abs(np.angle(np.exp(1j * (hue - hue_wood)))) > math.radians(hue_deg)) & (v >= v_wood)
-    nonwood = is_dark | (sat < grey * s_wood) | off_hue
-    runs = np.convolve(is_dark.astype(int), np.ones(min_run, int), "valid") == min_run   # a dark run starts here
-    suffix = np.cumsum(nonwood[::-1])[::-1] / np.arange(L, 0, -1)  # fraction of non-wood from each column on
-    cols = np.arange(L)
-    start = int(outer * L)
-    hits = np.nonzero((cols[:len(runs)] >= start) & runs)[0]
-    hits = np.r_[hits, np.nonzero((cols >= start) & (suffix >= tail) & (cols <= L - min_tail) & nonwood)[0]]
-    if not len(hits):
-        return None
-    # the wood's edge itself: the steepest fall of the lightly smoothed brightness within two smoothing widths
-    c = int(hits.min())
-    a, b = max(1, c - int(2 * sigma)), min(L - 1, c + int(2 * sigma) + 1)
-    hs = ndimage.gaussian_filter1d(hi, 1.5, mode="nearest")
-    e0 = a - 1 + int(np.argmin(np.diff(hs)[a - 1:b - 1]))
-    if fall_level is None or e0 < 40 or e0 + 15 > L:
-        return e0
-    wood, bark = np.median(hs[e0 - 40:e0 - 10]), np.median(hs[e0 + 3:e0 + 15])
-    above = np.nonzero(hs[e0 - 20:e0 + 1] >= wood - fall_level * (wood - bark))[0]
-    return e0 - 20 + int(above[-1]) if len(above) and wood > bark else e0
-
-
-def _dark_bark_start(rows, *, dark=0.45, min_px=4, sigma=1.5):
-    """Where a dark bark band begins on a transect whose wood mask ran up to the background (``rows`` ``(S, L, 3)``,
-    the central rows up to the last wood-or-bark column): the bark is not background, so the mask counts it as
-    wood. When the last columns are dark (smoothed HSV V below ``dark`` times the median of the inner 60 %) in one
-    run of at least ``min_px`` reaching to within 5 px of the end, the wood ends before the steepest fall of
-    brightness at the run's start; else None."""
-    v = ndimage.gaussian_filter1d(rows.mean(0).max(1), sigma, mode="nearest")
-    L = len(v)
-    if L < 20:
-        return None
-    is_dark = v < dark * np.median(v[:int(0.6 * L)])
-    darks = np.nonzero(is_dark)[0]
-    if not len(darks) or darks[-1] < L - 6:  # the run must reach the end (its last columns blend with background)
-        return None
-    stop = int(darks[-1])
-    light = np.nonzero(~is_dark[:stop])[0]
-    start = int(light[-1]) + 1 if len(light) else 0
-    if stop + 1 - start < min_px or start < 0.6 * L:
-        return None
-    a, b = max(1, start - 6), min(L - 1, start + 3)
-    return a - 1 + int(np.argmin(np.diff(v)[a - 1:b - 1]))
 
 
 def _detrend(v):
@@ -447,77 +359,6 @@ def _narrow_ring_boundaries(coarse, fine, *, period, fine_period, end, narrow_ga
     return np.sort(np.r_[coarse, add])
 
 
-def _bark_zone_boundaries(pos, v_prof, end, *, min_rel=0.2, min_gap_px=2.0, sigma=0.7, n_ref=5):
-    """Ring boundaries in the bark zone (issue 48): the rings just inside the bark are often narrower (3 - 6 px)
-    than even the fine pass's scale resolves, so the Gabor phase runs over them and the transect ends some rings
-    short of the bark. Between the last boundary ``pos[-1]`` and the wood's edge ``end`` (column positions on the
-    strip), every local maximum of the profile's outward rise ``dV/dr`` (``v_prof`` smoothed with sigma ``sigma``
-    px) is a boundary when the rise is at least ``min_rel`` of the median rise at the ``n_ref`` outermost boundaries
-    already found (those rings' own latewood -> earlywood steps set the scale: faint outer rings are judged against
-    their neighbours, not against the strong juvenile rings), it lies at least ``min_gap_px`` from the boundaries
-    beside it and the edge, and the zone holds room for a ring (it is wider than 1.5 times the last ring). Returns
-    the added positions (sorted)."""
-    pos = np.asarray(pos, np.float64)
-    if len(pos) < 3 or end is None:
-        return np.zeros(0)
-    gaps = np.diff(pos[-(n_ref + 1):])
-    last = float(pos[-1])
-    if end - last < 1.5 * max(float(np.median(gaps[-3:])), min_gap_px):
-        return np.zeros(0)
-    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
-    L = len(dv)
-    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, L - 1)]
-    ref = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
-    if ref <= 0:
-        return np.zeros(0)
-    lo, hi = int(math.floor(last + min_gap_px)), int(math.ceil(end - min_gap_px))
-    cand = [i for i in range(max(lo, 1), min(hi, L - 1)) if dv[i] >= dv[i - 1] and dv[i] > dv[i + 1]
-            and dv[i] >= min_rel * ref]
-    out, prev = [], last
-    for i in sorted(cand, key=lambda i: -dv[i]):  # strongest first, spacing kept
-        if all(abs(i - x) >= min_gap_px for x in out + [prev, end]):
-            out.append(i)
-    out = np.sort(np.asarray(out, np.float64))
-    if len(out):  # sub-pixel: a parabola through the derivative peak
-        i = out.astype(int)
-        y0, y1, y2 = dv[i - 1], dv[i], dv[i + 1]
-        den = y0 - 2 * y1 + y2
-        out = out + np.clip(np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0), -0.5, 0.5)
-    return out
-
-
-def _gap_boundaries(pos, v_prof, end, *, gaps, min_rel=0.2, sigma=0.7, sep_frac=0.3, min_sep_px=5.0, n_ref=5):
-    """Narrow rings skipped between boundaries near the bark (``bark_gaps``, issue 48 item 3): in each of the last
-    ``gaps`` gaps before the wood's edge ``end`` (between the boundaries ``pos`` more than 3 px inside it, and from the
-    last of them to the edge), the strongest local maximum of the profile's outward rise (``v_prof`` smoothed with
-    sigma ``sigma`` px, as in :func:`_bark_zone_boundaries`) that reaches ``min_rel`` of the median rise at the
-    ``n_ref`` outermost boundaries and lies at least ``max(min_sep_px, sep_frac * gap)`` from both ends of its gap is
-    a boundary. Near the bark the rings narrow to a fraction of the disc's ring period, and both passes can run one
-    cycle over two rings there; the bark zone only looks beyond the last boundary. Returns the added positions
-    (sorted), at most one per gap."""
-    pos = np.sort(np.asarray(pos, np.float64))
-    if end is None or gaps < 1:
-        return np.zeros(0)
-    pos = pos[pos < end - 3.0]
-    if len(pos) < max(3, gaps):
-        return np.zeros(0)
-    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
-    L = len(dv)
-    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, L - 1)]
-    ref = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
-    if ref <= 0:
-        return np.zeros(0)
-    bounds = np.r_[pos[-gaps:], end]
-    out = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        sep = max(min_sep_px, sep_frac * (b - a))
-        cand = [i for i in range(max(1, int(math.ceil(a + sep))), min(L - 1, int(math.floor(b - sep)) + 1))
-                if dv[i] >= dv[i - 1] and dv[i] > dv[i + 1] and dv[i] >= min_rel * ref]
-        if cand:
-            out.append(float(max(cand, key=lambda i: dv[i])))
-    return np.asarray(out, np.float64)
-
-
 def _merge_close(pos, v_prof, min_gap):
     """Drop boundaries closer than ``min_gap`` to the previous kept one (keep the one with the larger V rise)."""
     if len(pos) < 2 or min_gap <= 0:
@@ -584,7 +425,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             neighbours' curves agree on (module docstring, step 6; :mod:`~torch_appearance.rings.consistency`).
             Needs three transects or more, helpers included.
         bark_zone: look for the narrow rings just inside the bark, between the last boundary and the wood's edge,
-            as steps of the profile (:func:`_bark_zone_boundaries`); only where the edge is found.
+            as steps of the profile (:func:`.wood_edge.bark_zone_boundaries`); only where the edge is found.
         closed: with ``link``, also trace the rings near the pith as closed curves round the disc (module docstring,
             step 6); False: only the curves between neighbouring transects.
         whole_rings: with ``link``, trace every ring round the disc as a closed curve
@@ -602,11 +443,11 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             the TRAS discs it gained on C13C (whose people marked the pith's edge) and lost on C17C (whose people did
             not, on 3 of 4 transects).
         bark_level: where there is no uniform background, the wood ends this fraction of the way down the fall of
-            brightness from the wood into the bark (:func:`_wood_colour_end`); None: at the steepest point of the
-            fall. Off by default (issue 48 item 3, measured leave-one-disc-out: ``docs/bench_log.md``).
+            brightness from the wood into the bark (:func:`.wood_edge.wood_colour_end`); None: at the steepest
+            point of the fall. Off by default (issue 48 item 3, measured leave-one-disc-out: ``docs/bench_log.md``).
         bark_gaps: in each of this many gaps before the wood's edge, a narrow ring the passes skipped is added where
-            the profile rises sharply inside the gap (:func:`_gap_boundaries`, at most one per gap); 0: none (the
-            default; measured leave-one-disc-out: ``docs/bench_log.md``).
+            the profile rises sharply inside the gap (:func:`.wood_edge.gap_boundaries`, at most one per gap); 0:
+            none (the default; measured leave-one-disc-out: ``docs/bench_log.md``).
         helpers: with ``link``, this many helper transects between each pair of neighbouring transects (evenly
             spaced in angle): filtered like the others, their boundaries serve as evidence and are not returned
             (``info["helpers_deg"]``). 0: the transects link only to each other.
@@ -711,7 +552,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             gap = (srt[(i + 1) % len(srt)] - a0) % 360.0 or 360.0
             dirs += [((a0 + gap * (k + 1) / (helpers + 1)) % 360.0, None) for k in range(helpers)]
     if background is None:
-        bg = _background_colour(rgb, background_tol)
+        bg = background_colour(rgb, background_tol)
     else:
         bg = np.asarray(background, dtype=np.float64).reshape(-1)
         if bg.shape != (rgb.shape[2],) or not np.isfinite(bg).all():
@@ -745,13 +586,13 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             continue
         last = int(woody[-1])
         if bg is None and strip.shape[2] >= 3:  # no uniform background: the wood ends where its colour does
-            end = _wood_colour_end(strip[max(0, yc - S // 4):yc + S // 4 + 1], fall_level=bark_level)
+            end = wood_colour_end(strip[max(0, yc - S // 4):yc + S // 4 + 1], fall_level=bark_level)
             if end is not None and end < last:
                 last = end
                 frac = frac.copy()
                 frac[end + 1:] = 0.0
         elif bg is not None and strip.shape[2] >= 3:  # a dark bark between the wood and the background
-            end = _dark_bark_start(strip[max(0, yc - S // 4):yc + S // 4 + 1, :last + 1])
+            end = dark_bark_start(strip[max(0, yc - S // 4):yc + S // 4 + 1, :last + 1])
             if end is not None and end < last:
                 last = end
                 frac = frac.copy()
@@ -810,7 +651,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 sinfo.update(fine_period_px=fine_period, fine_p=finfo["p"], fine_q=finfo["q"],
                              narrow_added=len(pos) - n_coarse)
             if bark_zone and edge is not None:
-                extra = _bark_zone_boundaries(pos, sinfo["profile_v"], edge)
+                extra = bark_zone_boundaries(pos, sinfo["profile_v"], edge)
                 sinfo["bark_zone_added"] = len(extra)
                 pos = np.sort(np.r_[pos, extra])
             pos = _merge_close(pos, sinfo["profile_v"], min_ring_px)
@@ -887,12 +728,12 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                 whole[k] = np.r_[np.asarray(whole[k], bool)[keep], zeros][o]
                 pithed[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
                 dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
-    if bark_gaps:  # narrow rings skipped near the bark (_gap_boundaries), on the transects returned
+    if bark_gaps:  # narrow rings skipped near the bark (wood_edge.gap_boundaries), on the transects returned
         for k in range(n_req):
             edge_k, (pos0, sinfo_k) = prepared[k][4], found[k]
             if edge_k is None or "profile_v" not in sinfo_k:
                 continue
-            new = _gap_boundaries(pos0, sinfo_k["profile_v"], edge_k, gaps=bark_gaps)
+            new = gap_boundaries(pos0, sinfo_k["profile_v"], edge_k, gaps=bark_gaps)
             if not len(new):
                 continue
             o = np.argsort(np.r_[pos0, new], kind="stable")
