@@ -163,7 +163,11 @@ def test_cli_ring_files_need_a_scale_and_a_year(tmp_path):
                         (("--pith", "150,160", "--dpi", 254, "--rwl", tmp_path / "o.rwl"), "--last-year"),
                         (("--mode", "section", "--dpi", 254, "--pos", tmp_path / "o.pos"), "section"),
                         (("--pith", "150,160", "--dpi", 254, "--rwl", tmp_path / "o.rwl", "--last-year", 2020,
-                          "--series-id", "TOOLONG"), "--series-id")]:
+                          "--series-id", "TOOLONG"), "--series-id"),
+                        (("--pith", "150,160", "--last-year", 2020),  # was ignored without a word
+                         "--last-year: it dates the ring files; give --pos or --rwl, or leave it out"),
+                        (("--pith", "150,160", "--dpi", 254, "--rwl", tmp_path / "o.rwl", "--last-year", 10 ** 12),
+                         "--last-year: expected a year in -999 ... 9999")]:  # was refused after all the work
         rc, _, err = _run("detect_rings", image, *args, "--out", out)
         assert rc == 2 and match in err, (args, err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.png"]

@@ -134,7 +134,15 @@ def _series_id(args, width):
 
 
 def check_ring_file_args(args):
-    """ValueError for --pos / --rwl without a pixel size, --rwl without --last-year, or in section mode."""
+    """ValueError for --pos / --rwl without a pixel size, --rwl without --last-year, or in section mode; for
+    --last-year without either file (it dates them only: it was ignored without a word) or outside the Tucson
+    format's 4-column year field."""
+    if args.last_year is not None:
+        if args.pos is None and args.rwl is None:
+            raise ValueError("--last-year: it dates the ring files; give --pos or --rwl, or leave it out")
+        if not -999 <= args.last_year <= 9999:
+            raise ValueError(f"--last-year: expected a year in -999 ... 9999 (the 4-column year of the Tucson "
+                             f"format), got {args.last_year}")
     if args.pos is None and args.rwl is None:
         return
     if args.mode == "section":
