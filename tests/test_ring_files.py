@@ -2,7 +2,6 @@
 files written by the project and read back, a Tucson file typed by hand from the format's description, refusals of
 malformed files, and ``ta-detect-rings --pos/--rwl`` on a synthetic disc and core."""
 import csv
-import math
 
 import cv2
 import numpy as np

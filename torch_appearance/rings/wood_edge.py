@@ -108,6 +108,15 @@ def dark_bark_start(rows, *, dark=0.45, min_px=4, sigma=1.5):
     return a - 1 + int(np.argmin(np.diff(v)[a - 1:b - 1]))
 
 
+def _outward_rise(pos, v_prof, sigma, n_ref):
+    """``(dv, ref)``: the profile's outward rise ``dV/dr`` (``(L,)``, ``v_prof`` smoothed with sigma ``sigma`` px) and
+    the scale the rings near the bark are judged by, the median positive rise at the ``n_ref`` outermost boundaries
+    ``pos`` (0.0 when none rises)."""
+    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
+    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, len(dv) - 1)]
+    return dv, float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
+
+
 def bark_zone_boundaries(pos, v_prof, end, *, min_rel=0.2, min_gap_px=2.0, sigma=0.7, n_ref=5):
     """Ring boundaries in the bark zone (issue 48): the rings just inside the bark are often narrower (3 - 6 px)
     than even the fine pass's scale resolves, so the Gabor phase runs over them and the transect ends some rings
@@ -125,10 +134,8 @@ def bark_zone_boundaries(pos, v_prof, end, *, min_rel=0.2, min_gap_px=2.0, sigma
     last = float(pos[-1])
     if end - last < 1.5 * max(float(np.median(gaps[-3:])), min_gap_px):
         return np.zeros(0)
-    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
+    dv, ref = _outward_rise(pos, v_prof, sigma, n_ref)
     L = len(dv)
-    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, L - 1)]
-    ref = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
     if ref <= 0:
         return np.zeros(0)
     lo, hi = int(math.floor(last + min_gap_px)), int(math.ceil(end - min_gap_px))
@@ -162,10 +169,8 @@ def gap_boundaries(pos, v_prof, end, *, gaps, min_rel=0.2, sigma=0.7, sep_frac=0
     pos = pos[pos < end - 3.0]
     if len(pos) < max(3, gaps):
         return np.zeros(0)
-    dv = np.gradient(ndimage.gaussian_filter1d(np.asarray(v_prof, np.float64), sigma))
+    dv, ref = _outward_rise(pos, v_prof, sigma, n_ref)
     L = len(dv)
-    ref = dv[np.clip(np.round(pos[-n_ref:]).astype(int), 0, L - 1)]
-    ref = float(np.median(ref[ref > 0])) if (ref > 0).any() else 0.0
     if ref <= 0:
         return np.zeros(0)
     bounds = np.r_[pos[-gaps:], end]
