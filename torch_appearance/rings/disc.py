@@ -665,6 +665,22 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
     closed_x = [np.zeros(0) for _ in found]
     dropped = [[] for _ in found]
     whole = [np.zeros(len(f[0]), bool) for f in found]
+    pithed = [np.zeros(len(f[0]), bool) for f in found]  # the pith's edge placed (pith_edge)
+    # the per-boundary flags of every transect, which follow its boundaries wherever some are added or dropped
+    flags = {"inferred": inferred, "confirmed": confirmed, "closed": closed, "whole": whole, "pith_edge": pithed}
+
+    def insert(k, new, keep=None, marked=()):
+        """Transect ``k`` keeps its boundaries where ``keep`` (bool mask; default all) and gains ``new`` (px), in
+        order of radius; its flags follow, the new boundaries' True for the flags named in ``marked``; the ones not
+        kept are recorded as dropped."""
+        pos0 = found[k][0]
+        keep = np.ones(len(pos0), bool) if keep is None else keep
+        o = np.argsort(np.r_[pos0[keep], new], kind="stable")
+        found[k] = (np.r_[pos0[keep], new][o], found[k][1])
+        for name, per_transect in flags.items():
+            per_transect[k] = np.r_[np.asarray(per_transect[k], bool)[keep], np.full(len(new), name in marked)][o]
+        dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
+
     link_s, rings_polar, whole_s = None, None, None
     usable = [k for k, (pos, sinfo) in enumerate(found) if sinfo]
     if link and len(usable) >= 3:
@@ -680,7 +696,7 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
             found[k] = (lk["radius_px"], found[k][1])
             inferred[k], confirmed[k], moved[k] = lk["inferred"], lk["confirmed"], lk["moved"]
             closed[k], closed_x[k], dropped[k] = lk["closed"], lk["closed_crossings"], lk["dropped"]
-            whole[k] = np.zeros(len(lk["radius_px"]), bool)
+            whole[k], pithed[k] = np.zeros(len(lk["radius_px"]), bool), np.zeros(len(lk["radius_px"]), bool)
         # the traced curves between neighbouring transects (helpers included), for whole rings
         # (:func:`~torch_appearance.rings.ring_polygons.ring_polygons`)
         rings_polar = dict(angles_deg=[dirs[k][0] for k in usable], radii=[lk["radius_px"] for lk in linked],
@@ -694,53 +710,30 @@ def detect_disc_boundaries(image, pith, *, angles_deg=None, ends=None, half_widt
                                    period_px=period, value_blurred=True)
             rings_polar["whole"] = wr
             for i, k in enumerate(usable):
-                pos0 = found[k][0]
-                keep, new = place_whole_rings(pos0, wr["crossings"][i], inner_px=0.5 * period, length_px=lengths[i],
-                                              place=whole_place, drop=whole_drop, support=wr["support"],
-                                              min_support=whole_min_support)
-                o = np.argsort(np.r_[pos0[keep], new], kind="stable")
-                ones, zeros = np.ones(len(new), bool), np.zeros(len(new), bool)
-                found[k] = (np.r_[pos0[keep], new][o], found[k][1])
-                inferred[k] = np.r_[np.asarray(inferred[k], bool)[keep], ones][o]
-                confirmed[k] = np.r_[np.asarray(confirmed[k], bool)[keep], zeros][o]
-                closed[k] = np.r_[np.asarray(closed[k], bool)[keep], zeros][o]
-                whole[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
-                dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
+                keep, new = place_whole_rings(found[k][0], wr["crossings"][i], inner_px=0.5 * period,
+                                              length_px=lengths[i], place=whole_place, drop=whole_drop,
+                                              support=wr["support"], min_support=whole_min_support)
+                insert(k, new, keep, marked=("inferred", "whole"))
             whole_s = wr["seconds"]
     pith_region = None
-    pithed = [np.zeros(len(f[0]), bool) for f in found]  # the pith's edge placed (pith_edge)
     if pith_edge and usable:
         from .pith_region import pith_edge as find_pith_edge, place_pith_edge
-        value = hsv_value(rgb) if rgb.shape[2] >= 3 else np.asarray(rgb[..., 0], np.float32)
+        value = _value(rgb) if value is None else value  # the automatic pith's, when it was found here
         pe = find_pith_edge(value, c, [dirs[k][0] for k in usable], [found[k][0] for k in usable],
                             period_px=found[usable[0]][1]["period_px"], min_support=pith_edge_min_support)
         pith_region = {k_: v_ for k_, v_ in pe.items() if k_ != "crossings"}
         if pe["found"]:
             for i, k in enumerate(usable):
-                pos0 = found[k][0]
-                keep, new = place_pith_edge(pos0, pe["crossings"][i])
-                o = np.argsort(np.r_[pos0[keep], new], kind="stable")
-                ones, zeros = np.ones(len(new), bool), np.zeros(len(new), bool)
-                found[k] = (np.r_[pos0[keep], new][o], found[k][1])
-                inferred[k] = np.r_[np.asarray(inferred[k], bool)[keep], zeros][o]
-                confirmed[k] = np.r_[np.asarray(confirmed[k], bool)[keep], zeros][o]
-                closed[k] = np.r_[np.asarray(closed[k], bool)[keep], zeros][o]
-                whole[k] = np.r_[np.asarray(whole[k], bool)[keep], zeros][o]
-                pithed[k] = np.r_[np.zeros(int(keep.sum()), bool), ones][o]
-                dropped[k] = list(dropped[k]) + pos0[~keep].tolist()
+                keep, new = place_pith_edge(found[k][0], pe["crossings"][i])
+                insert(k, new, keep, marked=("pith_edge",))
     if bark_gaps:  # narrow rings skipped near the bark (wood_edge.gap_boundaries), on the transects returned
         for k in range(n_req):
             edge_k, (pos0, sinfo_k) = prepared[k][4], found[k]
             if edge_k is None or "profile_v" not in sinfo_k:
                 continue
             new = gap_boundaries(pos0, sinfo_k["profile_v"], edge_k, gaps=bark_gaps)
-            if not len(new):
-                continue
-            o = np.argsort(np.r_[pos0, new], kind="stable")
-            found[k] = (np.r_[pos0, new][o], sinfo_k)
-            inferred[k], confirmed[k], closed[k], whole[k], pithed[k] = (
-                np.r_[np.asarray(f, bool), np.zeros(len(new), bool)][o]
-                for f in (inferred[k], confirmed[k], closed[k], whole[k], pithed[k]))
+            if len(new):
+                insert(k, new)
     out, ends_out = [], []
     for k in range(n_req):
         deg, u, v, wd, edge, Lc = prepared[k]
