@@ -79,14 +79,12 @@ def pith_edge(value, pith, angles_deg, radii, *, period_px, max_radius_periods=0
     if not (isinstance(period_px, (int, float, np.integer, np.floating)) and period_px > 0):
         raise ValueError(f"period_px: expected a positive number, got {period_px!r}")
     pith = np.asarray(pith, np.float64).reshape(2)
+    ang = np.radians(np.asarray(angles_deg, np.float64).reshape(-1)) % (2 * math.pi)
+    if len(radii) != len(ang):
+        raise ValueError(f"radii: expected one array per angle ({len(ang)}), got {len(radii)}")
     R = int(math.ceil(max(max_radius_periods * float(period_px), min_radius_px + 4.0)))
     v = np.asarray(value)
-    H, W = v.shape
-    pad = R + 8  # blur a crop round the pith only
-    x0, y0 = max(0, int(pith[0]) - pad), max(0, int(pith[1]) - pad)
-    x1, y1 = min(W, int(pith[0]) + pad + 1), min(H, int(pith[1]) + pad + 1)
-    vb = ndimage.gaussian_filter(v[y0:y1, x0:x1].astype(np.float64), 1.0, mode="nearest")
-    pc = pith - np.array([x0, y0], np.float64)
+    vb, pc = _blurred_crop(v, pith, R + 8)
     J = int(n_rays)
     E, thetas = sector_edges(vb, pc, 0.0, 2 * math.pi, R, n_rays=J, periodic=True, edge_sigma_px=edge_sigma_px,
                              along_px=along_px, period_px=period_px, ridge_level=0.5, ridge_px=3)
@@ -105,7 +103,6 @@ def pith_edge(value, pith, angles_deg, radii, *, period_px, max_radius_periods=0
     support = float(on.mean())
     sc = float(score[best])
     # the crossings: the curve at each transect's direction, refined to the steepest rise along that ray
-    ang = np.radians(np.asarray(angles_deg, np.float64).reshape(-1)) % (2 * math.pi)
     rad_at = np.interp(ang, np.r_[thetas, 2 * math.pi], np.r_[radius, radius[0]])
     dt, _ = _radial_derivative(vb, pc, ang, E.shape[1], edge_sigma_px)
     crossings = rad_at.copy()
@@ -117,13 +114,21 @@ def pith_edge(value, pith, angles_deg, radii, *, period_px, max_radius_periods=0
         a_, b_, c_ = dt[t, i - 1], dt[t, i], dt[t, i + 1]
         den = a_ - 2 * b_ + c_
         crossings[t] = i + (0.5 * (a_ - c_) / den if den < 0 else 0.0)
-    if len(radii) != len(ang):
-        raise ValueError(f"radii: expected one array per angle ({len(ang)}), got {len(radii)}")
     ref = _median_rise(v, pith, ang, radii, ref_periods * float(period_px), edge_sigma_px)
     contrast = float(np.median(d[np.arange(J), ui + r0])) / ref if ref > 0 else 0.0
     found = support >= min_support and sc >= min_score and contrast >= min_contrast
     return dict(thetas=thetas, radius=radius, crossings=crossings, score=sc, support=support, contrast=contrast,
                 found=bool(found), seconds=time.perf_counter() - t0)
+
+
+def _blurred_crop(value, pith, pad):
+    """``(vb, pc)``: the crop of ``value`` within ``pad`` px of ``pith`` (clipped to the image) blurred with sigma
+    1 px (border: nearest), float64, and the pith in the crop's pixels; only the pith's surroundings are read."""
+    H, W = value.shape
+    x0, y0 = max(0, int(pith[0]) - pad), max(0, int(pith[1]) - pad)
+    x1, y1 = min(W, int(pith[0]) + pad + 1), min(H, int(pith[1]) + pad + 1)
+    vb = ndimage.gaussian_filter(value[y0:y1, x0:x1].astype(np.float64), 1.0, mode="nearest")
+    return vb, pith - np.array([x0, y0], np.float64)
 
 
 def _median_rise(value, pith, ang, radii, r_max, sigma_px):
@@ -133,11 +138,7 @@ def _median_rise(value, pith, ang, radii, r_max, sigma_px):
     from .consistency import _radial_derivative
 
     R = int(r_max) + 4
-    H, W = value.shape
-    x0, y0 = max(0, int(pith[0]) - R - 8), max(0, int(pith[1]) - R - 8)
-    x1, y1 = min(W, int(pith[0]) + R + 9), min(H, int(pith[1]) + R + 9)
-    vb = ndimage.gaussian_filter(value[y0:y1, x0:x1].astype(np.float64), 1.0, mode="nearest")
-    pc = pith - np.array([x0, y0], np.float64)
+    vb, pc = _blurred_crop(value, pith, R + 8)
     rises = []
     for a, rr in zip(ang, radii):
         d, inside = _radial_derivative(vb, pc, np.array([a]), R, sigma_px)
